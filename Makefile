@@ -1,0 +1,44 @@
+# Two entry points: `make demo` and `make test`. Each installs what is missing into .venv first.
+# Heavy pieces have pinned install steps (see DEVELOPERS.md): torch 2.13.0 is the CPU wheel on disk,
+# theseus-ai is an sdist that needs SuiteSparse headers and scikit-sparse 0.4.16.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.installed
+APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1
+
+.PHONY: install demo test bench train-all clean sysdeps
+
+sysdeps:
+	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml Makefile
+	$(MAKE) sysdeps
+	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip wheel setuptools
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q "numpy<2.3" scipy cython "scikit-sparse==0.4.16"
+	$(PIP) install -q --no-build-isolation theseus-ai==0.2.3
+	$(PIP) install -q -e ".[dev]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m deform.cli demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q -x tests
+
+bench: $(STAMP)
+	$(PY) -m deform.cli bench --json
+
+clean:
+	rm -rf $(VENV) build *.egg-info

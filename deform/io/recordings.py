@@ -1,0 +1,107 @@
+"""DEFORM recordings: 100 Hz marker trajectories of a rod held at both ends.
+
+A file is a pickle of T arrays of shape (3, n) (x, y, z in metres). In memory a recording is an
+array of shape (T, n, 3), vertex-major, which is what the model consumes.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from deform.io.safe_pickle import UnsafePickleError, safe_load_pickle
+
+DT = 0.01  # the recordings are 100 Hz
+
+
+class RecordingError(ValueError):
+    """A recording file or directory that cannot be used; the message names the file."""
+
+
+@dataclass(frozen=True)
+class Recording:
+    name: str
+    positions: np.ndarray  # (T, n, 3) float64, metres, z up
+    dt: float = DT
+
+    @property
+    def n_vertices(self) -> int:
+        return self.positions.shape[1]
+
+    @property
+    def n_frames(self) -> int:
+        return self.positions.shape[0]
+
+
+def find_data_root() -> Path | None:
+    """`DEFORM_DATA`, else `../shared/data/deform` beside the project (or the cwd) when it exists."""
+    env = os.environ.get("DEFORM_DATA")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve().parents[2]
+    for base in (here, Path.cwd()):
+        candidate = base.parent / "shared" / "data" / "deform"
+        if candidate.is_dir():
+            return candidate
+    return None
+
+
+def _to_array(obj, path: Path) -> np.ndarray:
+    if not isinstance(obj, (list, tuple, np.ndarray)):
+        raise RecordingError(f"{path}: expected a list of (3, n) frames, got {type(obj).__name__}")
+    try:
+        arr = np.asarray(obj, dtype=np.float64)
+    except (ValueError, TypeError) as exc:
+        raise RecordingError(f"{path}: frames are not a regular numeric array ({exc})") from None
+    if arr.ndim != 3 or arr.shape[1] != 3:
+        raise RecordingError(f"{path}: expected frames of shape (3, n), got array of shape {arr.shape}")
+    if arr.shape[0] < 3:
+        raise RecordingError(f"{path}: needs at least 3 frames, has {arr.shape[0]}")
+    if arr.shape[2] < 5:
+        raise RecordingError(f"{path}: needs at least 5 markers, has {arr.shape[2]}")
+    if not np.all(np.isfinite(arr)):
+        bad = int((~np.isfinite(arr)).any(axis=(1, 2)).sum())
+        raise RecordingError(f"{path}: {bad} frame(s) contain NaN or infinite values")
+    return np.ascontiguousarray(arr.transpose(0, 2, 1))
+
+
+def load_recording(path: str | Path, n_vertices: int | None = None) -> Recording:
+    """Load one DEFORM pickle safely and validate it."""
+    path = Path(path)
+    if not path.is_file():
+        raise RecordingError(f"{path}: no such file")
+    try:
+        obj = safe_load_pickle(path)
+    except UnsafePickleError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    positions = _to_array(obj, path)
+    if n_vertices is not None and positions.shape[1] != n_vertices:
+        raise RecordingError(
+            f"{path}: has {positions.shape[1]} markers, the rod has {n_vertices}"
+        )
+    return Recording(name=path.stem, positions=positions)
+
+
+def load_recordings(directory: str | Path, n_vertices: int | None = None) -> list[Recording]:
+    """Every .pkl in a directory, sorted by name; all must have the same marker count."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise RecordingError(f"{directory}: not a directory")
+    files = sorted(directory.glob("*.pkl"), key=lambda p: (len(p.stem), p.stem))
+    if not files:
+        raise RecordingError(f"{directory}: no .pkl recordings found")
+    recs = [load_recording(f, n_vertices) for f in files]
+    counts = {r.n_vertices for r in recs}
+    if len(counts) > 1:
+        raise RecordingError(f"{directory}: recordings have different marker counts {sorted(counts)}")
+    return recs
+
+
+def save_recording(path: str | Path, positions: np.ndarray) -> None:
+    """Write (T, n, 3) positions in the DEFORM format (a list of (3, n) arrays)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    frames = [np.ascontiguousarray(f.T) for f in positions]
+    Path(path).write_bytes(pickle.dumps(frames, protocol=4))

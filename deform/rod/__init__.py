@@ -1,0 +1,1 @@
+"""Discrete Elastic Rods: geometry, energy, twist solve, inextensibility (pure torch functions)."""

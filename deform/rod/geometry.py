@@ -1,0 +1,82 @@
+r"""Discrete geometry of a rod: edges, curvature binormals, frames and their transport.
+
+Shapes: vertices ``x`` are ``(..., n, 3)``; edges ``e_j = x_{j+1} - x_j`` are ``(..., m, 3)`` with
+``m = n - 1``; interior vertices ``i = 1 .. n-2`` are indexed ``k = i - 1`` in ``(..., n-2, ...)``
+arrays, with left edge ``k`` and right edge ``k + 1``.
+
+Parallel transport of ``u`` from unit tangent ``a`` to unit tangent ``b`` is the rotation about
+``a x b`` that takes ``a`` to ``b``; with ``c = a.b`` and ``w = a x b`` it is the branch-free
+Rodrigues form  ``P u = c u + w x u + (w.u) w / (1 + c)``  (valid for ``c > -1``).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def edges(x: Tensor) -> Tensor:
+    return x[..., 1:, :] - x[..., :-1, :]
+
+
+def dot(a: Tensor, b: Tensor) -> Tensor:
+    return (a * b).sum(-1)
+
+
+def normalize(u: Tensor, eps: float = 1e-12) -> Tensor:
+    return u / u.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def parallel_transport(u: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """Transport ``u`` from unit tangent ``a`` to unit tangent ``b`` (minimal rotation)."""
+    c = dot(a, b).unsqueeze(-1)
+    w = torch.linalg.cross(a, b, dim=-1)
+    return c * u + torch.linalg.cross(w, u, dim=-1) + w * dot(w, u).unsqueeze(-1) / (1.0 + c).clamp_min(1e-9)
+
+
+def curvature_binormal(e: Tensor) -> Tensor:
+    r"""``kb_i = 2 e_{i-1} x e_i / (|e_{i-1}| |e_i| + e_{i-1}.e_i)`` at interior vertices; |kb| = 2 tan(phi/2)."""
+    e0, e1 = e[..., :-1, :], e[..., 1:, :]
+    denom = e0.norm(dim=-1) * e1.norm(dim=-1) + dot(e0, e1)
+    return 2.0 * torch.linalg.cross(e0, e1, dim=-1) / denom.clamp_min(1e-12).unsqueeze(-1)
+
+
+def any_perpendicular(t: Tensor) -> Tensor:
+    """A unit vector perpendicular to each unit ``t`` (smooth away from the switch between helpers)."""
+    ex = torch.zeros_like(t)
+    ex[..., 0] = 1.0
+    ey = torch.zeros_like(t)
+    ey[..., 1] = 1.0
+    helper = torch.where((t[..., 0].abs() < 0.9).unsqueeze(-1), ex, ey)
+    return normalize(helper - dot(helper, t).unsqueeze(-1) * t)
+
+
+def space_parallel_frame(t: Tensor) -> Tensor:
+    """Reference directors ``d1`` (..., m, 3) made by transporting a perpendicular of edge 0 along the rod.
+
+    Its reference twist is zero, which is the natural twist-free start for a recording whose twist
+    we cannot observe.
+    """
+    d1 = [any_perpendicular(t[..., 0, :])]
+    for j in range(1, t.shape[-2]):
+        d1.append(normalize(parallel_transport(d1[-1], t[..., j - 1, :], t[..., j, :])))
+    return torch.stack(d1, dim=-2)
+
+
+def time_transport(d1_prev: Tensor, t_prev: Tensor, t: Tensor) -> Tensor:
+    """Carry the reference director of every edge from last step's tangent to the current one."""
+    d1 = parallel_transport(d1_prev, t_prev, t)
+    return normalize(d1 - dot(d1, t).unsqueeze(-1) * t)  # remove round-off drift
+
+
+def reference_twist(d1: Tensor, t: Tensor) -> Tensor:
+    """Signed angle at each interior vertex from the transported ``d1_{i-1}`` to ``d1_i`` about ``t_i``."""
+    u = parallel_transport(d1[..., :-1, :], t[..., :-1, :], t[..., 1:, :])
+    v = d1[..., 1:, :]
+    sin = dot(torch.linalg.cross(u, v, dim=-1), t[..., 1:, :])
+    cos = dot(u, v)
+    return torch.atan2(sin, cos)
+
+
+def voronoi_lengths(edge_lengths: Tensor) -> Tensor:
+    """``l_i = |e_{i-1}| + |e_i|`` at interior vertices (twice the Voronoi length, DER convention)."""
+    return edge_lengths[..., :-1] + edge_lengths[..., 1:]
