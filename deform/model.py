@@ -1,0 +1,234 @@
+r"""DEFORM: a discrete elastic rod with identified parameters, a residual GNN and PBD inextensibility.
+
+One step (semi-implicit Euler, ``dt``), for positions ``x`` and velocities ``v``:
+
+1. material angles ``theta* = argmin E`` over interior edges (ends from the grippers);
+2. forces ``F = -dE/dx`` at ``theta*`` (autograd of the energy: exact by construction);
+3. ``v' = v + dt (F / M - c v) + r(x, v)`` with ``r`` the residual network;
+4. ``x' = x + dt v'``; gripped vertices 0, 1, n-2, n-1 set to their inputs;
+5. PBD projects edges to their rest lengths, gripped vertices being infinitely heavy;
+6. ``v = (x_new - x) / dt`` and reference frames are parallel-transported in time.
+
+Parameters identified from data: per-vertex bending and twisting stiffness (log scale), rest
+material curvature, extra point masses per vertex, linear damping.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from deform.config import RodConfig, load_rod_config
+from deform.nn.residual import ResidualGNN
+from deform.rod import geometry as G
+from deform.rod.energy import ElasticParams, bending_energy, curvature_projections, gravity_energy, rod_geometry, twisting_energy
+from deform.rod.inextensibility import enforce_inextensibility, unweighted_inv_mass
+from deform.rod.twist_solver import solve_theta
+
+MODEL_DIR = Path(__file__).resolve().parent / "models"
+
+
+def gripped_indices(n: int) -> list[int]:
+    return [0, 1, n - 2, n - 1]
+
+
+@dataclass
+class RodState:
+    """Batched rod state. ``x``, ``v``: (B, n, 3); ``d1``: (B, m, 3) reference directors of the
+    edges of ``x``; ``theta``: (B, m) material angles (warm start); ``rest``: (B, m) edge lengths."""
+
+    x: Tensor
+    v: Tensor
+    d1: Tensor
+    theta: Tensor
+    rest: Tensor
+
+    def detach(self) -> "RodState":
+        return RodState(*(t.detach() for t in (self.x, self.v, self.d1, self.theta, self.rest)))
+
+    def index(self, idx) -> "RodState":
+        return RodState(*(t[idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
+
+
+@dataclass
+class ModelOptions:
+    residual: bool = True
+    weighted_pbd: bool = True  # False: the 'original inextensibility' of the ablation
+    pbd_tol: float = 1e-3
+    pbd_max_sweeps: int = 20
+    theta_tol: float = 1e-8
+    theta_solver: str = "newton"  # or "theseus" (reference; slow)
+
+
+def _inv_softplus(y: float) -> float:
+    return y + math.log(-math.expm1(-y))
+
+
+class DeformModel(nn.Module):
+    def __init__(self, cfg: RodConfig, options: ModelOptions | None = None):
+        super().__init__()
+        self.cfg = cfg
+        self.options = options or ModelOptions()
+        n = cfg.n_vertices
+        self.n = n
+        self.dt = cfg.dt
+        self.log_beta = nn.Parameter(torch.full((n - 2,), math.log(cfg.bend_stiffness)))
+        self.log_gamma = nn.Parameter(torch.full((n - 2,), math.log(cfg.twist_stiffness)))
+        self.wbar = nn.Parameter(torch.zeros(n - 2, 2, 2))
+        # extra point masses (markers) in grams through a softplus; rod mass is fixed from the config
+        self.extra_mass_raw = nn.Parameter(torch.full((n,), _inv_softplus(cfg.marker_mass_kg * 1e3)))
+        self.log_damping = nn.Parameter(torch.tensor(math.log(max(cfg.damping, 1e-4))))
+        self.residual = ResidualGNN(n)
+        grip = torch.zeros(n)
+        grip[gripped_indices(n)] = 1.0
+        self.register_buffer("gripped", grip)
+
+    # ----- parameters -------------------------------------------------------------------------
+    def vertex_mass(self, rest: Tensor) -> Tensor:
+        """(B, n): the rod's mass spread by Voronoi length, plus the extra point masses."""
+        half = 0.5 * rest
+        vor = torch.cat([half[..., :1], half[..., :-1] + half[..., 1:], half[..., -1:]], dim=-1)
+        rod = self.cfg.mass_kg * vor / rest.sum(-1, keepdim=True)
+        return rod + nn.functional.softplus(self.extra_mass_raw).to(rest.dtype) * 1e-3
+
+    def elastic_params(self, rest: Tensor) -> ElasticParams:
+        dtype = rest.dtype
+        return ElasticParams(
+            beta=self.log_beta.exp().to(dtype),
+            gamma=self.log_gamma.exp().to(dtype),
+            wbar=self.wbar.to(dtype),
+            rest_vor=G.voronoi_lengths(rest),
+        )
+
+    @property
+    def damping(self) -> Tensor:
+        return self.log_damping.exp()
+
+    # ----- state ------------------------------------------------------------------------------
+    def initial_state(self, x0: Tensor, x1: Tensor, dt: float | None = None) -> RodState:
+        """State at frame 1 from two observed frames (B, n, 3); rest lengths from frame 0."""
+        dt = dt or self.dt
+        x0, x1 = torch.as_tensor(x0), torch.as_tensor(x1)
+        if x1.dim() == 2:
+            x0, x1 = x0.unsqueeze(0), x1.unsqueeze(0)
+        t = G.normalize(G.edges(x1))
+        d1 = G.space_parallel_frame(t)
+        theta = torch.zeros(t.shape[:-1], dtype=x1.dtype)
+        rest = G.edges(x0).norm(dim=-1)
+        return RodState(x=x1, v=(x1 - x0) / dt, d1=d1, theta=theta, rest=rest)
+
+    def static_state(self, x: Tensor, rest: Tensor | None = None) -> RodState:
+        """State at rest at positions ``x`` (B, n, 3), e.g. a guess to be relaxed by :meth:`settle`."""
+        if x.dim() == 2:
+            x = x.unsqueeze(0)
+        t = G.normalize(G.edges(x))
+        rest = G.edges(x).norm(dim=-1) if rest is None else rest
+        return RodState(x=x, v=torch.zeros_like(x), d1=G.space_parallel_frame(t),
+                        theta=torch.zeros(t.shape[:-1], dtype=x.dtype), rest=rest)
+
+    # ----- dynamics ---------------------------------------------------------------------------
+    def forces(self, state: RodState, theta_ends: Tensor | None = None, create_graph: bool = False) -> tuple[Tensor, Tensor]:
+        """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles."""
+        x = state.x
+        params = self.elastic_params(state.rest)
+        mass = self.vertex_mass(state.rest)
+        if theta_ends is None:
+            theta_ends = state.theta[..., [0, -1]].detach()
+        with torch.enable_grad():
+            xa = x.clone() if (create_graph and x.requires_grad) else x.detach().requires_grad_(True)
+            t_now = G.normalize(G.edges(x)).detach()
+            geo = rod_geometry(xa, state.d1, t_now)
+            a, b = curvature_projections(geo)
+            solver_in = (a, b, geo.m_ref) if create_graph else (a.detach(), b.detach(), geo.m_ref.detach())
+            theta = self._solve_theta(*solver_in, theta_ends, params, state.theta, create_graph)
+            energy = (
+                bending_energy(a, b, theta, params.beta, params.rest_vor, params.wbar)
+                + twisting_energy(theta, geo.m_ref, params.gamma, params.rest_vor)
+                + gravity_energy(xa, mass)
+            )
+            (grad,) = torch.autograd.grad(energy.sum(), xa, create_graph=create_graph)
+        return -grad, theta
+
+    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init, create_graph):
+        if not create_graph:
+            params = ElasticParams(*(p.detach() for p in (params.beta, params.gamma, params.wbar, params.rest_vor)))
+        if self.options.theta_solver == "theseus":
+            from deform.rod.twist_theseus import theseus_theta
+
+            return theseus_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar)
+        return solve_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar,
+                           theta_init=theta_init, tol=self.options.theta_tol)
+
+    def step(self, state: RodState, grip_next: Tensor, theta_ends: Tensor | None = None, create_graph: bool = False) -> RodState:
+        """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time."""
+        dt = self.dt
+        x, v = state.x, state.v
+        force, theta = self.forces(state, theta_ends, create_graph)
+        mass = self.vertex_mass(state.rest)
+        accel = force / mass.unsqueeze(-1) - self.damping.to(x.dtype) * v
+        v_pred = v + dt * accel
+        if self.options.residual:
+            v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32)).to(x.dtype)
+        x_pred = x + dt * v_pred
+        idx = gripped_indices(self.n)
+        x_pred = x_pred.clone()
+        x_pred[..., idx, :] = grip_next.to(x_pred.dtype)
+        inv_mass = (1.0 - self.gripped.to(x.dtype)) / mass
+        if not self.options.weighted_pbd:
+            inv_mass = unweighted_inv_mass(inv_mass)
+        x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps)
+        v_new = (x_new - x) / dt
+        t_old = G.normalize(G.edges(x))
+        t_new = G.normalize(G.edges(x_new))
+        d1_new = G.time_transport(state.d1, t_old, t_new)
+        if not create_graph:
+            return RodState(x_new.detach(), v_new.detach(), d1_new.detach(), theta.detach(), state.rest)
+        return RodState(x_new, v_new, d1_new, theta, state.rest)
+
+    def rollout(self, state: RodState, grips: Tensor, create_graph: bool = False) -> tuple[Tensor, RodState]:
+        """Open-loop prediction. ``grips`` (B, T, 4, 3) -> positions (B, T, n, 3) and the final state."""
+        out = []
+        for k in range(grips.shape[-3]):
+            state = self.step(state, grips[..., k, :, :], create_graph=create_graph)
+            out.append(state.x)
+        return torch.stack(out, dim=-3), state
+
+    def settle(self, state: RodState, grip: Tensor, max_steps: int = 2000, tol: float = 1e-4) -> RodState:
+        """Simulate with the grippers fixed until the rod is static (max speed below ``tol`` m/s)."""
+        for _ in range(max_steps):
+            state = self.step(state, grip)
+            if float(state.v.abs().amax()) < tol:
+                break
+        return state
+
+    # ----- persistence ------------------------------------------------------------------------
+    def save(self, path: str | Path, extra: dict | None = None) -> None:
+        payload = {"config": self.cfg.model_dump(), "options": vars(self.options), "state_dict": self.state_dict()}
+        payload.update(extra or {})
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        torch.save(payload, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "DeformModel":
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        model = cls(RodConfig(**payload["config"]), ModelOptions(**payload["options"]))
+        model.load_state_dict(payload["state_dict"])
+        return model
+
+
+def load_model(rod: str | Path, options: ModelOptions | None = None) -> DeformModel:
+    """The trained model of a rod shipped in ``deform/models/<rod>.pt``, a checkpoint path, or
+    (when no model is shipped) the untrained model with the config's initial parameters."""
+    path = Path(rod)
+    if path.suffix == ".pt":
+        model = DeformModel.load(path)
+    elif (MODEL_DIR / f"{rod}.pt").is_file():
+        model = DeformModel.load(MODEL_DIR / f"{rod}.pt")
+    else:
+        model = DeformModel(load_rod_config(rod))
+    if options is not None:
+        model.options = replace(model.options, **vars(options)) if False else options
+    return model
