@@ -1,8 +1,9 @@
 r"""Batched solve of symmetric tridiagonal systems ``H x = r``.
 
 ``diag`` is (..., k), ``off`` is (..., k-1) (the super- and sub-diagonal). Small systems go through a
-dense batched LU (one kernel call beats k Python-level Thomas sweeps); large ones use the O(k)
-Thomas algorithm, vectorised over the batch.
+dense batched Cholesky (one kernel call beats k Python-level sweeps); large ones use the O(k)
+Thomas algorithm, vectorised over the batch. Both report per system whether ``H`` is positive
+definite (all pivots positive), which the Newton solver uses to pick its step.
 """
 from __future__ import annotations
 
@@ -16,25 +17,36 @@ def to_dense(diag: Tensor, off: Tensor) -> Tensor:
     return torch.diag_embed(diag) + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
 
 
-def thomas(diag: Tensor, off: Tensor, rhs: Tensor) -> Tensor:
+def thomas(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
     k = diag.shape[-1]
-    c = []  # modified super-diagonal
-    d = []  # modified right-hand side
-    denom = diag[..., 0]
-    c.append(off[..., 0] / denom if k > 1 else None)
-    d.append(rhs[..., 0] / denom)
+    c: list = []  # modified super-diagonal
+    d: list = []  # modified right-hand side
+    pivot = diag[..., 0]
+    ok = pivot > 0
+    c.append(off[..., 0] / pivot if k > 1 else None)
+    d.append(rhs[..., 0] / pivot)
     for i in range(1, k):
-        denom = diag[..., i] - off[..., i - 1] * c[i - 1]
-        c.append(off[..., i] / denom if i < k - 1 else None)
-        d.append((rhs[..., i] - off[..., i - 1] * d[i - 1]) / denom)
+        pivot = diag[..., i] - off[..., i - 1] * c[i - 1]
+        ok = ok & (pivot > 0)
+        c.append(off[..., i] / pivot if i < k - 1 else None)
+        d.append((rhs[..., i] - off[..., i - 1] * d[i - 1]) / pivot)
     x = [None] * k
     x[-1] = d[-1]
     for i in range(k - 2, -1, -1):
         x[i] = d[i] - c[i] * x[i + 1]
-    return torch.stack(x, dim=-1)
+    return torch.stack(x, dim=-1), ok
+
+
+def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+    """Solve and report positive definiteness per system: ``(x, ok)``; ``x`` is meaningless where not ok."""
+    if diag.shape[-1] <= DENSE_MAX:
+        chol, info = torch.linalg.cholesky_ex(to_dense(diag, off))
+        return torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1), info == 0
+    return thomas(diag, off, rhs)
 
 
 def solve_tridiagonal(diag: Tensor, off: Tensor, rhs: Tensor) -> Tensor:
+    """Solve a system known to be non-singular (used for the implicit gradient)."""
     if diag.shape[-1] <= DENSE_MAX:
         return torch.linalg.solve(to_dense(diag, off), rhs.unsqueeze(-1)).squeeze(-1)
-    return thomas(diag, off, rhs)
+    return thomas(diag, off, rhs)[0]

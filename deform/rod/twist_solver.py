@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from deform.rod.energy import left_right, material_curvature, twist_of
-from deform.rod.tridiagonal import solve_tridiagonal
+from deform.rod.tridiagonal import solve_tridiagonal, solve_tridiagonal_pd
 
 
 def gradient_and_hessian(
@@ -41,6 +41,14 @@ def gradient_and_hessian(
     return grad, diag, off
 
 
+def twist_only_minimiser(m_ref: Tensor, theta_ends: Tensor) -> Tensor:
+    """Free angles that spread the total twist evenly (the minimiser without rest curvature, equal weights)."""
+    k = m_ref.shape[-1] - 1
+    frac = torch.linspace(0, 1, k + 2, dtype=m_ref.dtype, device=m_ref.device)[1:-1]
+    free = theta_ends[..., :1] + frac * (theta_ends[..., 1:] - theta_ends[..., :1])
+    return free - torch.cumsum(m_ref, -1)[..., :-1] + frac * m_ref.sum(-1, keepdim=True)
+
+
 def _with_free(theta_ends: Tensor, free: Tensor) -> Tensor:
     return torch.cat([theta_ends[..., :1], free, theta_ends[..., 1:]], dim=-1)
 
@@ -57,29 +65,32 @@ def newton_theta(
     theta_init: Tensor | None = None,
     tol: float = 1e-10,
     max_iter: int = 30,
+    max_step: float = 0.5,
 ) -> Tensor:
     """Minimise over the free angles by damped Newton; returns all m angles (ends included), detached.
 
-    Where the bending curvature is negative the step uses its absolute value (still a descent
-    direction); near a minimum the Hessian is positive and the iteration is plain Newton.
+    Where the exact Hessian is positive definite the step is plain Newton (quadratic convergence at
+    a minimum); elsewhere it uses the twist Hessian plus the absolute value of the bending curvature,
+    which is positive definite and so a descent direction. Steps are clipped to ``max_step`` rad.
     """
     with torch.no_grad():
         a, b, m_ref, theta_ends = a.detach(), b.detach(), m_ref.detach(), theta_ends.detach()
         beta, gamma, rest_vor, wbar = beta.detach(), gamma.detach(), rest_vor.detach(), wbar.detach()
         k = a.shape[-2] - 1
         if theta_init is None:
-            # linear interpolation of the end angles minus the accumulated reference twist
-            frac = torch.linspace(0, 1, k + 2, dtype=a.dtype, device=a.device)[1:-1]
-            free = theta_ends[..., :1] + frac * (theta_ends[..., 1:] - theta_ends[..., :1])
-            free = free - torch.cumsum(m_ref, -1)[..., :-1] + frac * m_ref.sum(-1, keepdim=True)
+            free = twist_only_minimiser(m_ref, theta_ends)
         else:
             free = theta_init.detach()[..., 1:-1].clone()
         for _ in range(max_iter):
             theta = _with_free(theta_ends, free)
             grad, diag, off = gradient_and_hessian(theta, a, b, m_ref, beta, gamma, rest_vor, wbar)
-            twist_diag = -torch.cat([off[..., :1] * 0, off], -1) - torch.cat([off, off[..., :1] * 0], -1)
-            safe = torch.maximum(diag, 0.5 * twist_diag.clamp_min(1e-12))
-            step = solve_tridiagonal(safe, off, grad)
+            c = 2.0 * gamma / rest_vor
+            twist_diag = c[..., :-1] + c[..., 1:]
+            step, ok = solve_tridiagonal_pd(diag, off, grad)
+            if not bool(ok.all()):
+                safe = twist_diag + (diag - twist_diag).abs()
+                step = torch.where(ok.unsqueeze(-1), step, solve_tridiagonal(safe, off, grad))
+            step = step.clamp(-max_step, max_step)
             free = free - step
             if float(step.abs().max()) < tol:
                 break
