@@ -1,0 +1,118 @@
+"""Service configuration (config/service.yaml), validated with pydantic so a typo fails at start-up
+with the file and field named, not minutes later inside the loop."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+DEFAULT_PATH = Path(__file__).resolve().parent.parent / "config" / "service.yaml"
+
+
+class ServiceConfigError(ValueError):
+    """A service configuration that cannot be used."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class GripOffsets(_Strict):
+    """Distances along the gripper's +x axis of the end vertex (d0) and of its neighbour (d1)."""
+    d0: float = 0.0
+    d1: float = Field(default=0.03)
+
+    @field_validator("d1")
+    @classmethod
+    def _distinct(cls, v, info):
+        if abs(v - info.data.get("d0", 0.0)) < 1e-4:
+            raise ValueError("d1 must differ from d0 (the end edge needs a length)")
+        return v
+
+
+class Grippers(_Strict):
+    first: GripOffsets = GripOffsets()
+    last: GripOffsets = GripOffsets()
+
+
+class Camera(_Strict):
+    pose: list[float] = Field(default=[0.0, -1.2, 0.5, -0.7071068, 0.0, 0.0, 0.7071068], min_length=7, max_length=7)
+    use_pose_topic: bool = True
+    max_points: int = Field(default=4000, ge=10)
+
+
+class Timeouts(_Strict):
+    pose_s: float = Field(default=0.2, gt=0)
+    cloud_s: float = Field(default=0.5, gt=0)
+    stale_s: float = Field(default=1.0, gt=0)
+
+
+class Limits(_Strict):
+    max_plans: int = Field(default=256, ge=1)
+    max_steps: int = Field(default=500, ge=1)
+    max_plan_steps_total: int = Field(default=64000, ge=1)
+    max_request_bytes: int = Field(default=8_000_000, ge=1000)
+    max_cloud_bytes: int = Field(default=40_000_000, ge=1000)
+    max_cloud_rate_hz: float = Field(default=60.0, gt=0)
+
+
+class ZenohSettings(_Strict):
+    mode: Literal["peer", "client"] = "peer"
+    connect: list[str] = []
+    listen: list[str] = []
+    multicast_scouting: bool = True
+
+
+class RerunSettings(_Strict):
+    mode: Literal["off", "file", "viewer"] = "off"
+    path: str = "deform_service.rrd"
+    cloud_every: int = Field(default=1, ge=1)
+
+    @field_validator("mode", mode="before")
+    @classmethod
+    def _yaml_off(cls, v):
+        return "off" if v is False else v  # YAML reads a bare `off` as false
+
+
+class ServiceConfig(_Strict):
+    namespace: str = "deform/rod1"
+    rod: str = "DLO1"
+    rate_hz: float = Field(default=100.0, gt=0, le=1000)
+    clock: Literal["wall", "message"] = "wall"
+    torch_threads: int = Field(default=1, ge=1)
+    grippers: Grippers = Grippers()
+    camera: Camera = Camera()
+    timeouts: Timeouts = Timeouts()
+    limits: Limits = Limits()
+    zenoh: ZenohSettings = ZenohSettings()
+    rerun: RerunSettings = RerunSettings()
+
+    @field_validator("namespace")
+    @classmethod
+    def _key(cls, v: str) -> str:
+        v = v.strip("/")
+        if not v or any(c in v for c in "*$?#") or "//" in v:
+            raise ValueError(f"not a plain key expression: {v!r}")
+        return v
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+    def key(self, name: str) -> str:
+        return f"{self.namespace}/{name}"
+
+
+def load_config(path: str | Path | None = None, **overrides) -> ServiceConfig:
+    """Read the YAML (default config/service.yaml) and apply top-level overrides."""
+    path = Path(path) if path else DEFAULT_PATH
+    try:
+        data = yaml.safe_load(path.read_text()) or {} if path.is_file() else None
+        if data is None:
+            raise ServiceConfigError(f"{path}: no such file")
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        return ServiceConfig(**data)
+    except (yaml.YAMLError, TypeError, ValidationError) as exc:
+        raise ServiceConfigError(f"{path}: {str(exc).replace(chr(10), '; ')}") from None

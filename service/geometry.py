@@ -1,0 +1,62 @@
+"""Poses (x y z qx qy qz qw) to rotations and gripped vertices: the only place that knows how a
+gripper holds the rod (the rod leaves along the gripper's +x axis)."""
+from __future__ import annotations
+
+import numpy as np
+
+from service.config import Grippers
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """(..., 4) unit quaternions x y z w -> (..., 3, 3) rotation matrices."""
+    q = np.asarray(q, dtype=float)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z); R[..., 0, 1] = 2 * (x * y - z * w); R[..., 0, 2] = 2 * (x * z + y * w)
+    R[..., 1, 0] = 2 * (x * y + z * w); R[..., 1, 1] = 1 - 2 * (x * x + z * z); R[..., 1, 2] = 2 * (y * z - x * w)
+    R[..., 2, 0] = 2 * (x * z - y * w); R[..., 2, 1] = 2 * (y * z + x * w); R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def quat_from_x_axis(u) -> np.ndarray:
+    """(..., 3) directions -> (..., 4) the shortest rotation taking +x onto each direction."""
+    u = np.asarray(u, dtype=float)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    q = np.zeros(u.shape[:-1] + (4,))
+    q[..., 0] = 0.0
+    q[..., 1] = -u[..., 2]
+    q[..., 2] = u[..., 1]
+    q[..., 3] = 1.0 + u[..., 0]
+    flip = q[..., 3] < 1e-9  # u = -x: any half turn about an axis normal to x
+    q[flip] = [0.0, 0.0, 1.0, 0.0]
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def pose_matrix(pose) -> np.ndarray:
+    """(7,) pose -> (4, 4) homogeneous transform."""
+    M = np.eye(4)
+    M[:3, :3] = quat_to_matrix(pose[3:7])
+    M[:3, 3] = pose[:3]
+    return M
+
+
+def grips_from_poses(poses: np.ndarray, offsets: Grippers) -> np.ndarray:
+    """(..., 2, 7) gripper poses -> (..., 4, 3) positions of vertices 0, 1, n-2, n-1."""
+    poses = np.asarray(poses, dtype=float)
+    ex = quat_to_matrix(poses[..., 3:7])[..., :, 0]  # (..., 2, 3) the +x axes
+    p = poses[..., :3]
+    a, b = offsets.first, offsets.last
+    return np.stack([p[..., 0, :] + a.d0 * ex[..., 0, :], p[..., 0, :] + a.d1 * ex[..., 0, :],
+                     p[..., 1, :] + b.d1 * ex[..., 1, :], p[..., 1, :] + b.d0 * ex[..., 1, :]], axis=-2)
+
+
+def poses_from_vertices(x: np.ndarray, offsets: Grippers) -> np.ndarray:
+    """(..., n, 3) vertex positions -> (..., 2, 7) gripper poses that hold them (inverse of the above
+    for the end vertices; used to turn recordings into ee_poses streams)."""
+    x = np.asarray(x, dtype=float)
+    out = []
+    for end, (i0, i1), off in ((0, (0, 1), offsets.first), (1, (-1, -2), offsets.last)):
+        u = x[..., i1, :] - x[..., i0, :]
+        u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+        out.append(np.concatenate([x[..., i0, :] - off.d0 * u, quat_from_x_axis(u)], axis=-1))
+    return np.stack(out, axis=-2)

@@ -1,0 +1,191 @@
+"""ROS 2 messages as CDR bytes, exactly what zenoh-bridge-ros2dds carries, via the rosbags typestore.
+
+Decoders validate what the loop relies on and raise :class:`InputError` with a short reason, which
+becomes the name of a rejection counter.
+"""
+from __future__ import annotations
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
+T = TYPESTORE.types
+POSE_ARRAY = "geometry_msgs/msg/PoseArray"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+FLOAT32, UINT8, UINT32 = T["sensor_msgs/msg/PointField"].FLOAT32, T["sensor_msgs/msg/PointField"].UINT8, T["sensor_msgs/msg/PointField"].UINT32
+
+
+class InputError(ValueError):
+    """A message the service refuses; ``reason`` is a stable counter name."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+def encode(msg, typename: str) -> bytes:
+    return bytes(TYPESTORE.serialize_cdr(msg, typename))
+
+
+def decode(raw: bytes, typename: str):
+    try:
+        return TYPESTORE.deserialize_cdr(raw, typename)
+    except Exception as exc:  # rosbags raises several types on garbage; all mean the same here
+        raise InputError("malformed_cdr", f"{typename}: {type(exc).__name__}") from None
+
+
+def definition(typename: str) -> str:
+    """The ros2msg schema text (with dependencies) that MCAP files and Foxglove expect."""
+    return TYPESTORE.generate_msgdef(typename, ros_version=2)[0]
+
+
+# ----- time -----------------------------------------------------------------------------------
+def header(stamp_ns: int, frame_id: str):
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id)
+
+
+def stamp_ns(hdr) -> int:
+    return int(hdr.stamp.sec) * 1_000_000_000 + int(hdr.stamp.nanosec)
+
+
+# ----- poses ----------------------------------------------------------------------------------
+def _pose(p) -> object:
+    P = T["geometry_msgs/msg/Pose"]
+    return P(position=T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+             orientation=T["geometry_msgs/msg/Quaternion"](x=float(p[3]), y=float(p[4]), z=float(p[5]), w=float(p[6])))
+
+
+def _pose_vec(p) -> list[float]:
+    return [p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+
+
+def _check_poses(poses: np.ndarray) -> np.ndarray:
+    if not np.all(np.isfinite(poses)):
+        raise InputError("nan_pose")
+    qn = np.linalg.norm(poses[:, 3:], axis=1)
+    if np.any(np.abs(qn - 1.0) > 0.1):
+        raise InputError("bad_quaternion", f"norms {np.round(qn, 3).tolist()}")
+    poses = poses.copy()
+    poses[:, 3:] /= qn[:, None]
+    return poses
+
+
+def pose_array(stamp: int, poses, frame_id: str = "world") -> bytes:
+    """``poses`` (k, 7): x y z qx qy qz qw."""
+    msg = T[POSE_ARRAY](header=header(stamp, frame_id), poses=[_pose(p) for p in np.asarray(poses, dtype=float)])
+    return encode(msg, POSE_ARRAY)
+
+
+def parse_pose_array(raw: bytes, expected: int = 2) -> tuple[int, np.ndarray]:
+    msg = decode(raw, POSE_ARRAY)
+    if len(msg.poses) != expected:
+        raise InputError("wrong_pose_count", f"{len(msg.poses)} poses, expected {expected}")
+    return stamp_ns(msg.header), _check_poses(np.array([_pose_vec(p) for p in msg.poses], dtype=float))
+
+
+def pose_stamped(stamp: int, pose, frame_id: str = "world") -> bytes:
+    return encode(T[POSE_STAMPED](header=header(stamp, frame_id), pose=_pose(pose)), POSE_STAMPED)
+
+
+def parse_pose_stamped(raw: bytes) -> tuple[int, np.ndarray]:
+    msg = decode(raw, POSE_STAMPED)
+    return stamp_ns(msg.header), _check_poses(np.array([_pose_vec(msg.pose)], dtype=float))[0]
+
+
+# ----- camera info ----------------------------------------------------------------------------
+def camera_info(stamp: int, K, width: int, height: int, frame_id: str = "camera") -> bytes:
+    K = np.asarray(K, dtype=float).reshape(9)
+    P = np.zeros(12)
+    P[[0, 1, 2, 4, 5, 6, 10]] = K[[0, 1, 2, 3, 4, 5, 8]]
+    msg = T[CAMERA_INFO](header=header(stamp, frame_id), height=int(height), width=int(width), distortion_model="plumb_bob",
+                         d=np.zeros(5), k=K, r=np.eye(3).reshape(9), p=P, binning_x=0, binning_y=0,
+                         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    return encode(msg, CAMERA_INFO)
+
+
+def parse_camera_info(raw: bytes) -> tuple[int, np.ndarray, int, int]:
+    msg = decode(raw, CAMERA_INFO)
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or msg.width == 0 or msg.height == 0:
+        raise InputError("bad_camera_info")
+    return stamp_ns(msg.header), K, int(msg.width), int(msg.height)
+
+
+# ----- point clouds ---------------------------------------------------------------------------
+def _pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    rgb = rgb.astype(np.uint32)
+    return ((rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]).astype(np.uint32)
+
+
+def point_cloud(stamp: int, xyz: np.ndarray, rgb: np.ndarray, frame_id: str = "camera") -> bytes:
+    """Organized cloud: ``xyz`` (H, W, 3) float32 (NaN where nothing was seen), ``rgb`` (H, W, 3) uint8;
+    rgb is packed into a float32 field as ROS drivers do."""
+    H, W = xyz.shape[:2]
+    rec = np.zeros((H, W), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    rec["x"], rec["y"], rec["z"] = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    rec["rgb"] = _pack_rgb(rgb)
+    PF = T["sensor_msgs/msg/PointField"]
+    fields = [PF(name=n, offset=4 * i, datatype=FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))]
+    msg = T[POINT_CLOUD2](header=header(stamp, frame_id), height=H, width=W, fields=fields, is_bigendian=False,
+                          point_step=16, row_step=16 * W, data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
+                          is_dense=False)
+    return encode(msg, POINT_CLOUD2)
+
+
+def _structured(msg, wanted: dict[str, tuple[int, ...]]) -> np.ndarray:
+    """The cloud's data viewed as a (H*W,) record array of the wanted fields; checks the layout."""
+    if msg.is_bigendian:
+        raise InputError("wrong_point_fields", "big-endian data")
+    fields = {f.name: f for f in msg.fields}
+    names, formats, offsets = [], [], []
+    for name, types in wanted.items():
+        f = fields.get(name)
+        if f is None or f.datatype not in types or f.count != 1:
+            raise InputError("wrong_point_fields", f"field {name!r} missing or not {types}")
+        names.append(name)
+        formats.append({FLOAT32: "<f4", UINT8: "u1", UINT32: "<u4"}[f.datatype])
+        offsets.append(f.offset)
+    step, H, W = int(msg.point_step), int(msg.height), int(msg.width)
+    if step <= 0 or any(o + 4 > step for o in offsets) or msg.row_step < step * W or len(msg.data) != msg.row_step * H:
+        raise InputError("wrong_point_fields", "inconsistent sizes")
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(H, msg.row_step)[:, : step * W]
+    return np.ascontiguousarray(data).view(dtype).reshape(H * W)
+
+
+def parse_point_cloud(raw: bytes) -> tuple[int, tuple[int, int], np.ndarray, np.ndarray, str]:
+    """-> stamp, (H, W), xyz (N, 3) float32 of the finite points, rgb (N, 3) uint8, frame_id."""
+    msg = decode(raw, POINT_CLOUD2)
+    if msg.height <= 1:
+        raise InputError("unorganized_cloud", f"height {msg.height}")
+    rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), "rgb": (FLOAT32, UINT32)})
+    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+    keep = np.isfinite(xyz).all(axis=1)
+    packed = rec["rgb"][keep].view(np.uint32) if rec["rgb"].dtype == np.float32 else rec["rgb"][keep]
+    rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8)
+    return stamp_ns(msg.header), (int(msg.height), int(msg.width)), xyz[keep], rgb, msg.header.frame_id
+
+
+def vertices_cloud(stamp: int, x: np.ndarray, observed: np.ndarray, frame_id: str = "world") -> bytes:
+    """The estimate: one point per vertex, fields x, y, z (float32) and observed (uint8)."""
+    n = len(x)
+    rec = np.zeros(n, dtype=np.dtype({"names": ["x", "y", "z", "observed"], "formats": ["<f4", "<f4", "<f4", "u1"],
+                                      "offsets": [0, 4, 8, 12], "itemsize": 16}))
+    rec["x"], rec["y"], rec["z"] = x[:, 0], x[:, 1], x[:, 2]
+    rec["observed"] = np.asarray(observed, dtype=np.uint8)
+    PF = T["sensor_msgs/msg/PointField"]
+    fields = [PF(name=n_, offset=4 * i, datatype=FLOAT32, count=1) for i, n_ in enumerate(("x", "y", "z"))]
+    fields.append(PF(name="observed", offset=12, datatype=UINT8, count=1))
+    msg = T[POINT_CLOUD2](header=header(stamp, frame_id), height=1, width=n, fields=fields, is_bigendian=False,
+                          point_step=16, row_step=16 * n, data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True)
+    return encode(msg, POINT_CLOUD2)
+
+
+def parse_vertices(raw: bytes) -> tuple[int, np.ndarray, np.ndarray]:
+    """Client side of ``{ns}/vertices``: -> stamp, x (n, 3) float32, observed (n,) bool."""
+    msg = decode(raw, POINT_CLOUD2)
+    rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), "observed": (UINT8,)})
+    return stamp_ns(msg.header), np.stack([rec["x"], rec["y"], rec["z"]], axis=1), rec["observed"].astype(bool)
