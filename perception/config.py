@@ -55,7 +55,7 @@ class RenderConfig:
     gripper_rgb: tuple[int, int, int] = (50, 50, 55)
     occluder_rgb: tuple[int, int, int] = (95, 110, 135)
     table_z: float = 0.0
-    camera_distance: float = 1.4    # m from the scene centre
+    camera_distance: float = 1.0    # m from the scene centre
     camera_elevation_deg: float = 35.0
     noise_base: float = 0.001       # m, depth noise std = base + quad * z^2
     noise_quad: float = 0.0015
