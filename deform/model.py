@@ -59,6 +59,7 @@ class ModelOptions:
     weighted_pbd: bool = True  # False: the 'original inextensibility' of the ablation
     pbd_tol: float = 1e-3
     pbd_max_sweeps: int = 20
+    pbd_method: str = "projection"  # or "gauss_seidel"
     theta_tol: float = 1e-8
     theta_solver: str = "newton"  # or "theseus" (reference; slow)
 
@@ -179,7 +180,8 @@ class DeformModel(nn.Module):
         inv_mass = (1.0 - self.gripped.to(x.dtype)) / mass
         if not self.options.weighted_pbd:
             inv_mass = unweighted_inv_mass(inv_mass)
-        x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps)
+        x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
+                                        self.options.pbd_method)
         v_new = (x_new - x) / dt
         t_old = G.normalize(G.edges(x))
         t_new = G.normalize(G.edges(x_new))

@@ -1,51 +1,83 @@
-r"""Position-based inextensibility: project edges back to their rest lengths.
+r"""Position-based inextensibility: project edges back to their rest lengths, preserving momentum.
 
-For edge ``(i, j)`` with inverse masses ``w`` and length error ``C = |x_j - x_i| - L``, the pair
-correction ``dx_i = +w_i/(w_i+w_j) C n``, ``dx_j = -w_j/(w_i+w_j) C n`` (``n`` the unit edge) leaves
-``sum m dx = 0``: linear momentum is preserved. Gripped vertices have ``w = 0`` (infinitely heavy).
-Even and odd edges share no vertex, so each half is solved exactly in one vectorised update
-(red-black Gauss-Seidel); sweeps repeat until the largest relative error is below ``tol``.
+Pair correction for edge ``j = (j, j+1)`` with inverse masses ``w``, unit edge ``u_j`` and multiplier
+``l_j``: ``dx_j += w_j l_j u_j``, ``dx_{j+1} -= w_{j+1} l_j u_j``. Every pair correction has
+``sum_i m_i dx_i = l_j u_j - l_j u_j = 0``, so linear momentum is preserved whatever the ``l``.
+Gripped vertices have ``w = 0`` (infinitely heavy) and do not move.
+
+Two ways to choose ``l``, both vectorised over vertices and batch:
+
+- ``"projection"`` (default): all pair corrections at once. Linearising ``|e_j + de_j| = L_j`` gives
+  ``(w_j + w_{j+1}) l_j - w_j u_{j-1}.u_j l_{j-1} - w_{j+1} u_{j+1}.u_j l_{j+1} = |e_j| - L_j``:
+  a tridiagonal system (fast projection, Goldenthal et al. 2007). Converges in 2-3 sweeps.
+- ``"gauss_seidel"``: classic PBD, each pair solved exactly on its own, even and odd edges in turn
+  (they share no vertex, so each half is one vectorised update). Converges slowly on long chains.
+
+Sweeps repeat until the largest relative edge error is below ``tol``.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-
-def _project_half(x: Tensor, w: Tensor, rest: Tensor, start: int) -> Tensor:
-    xi = x[..., start:-1:2, :]
-    xj = x[..., start + 1 :: 2, :]
-    k = min(xi.shape[-2], xj.shape[-2])
-    xi, xj = xi[..., :k, :], xj[..., :k, :]
-    wi, wj = w[..., start:-1:2][..., :k], w[..., start + 1 :: 2][..., :k]
-    e = xj - xi
-    length = e.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    err = (length - rest[..., start::2][..., :k].unsqueeze(-1)) * e / length
-    wsum = (wi + wj).clamp_min(1e-12).unsqueeze(-1)
-    di = (wi.unsqueeze(-1) / wsum) * err
-    dj = -(wj.unsqueeze(-1) / wsum) * err
-    delta = torch.zeros_like(x)
-    delta[..., start:-1:2, :][..., :k, :] = di
-    delta[..., start + 1 :: 2, :][..., :k, :] = dj
-    return x + delta
+from deform.rod.tridiagonal import solve_tridiagonal
 
 
-def max_relative_error(x: Tensor, rest: Tensor) -> Tensor:
-    return ((x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1) / rest - 1.0).abs().amax()
+def max_relative_error(x: Tensor, rest: Tensor, inv_mass: Tensor | None = None) -> Tensor:
+    """Largest ``| |e_j| / L_j - 1 |`` over edges that can move (an edge between two fixed vertices,
+    such as the one between the two markers of a gripper, is whatever the inputs make it)."""
+    err = ((x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1) / rest - 1.0).abs()
+    if inv_mass is not None:
+        err = err * ((inv_mass[..., 1:] + inv_mass[..., :-1]) > 0)
+    return err.amax()
+
+
+def apply_pair_corrections(x: Tensor, inv_mass: Tensor, lam: Tensor, unit: Tensor) -> Tensor:
+    """``x_j += w_j l_j u_j``, ``x_{j+1} -= w_{j+1} l_j u_j`` for every edge ``j`` at once."""
+    push = lam.unsqueeze(-1) * unit  # (..., m, 3)
+    zero = torch.zeros_like(push[..., :1, :])
+    delta = torch.cat([push, zero], dim=-2) - torch.cat([zero, push], dim=-2)
+    return x + inv_mass.unsqueeze(-1) * delta
+
+
+def _projection_sweep(x: Tensor, inv_mass: Tensor, rest: Tensor) -> Tensor:
+    e = x[..., 1:, :] - x[..., :-1, :]
+    length = e.norm(dim=-1).clamp_min(1e-12)
+    unit = e / length.unsqueeze(-1)
+    w0, w1 = inv_mass[..., :-1], inv_mass[..., 1:]
+    diag = (w0 + w1).clamp_min(1e-12)  # an edge between two gripped vertices keeps l = 0
+    off = -w1[..., :-1] * (unit[..., :-1, :] * unit[..., 1:, :]).sum(-1)
+    lam = solve_tridiagonal(diag, off, length - rest)
+    return apply_pair_corrections(x, inv_mass, lam, unit)
+
+
+def _gauss_seidel_sweep(x: Tensor, inv_mass: Tensor, rest: Tensor) -> Tensor:
+    for start in (0, 1):
+        e = x[..., 1:, :] - x[..., :-1, :]
+        length = e.norm(dim=-1).clamp_min(1e-12)
+        wsum = (inv_mass[..., :-1] + inv_mass[..., 1:]).clamp_min(1e-12)
+        lam = (length - rest) / wsum
+        mask = torch.zeros_like(lam)
+        mask[..., start::2] = 1.0
+        x = apply_pair_corrections(x, inv_mass, lam * mask, e / length.unsqueeze(-1))
+    return x
+
+
+SWEEPS = {"projection": _projection_sweep, "gauss_seidel": _gauss_seidel_sweep}
 
 
 def enforce_inextensibility(
-    x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float = 1e-3, max_sweeps: int = 50, min_sweeps: int = 1
+    x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float = 1e-3, max_sweeps: int = 50, method: str = "projection"
 ) -> Tensor:
     """Project ``x`` (..., n, 3) so every edge has its rest length (..., m) within relative ``tol``.
 
     ``inv_mass`` (..., n): 0 for vertices that must not move. Differentiable (plain tensor ops).
     """
-    for sweep in range(max_sweeps):
-        x = _project_half(x, inv_mass, rest, 0)
-        x = _project_half(x, inv_mass, rest, 1)
-        if sweep + 1 >= min_sweeps and float(max_relative_error(x.detach(), rest.detach())) < tol:
+    sweep = SWEEPS[method]
+    for _ in range(max_sweeps):
+        if float(max_relative_error(x.detach(), rest.detach(), inv_mass)) < tol:
             break
+        x = sweep(x, inv_mass, rest)
     return x
 
 

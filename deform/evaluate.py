@@ -1,0 +1,86 @@
+"""Open-loop evaluation with the DEFORM paper's metric.
+
+For a recording ``X`` (T, n, 3): start from frames 0 and 1, feed the gripped vertices of every later
+frame, and predict the rest. ``l1_m`` is the mean of ``|prediction - truth|`` over predicted steps, all
+vertices (gripped ones included, as in the paper) and x, y, z.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from deform.io.recordings import Recording
+from deform.model import DeformModel, gripped_indices
+
+HORIZONS = (1, 10, 100, 500)
+
+
+@dataclass
+class RolloutResult:
+    name: str
+    prediction: np.ndarray  # (S, n, 3) predicted frames 2 .. 2+S-1
+    truth: np.ndarray
+    step_seconds: np.ndarray  # (S,) wall time per step (batch of one)
+
+
+def predict_recordings(model: DeformModel, recordings: list[Recording], steps: int = 500,
+                       batched: bool = True) -> list[RolloutResult]:
+    """Roll out every recording open-loop. Batched: all recordings of equal length in one batch."""
+    n = model.n
+    idx = gripped_indices(n)
+    if batched:
+        groups: dict[int, list[Recording]] = {}
+        for r in recordings:
+            groups.setdefault(min(steps, r.n_frames - 2), []).append(r)
+    else:
+        groups = {}
+    results: dict[str, RolloutResult] = {}
+    with torch.no_grad():
+        for s, recs in (groups.items() if batched else [(min(steps, r.n_frames - 2), [r]) for r in recordings]):
+            X = torch.tensor(np.stack([r.positions[: s + 2] for r in recs]), dtype=torch.float64)
+            state = model.initial_state(X[:, 0], X[:, 1])
+            preds, times = [], []
+            for k in range(s):
+                t0 = time.perf_counter()
+                state = model.step(state, X[:, k + 2, idx])
+                times.append(time.perf_counter() - t0)
+                preds.append(state.x)
+            P = torch.stack(preds, 1).numpy()
+            for i, r in enumerate(recs):
+                results[r.name] = RolloutResult(r.name, P[i], r.positions[2 : s + 2], np.asarray(times))
+    return [results[r.name] for r in recordings]
+
+
+def metrics(results: list[RolloutResult]) -> dict:
+    """The JSON fields of ``deform eval``."""
+    per_rec = []
+    by_h = {h: [] for h in HORIZONS}
+    vdist = []
+    for r in results:
+        err = np.abs(r.prediction - r.truth)  # (S, n, 3)
+        per_rec.append(float(err.mean()))
+        interior = np.linalg.norm(r.prediction[:, 2:-2] - r.truth[:, 2:-2], axis=-1)
+        vdist.append(float(interior.mean()))
+        for h in HORIZONS:
+            k = min(h, len(err)) - 1
+            by_h[h].append(float(err[k].mean()))
+    return {
+        "recordings": len(results),
+        "steps": int(max(len(r.prediction) for r in results)),
+        "l1_m": float(np.mean(per_rec)),
+        "mean_vertex_dist_m": float(np.mean(vdist)),
+        "l1_by_horizon_m": {str(h): float(np.mean(v)) for h, v in by_h.items()},
+        "per_recording_l1_m": {r.name: v for r, v in zip(results, per_rec)},
+    }
+
+
+def evaluate(model: DeformModel, recordings: list[Recording], steps: int = 500) -> dict:
+    """Accuracy (batched over recordings) plus single-rollout step latency on the first recording."""
+    out = metrics(predict_recordings(model, recordings, steps))
+    timing = predict_recordings(model, recordings[:1], min(steps, 200), batched=False)[0].step_seconds
+    out["step_ms_p50"] = float(np.median(timing) * 1e3)
+    out["step_ms_p99"] = float(np.percentile(timing, 99) * 1e3)
+    return out
