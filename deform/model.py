@@ -24,7 +24,8 @@ from torch import Tensor, nn
 from deform.config import RodConfig, load_rod_config
 from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
-from deform.rod.energy import ElasticParams, bending_energy, curvature_projections, gravity_energy, rod_geometry, twisting_energy
+from deform.rod.energy import ElasticParams, curvature_projections, rod_geometry
+from deform.rod.forces import rod_forces
 from deform.rod.inextensibility import enforce_inextensibility, unweighted_inv_mass
 from deform.rod.twist_solver import solve_theta
 
@@ -132,30 +133,26 @@ class DeformModel(nn.Module):
 
     # ----- dynamics ---------------------------------------------------------------------------
     def forces(self, state: RodState, theta_ends: Tensor | None = None, create_graph: bool = False) -> tuple[Tensor, Tensor]:
-        """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles."""
-        x = state.x
+        """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles.
+
+        Closed form (:mod:`deform.rod.forces`); differentiable with first-order autograd when
+        ``create_graph`` (training), the angles then carrying implicit-function-theorem gradients.
+        """
+        x = state.x if create_graph else state.x.detach()
         params = self.elastic_params(state.rest)
         mass = self.vertex_mass(state.rest)
-        if theta_ends is None:
-            theta_ends = state.theta[..., [0, -1]].detach()
-        with torch.enable_grad():
-            xa = x.clone() if (create_graph and x.requires_grad) else x.detach().requires_grad_(True)
-            t_now = G.normalize(G.edges(x)).detach()
-            geo = rod_geometry(xa, state.d1, t_now)
-            a, b = curvature_projections(geo)
-            solver_in = (a, b, geo.m_ref) if create_graph else (a.detach(), b.detach(), geo.m_ref.detach())
-            theta = self._solve_theta(*solver_in, theta_ends, params, state.theta, create_graph)
-            energy = (
-                bending_energy(a, b, theta, params.beta, params.rest_vor, params.wbar)
-                + twisting_energy(theta, geo.m_ref, params.gamma, params.rest_vor)
-                + gravity_energy(xa, mass)
-            )
-            (grad,) = torch.autograd.grad(energy.sum(), xa, create_graph=create_graph)
-        return -grad, theta
-
-    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init, create_graph):
         if not create_graph:
             params = ElasticParams(*(p.detach() for p in (params.beta, params.gamma, params.wbar, params.rest_vor)))
+            mass = mass.detach()
+        if theta_ends is None:
+            theta_ends = state.theta[..., [0, -1]].detach()
+        # the frame is carried along by parallel transport: identity at x, but it moves with x
+        geo = rod_geometry(x, state.d1, G.normalize(G.edges(x)).detach())
+        a, b = curvature_projections(geo)
+        theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta)
+        return rod_forces(x, geo, a, b, theta, params, mass), theta
+
+    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init):
         if self.options.theta_solver == "theseus":
             from deform.rod.twist_theseus import theseus_theta
 

@@ -1,0 +1,158 @@
+"""`deform` command line: train, eval, bench, demo.
+
+Errors on bad input are one line on stderr naming the file and the problem, exit code 2, and
+nothing is written.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from deform.config import ConfigError
+from deform.io.recordings import RecordingError, find_data_root
+
+
+class UsageError(ValueError):
+    pass
+
+
+def _data_dir(rod: str, split: str, explicit: str | None) -> Path:
+    if explicit:
+        return Path(explicit)
+    root = find_data_root()
+    if root is None:
+        raise UsageError("no dataset found: set DEFORM_DATA or pass --recordings")
+    return root / rod / split
+
+
+def cmd_train(args) -> int:
+    import torch
+
+    from deform.io.recordings import load_recordings
+    from deform.model import MODEL_DIR, DeformModel, ModelOptions, load_model
+    from deform.config import load_rod_config
+    from deform.train import TrainConfig, split_validation, train
+
+    torch.set_num_threads(args.threads)
+    cfg = load_rod_config(args.rod)
+    recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices)
+    train_recs, val_recs = split_validation(recs, args.val_every)
+    if not train_recs:
+        raise UsageError(f"{args.recordings}: too few recordings to train")
+    options = ModelOptions(residual=not args.no_residual, weighted_pbd=not args.original_inextensibility,
+                           theta_solver=args.theta_solver)
+    model = load_model(args.init) if args.init else DeformModel(cfg, options)
+    model.options = options
+    tcfg = TrainConfig(iterations=args.iterations, batch=args.batch, horizon=args.horizon,
+                       residual=not args.no_residual, sysid=not args.no_sysid, seed=args.seed,
+                       time_limit_s=args.time_limit, curriculum=tuple(args.curriculum) if args.horizon > 1 else ())
+    out = Path(args.out or f"runs/{args.rod}")
+    result = train(model, train_recs, val_recs, tcfg, out, resume=not args.fresh)
+    best = DeformModel.load(out / "best.pt")
+    if args.install:
+        best.save(MODEL_DIR / f"{args.rod}.pt")
+    print(json.dumps({"rod": args.rod, "out": str(out), **result}))
+    return 0
+
+
+def cmd_eval(args) -> int:
+    import torch
+
+    from deform.evaluate import evaluate
+    from deform.io.recordings import load_recordings
+    from deform.model import ModelOptions, load_model
+
+    torch.set_num_threads(args.threads)
+    model = load_model(args.model or args.rod)
+    if args.no_residual:
+        model.options.residual = False
+    directory = _data_dir(args.rod, "eval", args.recordings)
+    recs = load_recordings(directory, model.n)
+    result = {"rod": args.rod, "method": "deform", "recordings_dir": str(directory), **evaluate(model, recs, args.steps)}
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"{args.rod}: L1 {result['l1_m'] * 100:.3f} cm over {result['recordings']} recordings, "
+              f"{result['steps']} steps; step p50 {result['step_ms_p50']:.3f} ms")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from deform.bench import run_benchmarks
+
+    result = run_benchmarks(quick=args.quick)
+    print(json.dumps(result, indent=2) if args.json else result)
+    return 0
+
+
+def cmd_demo(args) -> int:
+    try:
+        from service.demo import main as service_demo
+    except ImportError:
+        service_demo = None
+    if service_demo is not None and not args.model_only:
+        return int(service_demo() or 0)
+    from deform.demo import main as model_demo
+
+    return int(model_demo() or 0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="deform", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="identify parameters and train the residual network on a rod's recordings")
+    t.add_argument("--rod", required=True)
+    t.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/train)")
+    t.add_argument("--out", help="run directory (default runs/ROD); resumes from its checkpoint")
+    t.add_argument("--iterations", type=int, default=300)
+    t.add_argument("--batch", type=int, default=32)
+    t.add_argument("--horizon", type=int, default=100)
+    t.add_argument("--curriculum", type=int, nargs="*", default=[10, 25, 50])
+    t.add_argument("--time-limit", type=float, default=None, help="seconds")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--val-every", type=int, default=5, help="hold out every k-th recording for validation")
+    t.add_argument("--no-residual", action="store_true")
+    t.add_argument("--no-sysid", action="store_true")
+    t.add_argument("--original-inextensibility", action="store_true")
+    t.add_argument("--theta-solver", choices=["newton", "theseus"], default="newton")
+    t.add_argument("--init", help="start from this model (.pt or rod name)")
+    t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
+    t.add_argument("--install", action="store_true", help="copy the best model to deform/models/ROD.pt")
+    t.add_argument("--threads", type=int, default=1)
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("eval", help="500-step open-loop prediction of every recording in a directory")
+    e.add_argument("--rod", required=True)
+    e.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/eval)")
+    e.add_argument("--model", help="checkpoint (.pt); default: the shipped model of the rod")
+    e.add_argument("--steps", type=int, default=500)
+    e.add_argument("--no-residual", action="store_true")
+    e.add_argument("--json", action="store_true")
+    e.add_argument("--threads", type=int, default=1)
+    e.set_defaults(func=cmd_eval)
+
+    b = sub.add_parser("bench", help="speed benchmark (latency, throughput, scaling, training)")
+    b.add_argument("--json", action="store_true")
+    b.add_argument("--quick", action="store_true")
+    b.set_defaults(func=cmd_bench)
+
+    d = sub.add_parser("demo", help="the main job: the service on a demo replay (or the model demo)")
+    d.add_argument("--model-only", action="store_true")
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (RecordingError, ConfigError, UsageError) as exc:
+        print(f"deform {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+"""Cloud utilities the estimator needs: voxel-grid downsampling and a depth image for occlusion tests.
+
+A depth image is what the occlusion test compares predicted vertex depths against; flat clouds (or
+organized clouds of the wrong size) are projected into one with a z-buffer.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from perception.camera import Camera
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Centroids of the occupied cells of a ``voxel``-sized grid (keeps ~uniform density for the GMM)."""
+    if len(points) == 0 or voxel <= 0:
+        return points
+    keys = np.floor(points / voxel).astype(np.int64)
+    keys -= keys.min(0)
+    dims = keys.max(0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    out = np.zeros((len(counts), 3))
+    np.add.at(out, inverse, points)
+    return out / counts[:, None]
+
+
+def depth_image(xyz: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H, W) depth (NaN where unknown) of a camera-frame cloud, organized or not."""
+    arr = np.asarray(xyz, dtype=np.float64)
+    if arr.shape == (camera.height, camera.width, 3):
+        z = arr[..., 2].copy()
+        z[~np.all(np.isfinite(arr), axis=-1)] = np.nan
+        return z
+    pts = arr.reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
+    depth = np.full((camera.height, camera.width), np.inf)
+    if len(pts):
+        uv, z = camera.project(pts)
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        ok = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        np.minimum.at(depth, (v[ok], u[ok]), z[ok])
+    depth[np.isinf(depth)] = np.nan
+    return depth
+
+
+def window_min(depth: np.ndarray, uv: np.ndarray, half: int) -> np.ndarray:
+    """Smallest known depth in a (2 half + 1)^2 window around each pixel ``uv`` (NaN if none/outside)."""
+    h, w = depth.shape
+    out = np.full(len(uv), np.nan)
+    for i, (u, v) in enumerate(uv):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        c, r = int(np.floor(u)), int(np.floor(v))
+        if c < 0 or c >= w or r < 0 or r >= h:
+            continue
+        patch = depth[max(r - half, 0): r + half + 1, max(c - half, 0): c + half + 1]
+        if np.isfinite(patch).any():
+            out[i] = np.nanmin(patch)
+    return out

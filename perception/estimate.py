@@ -1,0 +1,96 @@
+"""One camera update of the vertex estimates (the state estimation of the DEFORM paper).
+
+1. voxel-downsample the rope points and keep those near the predicted rod;
+2. a predicted vertex is occluded when the scene at its pixel is clearly closer than the vertex;
+3. DBSCAN groups the remaining points; each unoccluded vertex joins the group of its nearest point;
+4. one Gaussian mixture per group, a component per associated vertex, means initialised at the
+   predictions (neighbours not associated are fixed components, so they take their share of points);
+5. observed vertices move to their component means, pushed back by the rope radius (the camera sees
+   the near surface); occluded ones keep the prediction.
+
+Refinements over the paper, all for bias near occlusion borders: a vertex counts as observed only
+with enough points on both sides of it along the rope, and corrections larger than ``max_shift``
+are refused.
+"""
+from __future__ import annotations
+
+import numpy as np
+from sklearn.cluster import DBSCAN
+
+from perception.camera import Camera
+from perception.cloud import voxel_downsample, window_min
+from perception.config import EstimationConfig
+from perception.gmm import fit_gmm
+
+MAX_SHIFT = 0.1
+
+
+def segment_distances(points: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(N,) distance of each point to the polyline through ``x`` (n, 3)."""
+    a, b = x[:-1], x[1:]
+    ab = b - a
+    t = np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
+    closest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
+    return np.linalg.norm(points[:, None] - closest, axis=-1).min(1)
+
+
+def occluded_vertices(x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig) -> np.ndarray:
+    """(n,) True where something in the depth image is ``occlusion_margin`` closer than the vertex,
+    or where the vertex is outside the image (not observable)."""
+    uv, z = camera.project(camera.to_camera(x_world))
+    seen = window_min(depth, uv, cfg.occlusion_window)
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    closer = np.isfinite(seen) & (seen < z - cfg.occlusion_margin)
+    return closer | ~inside
+
+
+def _two_sided(points, resp, j, x_pred, idx, frac) -> bool:
+    """Does component ``j`` (vertex ``idx``) own points on both sides of the vertex along the rope?"""
+    mine = points[resp.argmax(1) == j]
+    if len(mine) == 0:
+        return False
+    lo, hi = max(idx - 1, 0), min(idx + 1, len(x_pred) - 1)
+    tang = x_pred[hi] - x_pred[lo]
+    half = 0.25 * np.linalg.norm(tang)  # half of the mean edge length
+    tang = tang / max(np.linalg.norm(tang), 1e-12)
+    s = (mine - x_pred[idx]) @ tang
+    return bool(s.max() > frac * half and s.min() < -frac * half)
+
+
+def correct_vertices(x_pred: np.ndarray, rope_world: np.ndarray, depth: np.ndarray, camera: Camera,
+                     cfg: EstimationConfig, movable: np.ndarray, backend: str = "numpy") -> tuple[np.ndarray, np.ndarray]:
+    """Corrected vertices (n, 3) and observed flags (n,) from rope points in the world frame."""
+    n = len(x_pred)
+    x_new = x_pred.copy()
+    observed = np.zeros(n, dtype=bool)
+    pts = voxel_downsample(rope_world, cfg.voxel)
+    if len(pts) == 0:
+        return x_new, observed
+    pts = pts[segment_distances(pts, x_pred) < cfg.filter_radius]
+    if len(pts) < cfg.dbscan_min_samples:
+        return x_new, observed
+    candidate = movable & ~occluded_vertices(x_pred, depth, camera, cfg)
+    labels = DBSCAN(eps=cfg.dbscan_eps, min_samples=cfg.dbscan_min_samples).fit_predict(pts)
+    d = np.linalg.norm(pts[None] - x_pred[:, None], axis=-1)  # (n, N)
+    nearest = d.argmin(1)
+    group = np.where((d.min(1) < cfg.assoc_radius) & (labels[nearest] >= 0), labels[nearest], -1)
+    eye = camera.position
+    for g in np.unique(group[candidate & (group >= 0)]):
+        members = np.flatnonzero(candidate & (group == g))
+        neighbours = sorted({j for i in members for j in (i - 1, i + 1) if 0 <= j < n} - set(members))
+        comps = np.array(list(members) + neighbours)
+        free = np.zeros(len(comps), dtype=bool)
+        free[: len(members)] = True
+        gp = pts[labels == g]
+        mu, resp = fit_gmm(gp, x_pred[comps], free, cfg.gmm_sigma, cfg.gmm_iters, backend)
+        mass = resp.sum(0)
+        for j, i in enumerate(members):
+            if mass[j] < cfg.min_points or not _two_sided(gp, resp, j, x_pred, i, cfg.two_sided):
+                continue
+            ray = mu[j] - eye
+            target = mu[j] + cfg.surface_offset * ray / max(np.linalg.norm(ray), 1e-12)
+            if np.linalg.norm(target - x_pred[i]) > MAX_SHIFT or not np.all(np.isfinite(target)):
+                continue
+            x_new[i] = target
+            observed[i] = True
+    return x_new, observed

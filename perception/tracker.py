@@ -1,0 +1,173 @@
+"""The tracker: the DEFORM model predicts at the model rate, camera clouds correct it when they come.
+
+Errors in the loop are contained here: bad gripper inputs, failed model steps and unusable clouds
+leave the tracker running open-loop with vertices marked unobserved; nothing raises and no NaN is
+returned from :meth:`Tracker.step` or :meth:`Tracker.correct`.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from deform import gripped_indices
+from perception.camera import Camera
+from perception.cloud import depth_image
+from perception.config import load_config
+from perception.estimate import correct_vertices
+from perception.initial import default_rest, initial_guess
+from perception.segment import segment_rope
+
+log = logging.getLogger(__name__)
+
+
+class Tracker:
+    """Rod state estimate for one rod. ``physics=False`` gives the non-physical baseline (free
+    vertices stay where last seen, only the gripped ones follow the grippers)."""
+
+    def __init__(self, model, camera: Camera | None = None, config=None, physics: bool = True,
+                 rest: np.ndarray | None = None, gmm_backend: str = "numpy"):
+        self.model = model
+        self.n = int(model.n)
+        self.dt = float(model.dt)
+        self.camera = camera
+        self.config = load_config(config)
+        self.physics = physics
+        self.rest = None if rest is None else np.asarray(rest, dtype=np.float64)
+        self.gmm_backend = gmm_backend
+        self.grip_idx = gripped_indices(self.n)
+        self.movable = np.ones(self.n, dtype=bool)
+        self.movable[self.grip_idx] = False
+        self.state = None
+        self._observed = np.zeros(self.n, dtype=bool)
+        self._since_update = np.inf
+        self._grip = None
+
+    # ----- public API -----------------------------------------------------------------------
+    @property
+    def x(self) -> np.ndarray:
+        return self.state.x[0].numpy().astype(np.float64).copy()
+
+    @property
+    def observed(self) -> np.ndarray:
+        if self._since_update * self.dt > self.config.tracker.stale_after_s:
+            return np.zeros(self.n, dtype=bool)
+        return self._observed.copy()
+
+    def initialize_from_frames(self, x0: np.ndarray, x1: np.ndarray):
+        """State at ``x1`` from two consecutive full observations (the paper's protocol)."""
+        x0 = torch.as_tensor(np.asarray(x0, dtype=np.float64)).unsqueeze(0)
+        x1 = torch.as_tensor(np.asarray(x1, dtype=np.float64)).unsqueeze(0)
+        with torch.no_grad():
+            self.state = self.model.initial_state(x0, x1)
+        self.rest = self.state.rest[0].numpy().copy()
+        self._grip = x1[0, self.grip_idx].numpy().copy()
+        self._mark(np.ones(self.n, dtype=bool))
+        return self.x, self.observed
+
+    def initialize(self, grip: np.ndarray, cloud=None, camera: Camera | None = None):
+        """State from the gripper positions (4, 3) and optionally a first cloud (``xyz`` or ``(xyz, rgb)``):
+        a guess aligned with the visible rope, settled by the model with the grippers fixed, then
+        corrected by the same cloud."""
+        grip = np.asarray(grip, dtype=np.float64).reshape(4, 3)
+        if self.rest is None:
+            self.rest = default_rest(grip, self.n, float(self.model.cfg.length_m))
+        camera = camera or self.camera
+        xyz, rgb = (cloud if isinstance(cloud, (tuple, list)) else (cloud, None))
+        pts = None
+        if xyz is not None and camera is not None:
+            pts = camera.to_world(segment_rope(xyz, rgb, self.config.segmentation))
+        x = initial_guess(grip, self.rest, pts)
+        if pts is not None and len(pts):
+            depth = depth_image(xyz, camera)
+            for _ in range(self.config.tracker.init_em_rounds):
+                x, _ = correct_vertices(x, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend)
+        tx = torch.as_tensor(x).unsqueeze(0)
+        rest = torch.as_tensor(self.rest).unsqueeze(0)
+        g = torch.as_tensor(grip).unsqueeze(0)
+        tc = self.config.tracker
+        with torch.no_grad():
+            state = self.model.static_state(tx, rest=rest)
+            if self.physics:
+                state = self.model.settle(state, g, max_steps=tc.settle_max_steps, tol=tc.settle_tol)
+        self.state = replace(state, v=torch.zeros_like(state.x))
+        self._grip = grip
+        self._observed[:] = False
+        self._since_update = np.inf
+        if xyz is not None and camera is not None:
+            return self.correct(xyz, rgb, camera)
+        return self.x, self.observed
+
+    def step(self, grip_next: np.ndarray):
+        """Predict one model step (``model.dt``) with the grippers at ``grip_next`` (4, 3)."""
+        grip = self._valid_grip(grip_next)
+        if self.state is None:
+            return self.initialize(grip)
+        self._since_update += 1
+        if self.physics:
+            try:
+                with torch.no_grad():
+                    new = self.model.step(self.state, torch.as_tensor(grip).unsqueeze(0))
+                if bool(torch.isfinite(new.x).all()) and bool(torch.isfinite(new.v).all()):
+                    self.state = new
+                    self._grip = grip
+                    return self.x, self.observed
+                log.warning("model step gave non-finite values; holding the shape")
+            except Exception as exc:  # the loop must go on
+                log.warning("model step failed (%s); holding the shape", exc)
+        self._hold(grip)
+        return self.x, self.observed
+
+    def correct(self, points_xyz: np.ndarray, rgb: np.ndarray | None = None, camera: Camera | None = None):
+        """Correct the estimate with a camera-frame cloud ((H, W, 3) or (N, 3)) and optional colours."""
+        if self.state is None:
+            log.warning("correct() before initialize(); ignored")
+            return np.full((self.n, 3), 0.0), np.zeros(self.n, dtype=bool)
+        camera = camera or self.camera
+        try:
+            if camera is None or points_xyz is None:
+                raise ValueError("no camera or no cloud")
+            xyz = np.asarray(points_xyz)
+            if xyz.ndim < 2 or xyz.shape[-1] != 3:
+                raise ValueError(f"cloud of shape {xyz.shape}")
+            colours = None if rgb is None else np.asarray(rgb)
+            pts = camera.to_world(segment_rope(xyz, colours, self.config.segmentation))
+            depth = depth_image(xyz, camera)
+            x_new, observed = correct_vertices(self.x, pts, depth, camera, self.config.estimation,
+                                               self.movable, self.gmm_backend)
+            if not np.all(np.isfinite(x_new)):
+                raise ValueError("non-finite correction")
+        except Exception as exc:
+            log.warning("camera update skipped: %s", exc)
+            self._observed[:] = False
+            return self.x, self.observed
+        x_t = torch.as_tensor(x_new, dtype=self.state.x.dtype).unsqueeze(0)
+        self.state = replace(self.state, x=x_t)
+        self._mark(observed)
+        return self.x, self.observed
+
+    # ----- internals --------------------------------------------------------------------------
+    def _mark(self, observed: np.ndarray) -> None:
+        self._observed = observed & self.movable
+        self._since_update = 0
+
+    def _valid_grip(self, grip_next) -> np.ndarray:
+        try:
+            grip = np.asarray(grip_next, dtype=np.float64).reshape(4, 3)
+            if np.all(np.isfinite(grip)):
+                return grip
+        except Exception:
+            pass
+        log.warning("invalid gripper input; keeping the last one")
+        if self._grip is not None:
+            return self._grip
+        raise ValueError("the first gripper input must be valid")
+
+    def _hold(self, grip: np.ndarray) -> None:
+        """Non-physical prediction: free vertices stay, gripped ones follow the grippers."""
+        x = self.state.x.clone()
+        x[0, self.grip_idx] = torch.as_tensor(grip, dtype=x.dtype)
+        self.state = replace(self.state, x=x, v=torch.zeros_like(x))
+        self._grip = grip

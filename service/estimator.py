@@ -1,0 +1,229 @@
+"""The estimation core, free of any transport: validated inputs in, one estimate per tick out.
+
+Thread model: input handlers may be called from any thread and only swap small "latest" values; the
+tracker is advanced by :meth:`Estimator.tick` (the loop thread) and by cloud fusion (see
+``service.fusion``) under one lock that is never held for a whole cloud fusion.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from service import messages as M
+from service.config import ServiceConfig
+from service.geometry import grips_from_poses
+from service.stats import Stats
+from service.tracking import make_camera, make_tracker
+
+NS = 1_000_000_000
+
+
+@dataclass
+class Estimate:
+    stamp_ns: int
+    x: np.ndarray          # (n, 3) float64, world
+    observed: np.ndarray   # (n,) bool
+    grip: np.ndarray       # (4, 3) the gripped vertices used
+    poses: np.ndarray      # (2, 7) the gripper poses used
+    tick: int
+
+
+@dataclass
+class Cloud:
+    """A decoded, subsampled cloud ready for the tracker."""
+    stamp_ns: int
+    xyz: np.ndarray   # (N, 3) float64, camera frame
+    rgb: np.ndarray   # (N, 3) uint8
+    camera: object    # perception Camera (intrinsics + world_from_camera)
+
+
+class Estimator:
+    def __init__(self, cfg: ServiceConfig, model, tracker=None, stats: Stats | None = None):
+        self.cfg, self.model = cfg, model
+        self.tracker = tracker if tracker is not None else make_tracker(model)
+        self.stats = stats or Stats(cfg.namespace)
+        self.lock = threading.RLock()
+        self.message_clock = cfg.clock == "message"
+        self.stale_ns = int(cfg.timeouts.stale_s * NS)
+        # latest inputs
+        self.poses: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, (2,7) poses, (4,3) grip
+        self.newest_ns: int | None = None
+        self.camera_info: tuple[np.ndarray, int, int] | None = None
+        self.camera_pose = np.asarray(cfg.camera.pose, dtype=float)
+        self.last_cloud_ns: int | None = None
+        self.last_cloud_arrival = -1e9
+        self.pending: list[Cloud] = []          # message clock: clouds waiting for their tick
+        self.arrived: dict[str, float] = {}     # input -> arrival (wall monotonic or message time, s)
+        self.fused_at: float | None = None
+        # estimate
+        self.initialized = False
+        self.tick_index = 0
+        self.history: deque = deque(maxlen=512)  # (tick, grip) so fusion can catch up
+        self.estimate: Estimate | None = None
+        self.prev_x: np.ndarray | None = None
+        self.clock_s = 0.0  # message time of the last tick (message clock)
+
+    # ----- time --------------------------------------------------------------------------------
+    def now(self) -> float:
+        return self.clock_s if self.message_clock else time.monotonic()
+
+    def _arrive(self, key: str, stamp_ns: int) -> None:
+        self.arrived[key] = stamp_ns / NS if self.message_clock else time.monotonic()
+
+    def _check_stamp(self, topic: str, stamp: int, last: int | None) -> None:
+        if last is not None and stamp <= last:
+            raise M.InputError("out_of_order", f"stamp {stamp} <= {last}")
+        if self.newest_ns is not None and stamp < self.newest_ns - self.stale_ns:
+            raise M.InputError("stale", f"{(self.newest_ns - stamp) / NS:.3f} s old")
+
+    def _see(self, stamp: int) -> None:
+        self.newest_ns = stamp if self.newest_ns is None else max(self.newest_ns, stamp)
+
+    # ----- inputs ------------------------------------------------------------------------------
+    def on_poses(self, raw: bytes) -> bool:
+        try:
+            stamp, poses = M.parse_pose_array(raw)
+            with self.lock:
+                self._check_stamp("ee_poses", stamp, self.poses[0] if self.poses else None)
+                grip = grips_from_poses(poses, self.cfg.grippers)
+                self.poses = (stamp, poses, grip)
+                self._see(stamp)
+                self._arrive("ee_poses", stamp)
+            return True
+        except M.InputError as exc:
+            self.stats.reject("ee_poses", exc.reason, str(exc))
+            return False
+
+    def on_camera_info(self, raw: bytes) -> bool:
+        try:
+            _, K, w, h = M.parse_camera_info(raw)
+        except M.InputError as exc:
+            self.stats.reject("camera_info", exc.reason, str(exc))
+            return False
+        self.camera_info = (K, w, h)
+        self.arrived["camera_info"] = self.now()
+        return True
+
+    def on_camera_pose(self, raw: bytes) -> bool:
+        if not self.cfg.camera.use_pose_topic:
+            return False
+        try:
+            _, pose = M.parse_pose_stamped(raw)
+        except M.InputError as exc:
+            self.stats.reject("camera_pose", exc.reason, str(exc))
+            return False
+        self.camera_pose = pose
+        self.arrived["camera_pose"] = self.now()
+        return True
+
+    def admit_cloud(self, raw: bytes) -> bool:
+        """Cheap checks on arrival (size, flood); decoding happens later, off the arrival thread."""
+        if len(raw) > self.cfg.limits.max_cloud_bytes:
+            self.stats.reject("points", "too_large", f"{len(raw)} bytes")
+            return False
+        if not self.message_clock:
+            now = time.monotonic()
+            if now - self.last_cloud_arrival < 1.0 / self.cfg.limits.max_cloud_rate_hz:
+                self.stats.reject("points", "flood", f"faster than {self.cfg.limits.max_cloud_rate_hz} Hz")
+                return False
+            self.last_cloud_arrival = now
+        return True
+
+    def decode_cloud(self, raw: bytes) -> Cloud:
+        """Decode and validate a PointCloud2; raises InputError (the caller counts it)."""
+        stamp, _, xyz, rgb, _ = M.parse_point_cloud(raw)
+        with self.lock:
+            self._check_stamp("points", stamp, self.last_cloud_ns)
+            if self.camera_info is None:
+                raise M.InputError("no_camera_info")
+            self.last_cloud_ns = stamp
+            self._see(stamp)
+            self._arrive("points", stamp)
+            K, w, h = self.camera_info
+            pose = self.camera_pose.copy()
+        if len(xyz) > self.cfg.camera.max_points:  # deterministic stride keeps replay bit-exact
+            idx = np.linspace(0, len(xyz) - 1, self.cfg.camera.max_points).astype(np.int64)
+            xyz, rgb = xyz[idx], rgb[idx]
+        return Cloud(stamp, xyz.astype(np.float64), rgb, make_camera(K, w, h, pose))
+
+    def on_cloud_sync(self, raw: bytes) -> bool:
+        """Message clock: decode now and fuse at the first tick at or after the cloud's stamp."""
+        if not self.admit_cloud(raw):
+            return False
+        try:
+            self.pending.append(self.decode_cloud(raw))
+            return True
+        except M.InputError as exc:
+            self.stats.reject("points", exc.reason, str(exc))
+            return False
+
+    # ----- loop --------------------------------------------------------------------------------
+    def tick(self, stamp_ns: int) -> Estimate | None:
+        """Advance one period with the latest grip; None while no gripper pose has arrived."""
+        with self.lock:
+            if self.poses is None:
+                return None
+            _, poses, grip = self.poses
+            if self.message_clock:
+                self.clock_s = stamp_ns / NS
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                if not self.initialized:
+                    x, observed = self.tracker.initialize(grip)
+                    self.initialized = True
+                else:
+                    x, observed = self.tracker.step(grip)
+                    self.stats.step_s.add(time.perf_counter() - t0)
+                self.tick_index += 1
+                self.history.append((self.tick_index, grip))
+                while self.pending and self.pending[0].stamp_ns <= stamp_ns:
+                    x, observed = self._correct(self.tracker, self.pending.pop(0))
+                    self.fused_at = self.now()
+            self.prev_x = self.estimate.x if self.estimate is not None else None
+            self.estimate = Estimate(stamp_ns, np.asarray(x, dtype=float), np.asarray(observed, dtype=bool), grip, poses,
+                                     self.tick_index)
+            return self.estimate
+
+    def _correct(self, tracker, cloud: Cloud):
+        t0 = time.perf_counter()
+        out = tracker.correct(cloud.xyz, cloud.rgb, cloud.camera)
+        self.stats.fusion_s.add(time.perf_counter() - t0)
+        self.stats.count("clouds_fused")
+        return out
+
+    # ----- status ------------------------------------------------------------------------------
+    def mode(self) -> str:
+        now = self.now()
+        pose_age = now - self.arrived["ee_poses"] if "ee_poses" in self.arrived else None
+        if not self.initialized or pose_age is None or pose_age > self.cfg.timeouts.pose_s:
+            return "waiting"
+        if self.fused_at is not None and now - self.fused_at <= self.cfg.timeouts.cloud_s:
+            return "tracking"
+        return "open-loop"
+
+    def status(self) -> dict:
+        now = self.now()
+        snap = self.stats.snapshot()
+        return {
+            "namespace": self.cfg.namespace,
+            "mode": self.mode(),
+            "clock": self.cfg.clock,
+            "rate_hz": self.stats.rate_hz(),
+            "target_rate_hz": self.cfg.rate_hz,
+            "ticks": self.tick_index,
+            "step_ms": self.stats.step_s.summary(),
+            "tick_to_publish_ms": self.stats.publish_s.summary(),
+            "fusion_ms": self.stats.fusion_s.summary(),
+            "deadline_misses": snap["counts"].get("deadline_misses", 0),
+            "input_age_s": {k: round(now - v, 4) for k, v in self.arrived.items()},
+            "last_fusion_age_s": None if self.fused_at is None else round(now - self.fused_at, 4),
+            "rejected": snap["rejected"],
+            "dropped": snap["dropped"],
+            "counts": snap["counts"],
+            "tracker": type(self.tracker).__name__,
+        }
