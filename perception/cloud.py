@@ -26,12 +26,10 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def depth_image(xyz: np.ndarray, camera: Camera) -> np.ndarray:
     """(H, W) depth (NaN where unknown) of a camera-frame cloud, organized or not."""
-    arr = np.asarray(xyz, dtype=np.float64)
+    arr = np.asarray(xyz)
     if arr.shape == (camera.height, camera.width, 3):
-        z = arr[..., 2].copy()
-        z[~np.all(np.isfinite(arr), axis=-1)] = np.nan
-        return z
-    pts = arr.reshape(-1, 3)
+        return arr[..., 2]  # missing points are NaN
+    pts = arr.reshape(-1, 3).astype(np.float64)
     pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
     depth = np.full((camera.height, camera.width), np.inf)
     if len(pts):

@@ -15,10 +15,9 @@ are refused.
 from __future__ import annotations
 
 import numpy as np
-from sklearn.cluster import DBSCAN
-
 from perception.camera import Camera
 from perception.cloud import voxel_downsample, window_min
+from perception.cluster import dbscan
 from perception.config import EstimationConfig
 from perception.gmm import fit_gmm
 
@@ -70,7 +69,7 @@ def correct_vertices(x_pred: np.ndarray, rope_world: np.ndarray, depth: np.ndarr
     if len(pts) < cfg.dbscan_min_samples:
         return x_new, observed
     candidate = movable & ~occluded_vertices(x_pred, depth, camera, cfg)
-    labels = DBSCAN(eps=cfg.dbscan_eps, min_samples=cfg.dbscan_min_samples).fit_predict(pts)
+    labels = dbscan(pts, cfg.dbscan_eps, cfg.dbscan_min_samples)
     d = np.linalg.norm(pts[None] - x_pred[:, None], axis=-1)  # (n, N)
     nearest = d.argmin(1)
     group = np.where((d.min(1) < cfg.assoc_radius) & (labels[nearest] >= 0), labels[nearest], -1)

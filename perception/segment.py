@@ -13,24 +13,24 @@ from perception.config import SegmentationConfig
 
 def colour_mask(rgb: np.ndarray, cfg: SegmentationConfig) -> np.ndarray:
     """(N,) bool: pixels whose OpenCV HSV lies within the thresholds (hue may wrap around 180)."""
-    hsv = cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3), dtype=np.uint8), cv2.COLOR_RGB2HSV).reshape(-1, 3)
-    lo, hi = np.asarray(cfg.hsv_low), np.asarray(cfg.hsv_high)
-    sv = np.all((hsv[:, 1:] >= lo[1:]) & (hsv[:, 1:] <= hi[1:]), axis=1)
-    h = hsv[:, 0]
-    hue = (h >= lo[0]) & (h <= hi[0]) if lo[0] <= hi[0] else (h >= lo[0]) | (h <= hi[0])
-    return sv & hue
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3), dtype=np.uint8), cv2.COLOR_RGB2HSV)
+    lo, hi = [int(v) for v in cfg.hsv_low], [int(v) for v in cfg.hsv_high]
+    if lo[0] <= hi[0]:
+        mask = cv2.inRange(hsv, np.array(lo, np.uint8), np.array(hi, np.uint8))
+    else:  # hue range wraps (reds)
+        mask = cv2.inRange(hsv, np.array(lo, np.uint8), np.array([180, hi[1], hi[2]], np.uint8))
+        mask |= cv2.inRange(hsv, np.array([0, lo[1], lo[2]], np.uint8), np.array(hi, np.uint8))
+    return mask.reshape(-1) > 0
 
 
 def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfig) -> np.ndarray:
     """(N, 3) float64 camera-frame rope points from an organized (H, W, 3) or flat (N, 3) cloud.
 
     ``rgb`` of another shape than ``xyz`` is ignored (depth-only segmentation)."""
-    pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    keep = np.all(np.isfinite(pts), axis=1)
-    z = np.where(keep, pts[:, 2], -1.0)
-    keep &= (z >= cfg.depth_min) & (z <= cfg.depth_max)
-    if rgb is not None:
-        colours = np.asarray(rgb)
-        if colours.size == pts.size:
-            keep &= colour_mask(colours.reshape(-1, 3), cfg)
+    pts = np.asarray(xyz).reshape(-1, 3)
+    if rgb is not None and np.asarray(rgb).size == pts.size:
+        pts = pts[colour_mask(np.asarray(rgb).reshape(-1, 3), cfg)]
+    pts = pts.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(pts.sum(1)) & (pts[:, 2] >= cfg.depth_min) & (pts[:, 2] <= cfg.depth_max)
     return pts[keep]

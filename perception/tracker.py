@@ -103,6 +103,9 @@ class Tracker:
     def step(self, grip_next: np.ndarray):
         """Predict one model step (``model.dt``) with the grippers at ``grip_next`` (4, 3)."""
         grip = self._valid_grip(grip_next)
+        if grip is None:
+            log.warning("no valid gripper input yet; nothing to predict")
+            return np.zeros((self.n, 3)), np.zeros(self.n, dtype=bool)
         if self.state is None:
             return self.initialize(grip)
         self._since_update += 1
@@ -153,7 +156,7 @@ class Tracker:
         self._observed = observed & self.movable
         self._since_update = 0
 
-    def _valid_grip(self, grip_next) -> np.ndarray:
+    def _valid_grip(self, grip_next) -> np.ndarray | None:
         try:
             grip = np.asarray(grip_next, dtype=np.float64).reshape(4, 3)
             if np.all(np.isfinite(grip)):
@@ -161,9 +164,7 @@ class Tracker:
         except Exception:
             pass
         log.warning("invalid gripper input; keeping the last one")
-        if self._grip is not None:
-            return self._grip
-        raise ValueError("the first gripper input must be valid")
+        return self._grip
 
     def _hold(self, grip: np.ndarray) -> None:
         """Non-physical prediction: free vertices stay, gripped ones follow the grippers."""
