@@ -67,6 +67,7 @@ class Estimator:
         self.estimate: Estimate | None = None
         self.prev_x: np.ndarray | None = None
         self.clock_s = 0.0  # message time of the last tick (message clock)
+        self.last_cloud: Cloud | None = None  # the last fused cloud (for logging)
 
     # ----- time --------------------------------------------------------------------------------
     def now(self) -> float:
@@ -193,6 +194,7 @@ class Estimator:
         t0 = time.perf_counter()
         out = tracker.correct(cloud.xyz, cloud.rgb, cloud.camera)
         self.stats.fusion_s.add(time.perf_counter() - t0)
+        self.last_cloud = cloud
         self.stats.count("clouds_fused")
         return out
 

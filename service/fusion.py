@@ -1,0 +1,113 @@
+"""Cloud fusion off the loop thread, latest-only: the tick never waits for a cloud.
+
+A cloud is fused into a private copy of the tracker taken at tick k; the copy is then brought
+forward through the grips of the ticks that ran meanwhile and swapped in. The result equals fusing
+at tick k in the loop (same operations, same order), without the loop paying for it.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from service import messages as M
+from service.estimator import Estimator
+from service.tracking import clone_tracker
+
+log = logging.getLogger("deform.service")
+
+
+class LatestSlot:
+    """Holds one item; a new put replaces the unread one (which is reported as superseded)."""
+
+    def __init__(self):
+        self._item = None
+        self._cond = threading.Condition()
+
+    def put(self, item) -> bool:
+        with self._cond:
+            replaced = self._item is not None
+            self._item = item
+            self._cond.notify()
+        return replaced
+
+    def take(self, timeout: float):
+        with self._cond:
+            if self._item is None:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+        return item
+
+
+class FusionWorker(threading.Thread):
+    def __init__(self, est: Estimator, max_lag_ticks: int = 200):
+        super().__init__(name=f"fusion[{est.cfg.namespace}]", daemon=True)
+        self.est = est
+        self.slot = LatestSlot()
+        self.max_lag = max_lag_ticks
+        self._stop_event = threading.Event()
+        self._can_clone = True
+
+    def submit(self, raw: bytes) -> None:
+        if not self.est.admit_cloud(raw):
+            return
+        if self.slot.put(raw):
+            self.est.stats.drop("cloud_superseded", "a newer cloud arrived before fusion")
+
+    def stop(self) -> None:
+        self._stop_event.set()
+
+    def run(self) -> None:
+        import torch
+        torch.set_num_threads(self.est.cfg.torch_threads)
+        while not self._stop_event.is_set():
+            raw = self.slot.take(0.1)
+            if raw is None:
+                continue
+            try:
+                cloud = self.est.decode_cloud(raw)
+            except M.InputError as exc:
+                self.est.stats.reject("points", exc.reason, str(exc))
+                continue
+            try:
+                with torch.no_grad():
+                    self.fuse(cloud)
+            except Exception:  # a fusion failure must never take the service down
+                log.exception("cloud fusion failed")
+                self.est.stats.count("fusion_errors")
+
+    def fuse(self, cloud) -> None:
+        est = self.est
+        with est.lock:
+            if not est.initialized:
+                est.stats.drop("cloud_before_init")
+                return
+            if self._can_clone:
+                try:
+                    copy, k = clone_tracker(est.tracker, est.model), est.tick_index
+                except Exception as exc:
+                    log.warning("tracker cannot be copied (%s): fusing in the loop thread", exc)
+                    self._can_clone = False
+            if not self._can_clone:
+                est._correct(est.tracker, cloud)
+                est.fused_at = est.now()
+                return
+        est._correct(copy, cloud)
+        while True:
+            with est.lock:
+                todo = [(i, g) for i, g in est.history if i > k]
+                if todo and todo[0][0] != k + 1 or len(todo) > self.max_lag:
+                    est.stats.drop("cloud_too_late", f"{len(todo)} ticks behind")
+                    return
+                if len(todo) <= 1:  # one step left: finish under the lock and swap
+                    for _, g in todo:
+                        copy.step(g)
+                    est.tracker = copy
+                    est.fused_at = est.now()
+                    est.stats.count("fusion_catchup_steps", len(todo))
+                    return
+            for i, g in todo:
+                copy.step(g)
+                k = i
+            est.stats.count("fusion_catchup_steps", len(todo))
+            time.sleep(0)

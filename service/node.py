@@ -1,0 +1,257 @@
+"""The Zenoh side: subscribers, the 100 Hz loop thread, the vertices publisher and the queryables.
+
+Two clocks. ``wall``: a fixed-rate timer ticks with the latest gripper poses, clouds are fused by a
+worker. ``message``: every gripper message is one tick at its own stamp and everything is handled
+in arrival order on one thread, so a replay gives the same output bit for bit.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+
+import torch
+import zenoh
+
+from service import messages as M
+from service import predict
+from service.config import ServiceConfig, ZenohSettings
+from service.estimator import Estimator
+from service.fusion import FusionWorker
+from service.stats import Stats
+
+log = logging.getLogger("deform.service")
+INPUTS = ("ee_poses", "points", "camera_info", "camera_pose")
+
+
+def zenoh_config(z: ZenohSettings) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(z.mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
+    if z.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(z.connect))
+        # keep retrying forever so the service reconnects when the router restarts
+        conf.insert_json5("connect/timeout_ms", json.dumps({"router": -1, "peer": -1, "client": -1}))
+    if z.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(z.listen))
+    return conf
+
+
+def open_session(z: ZenohSettings) -> zenoh.Session:
+    return zenoh.open(zenoh_config(z))
+
+
+class Service:
+    """One rod under one namespace. ``start()`` declares everything and starts the threads."""
+
+    def __init__(self, cfg: ServiceConfig, model=None, tracker=None, session: zenoh.Session | None = None,
+                 rerun_logger=None):
+        torch.set_num_threads(cfg.torch_threads)
+        if model is None:
+            from deform import load_model
+            model = load_model(cfg.rod)
+        self.cfg = cfg
+        self.stats = Stats(cfg.namespace)
+        self.est = Estimator(cfg, model, tracker, self.stats)
+        self.session = session
+        self._own_session = session is None
+        self.rerun = rerun_logger
+        if self.rerun is None and cfg.rerun.mode != "off":
+            from service.rerun_log import RerunLogger
+            self.rerun = RerunLogger(cfg.rerun, cfg.namespace, self.stats)
+        self.fusion = None if self.est.message_clock else FusionWorker(self.est)
+        self.inbox: queue.Queue = queue.Queue(maxsize=4096)
+        self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
+        self.latest_payload: bytes | None = None
+        self.published = 0
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._decl: list = []
+        self._last_logged_cloud = None
+
+    # ----- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> "Service":
+        if self.session is None:
+            self.session = open_session(self.cfg.zenoh)
+        s, key = self.session, self.cfg.key
+        cc = zenoh.CongestionControl.BLOCK if self.est.message_clock else zenoh.CongestionControl.DROP
+        self.pub = s.declare_publisher(key("vertices"), congestion_control=cc)
+        for name in INPUTS:
+            self._decl.append(s.declare_subscriber(key(name), self._on_input(name)))
+        self._decl.append(s.declare_queryable(key("vertices"), self._on_vertices_query))
+        self._decl.append(s.declare_queryable(key("status"), self._on_status_query))
+        self._decl.append(s.declare_queryable(key("predict"), self._on_predict_query))
+        if self.rerun is not None:
+            self.rerun.start()
+        if self.fusion is not None:
+            self.fusion.start()
+        loop = self._message_loop if self.est.message_clock else self._wall_loop
+        for target, name in ((loop, "loop"), (self._predict_loop, "predict")):
+            t = threading.Thread(target=target, name=f"{name}[{self.cfg.namespace}]", daemon=True)
+            t.start()
+            self._threads.append(t)
+        log.info("[%s] service up (%s clock, %.0f Hz, tracker %s)", self.cfg.namespace, self.cfg.clock,
+                 self.cfg.rate_hz, type(self.est.tracker).__name__)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        if self.fusion is not None:
+            self.fusion.stop()
+            self.fusion.join(timeout=5)
+        for d in self._decl:
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+        if self.rerun is not None:
+            self.rerun.close()
+        if self._own_session and self.session is not None:
+            self.session.close()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def drain(self, timeout: float = 30.0) -> bool:
+        """Message clock: wait until every received message has been processed (tests, replay)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.inbox.unfinished_tasks == 0:
+                return True
+            time.sleep(0.005)
+        return False
+
+    # ----- inputs ------------------------------------------------------------------------------
+    def _on_input(self, name: str):
+        if self.est.message_clock:
+            def enqueue(sample):
+                self.inbox.put((name, sample.payload.to_bytes()))  # blocks: back-pressure, never loss
+            return enqueue
+        handlers = {"ee_poses": self.est.on_poses, "points": self.fusion.submit,
+                    "camera_info": self.est.on_camera_info, "camera_pose": self.est.on_camera_pose}
+        handler = handlers[name]
+
+        def direct(sample):
+            try:
+                handler(sample.payload.to_bytes())
+            except Exception:
+                log.exception("input handler %s failed", name)
+        return direct
+
+    # ----- loops -------------------------------------------------------------------------------
+    def _publish(self, estimate, t_start: float, initial: bool) -> None:
+        payload = M.vertices_cloud(estimate.stamp_ns, estimate.x, estimate.observed)
+        self.pub.put(payload)
+        self.latest_payload = payload
+        self.published += 1
+        publish_s = time.perf_counter() - t_start
+        if not initial:
+            self.stats.publish_s.add(publish_s)
+        if self.rerun is not None:
+            step = self.stats.step_s._buf[-1] * 1e3 if self.stats.step_s._buf and not initial else None
+            self.rerun.submit("estimate", estimate, step, publish_s * 1e3, self.est.mode())
+            cloud = getattr(self.est, "last_cloud", None)
+            if cloud is not None and cloud is not self._last_logged_cloud:
+                self._last_logged_cloud = cloud
+                self.rerun.submit("cloud", cloud)
+
+    def _tick(self, stamp_ns: int) -> bool:
+        t0 = time.perf_counter()
+        self.stats.tick_starts.append(t0)
+        initial = not self.est.initialized
+        estimate = self.est.tick(stamp_ns)
+        if estimate is None:
+            return initial
+        self._publish(estimate, t0, initial)
+        return initial
+
+    def _wall_loop(self) -> None:
+        torch.set_num_threads(self.cfg.torch_threads)
+        period = self.cfg.dt
+        next_t = time.perf_counter()
+        while not self._stop.is_set():
+            delay = next_t - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            try:
+                initial = self._tick(time.time_ns())
+            except Exception:
+                log.exception("tick failed")
+                self.stats.count("tick_errors")
+                initial = True
+            end = time.perf_counter()
+            self.stats.count("ticks")
+            if end > next_t + period and not initial:
+                self.stats.count("deadline_misses")
+            next_t += period
+            if end > next_t + period:  # more than a period behind: resynchronise rather than burst
+                skipped = int((end - next_t) / period)
+                next_t += skipped * period
+                self.stats.count("ticks_skipped", skipped)
+
+    def _message_loop(self) -> None:
+        torch.set_num_threads(self.cfg.torch_threads)
+        handlers = {"camera_info": self.est.on_camera_info, "camera_pose": self.est.on_camera_pose,
+                    "points": self.est.on_cloud_sync}
+        while not self._stop.is_set():
+            try:
+                name, raw = self.inbox.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                if name == "ee_poses":
+                    if self.est.on_poses(raw):
+                        self.stats.count("ticks")
+                        self._tick(self.est.poses[0])
+                else:
+                    handlers[name](raw)
+            except Exception:
+                log.exception("message %s failed", name)
+                self.stats.count("tick_errors")
+            finally:
+                self.inbox.task_done()
+
+    # ----- queries -----------------------------------------------------------------------------
+    def _on_vertices_query(self, query) -> None:
+        payload = self.latest_payload
+        if payload is None:
+            query.reply_err(json.dumps({"error": "no_estimate"}).encode())
+        else:
+            query.reply(self.cfg.key("vertices"), payload)
+
+    def _on_status_query(self, query) -> None:
+        query.reply(self.cfg.key("status"), json.dumps(self.est.status()).encode())
+
+    def _on_predict_query(self, query) -> None:
+        try:
+            self.predict_queue.put_nowait(query)
+        except queue.Full:
+            self.stats.reject("predict", "busy", "too many predictions queued")
+            query.reply_err(json.dumps({"error": "busy"}).encode())
+
+    def _predict_loop(self) -> None:
+        torch.set_num_threads(self.cfg.torch_threads)
+        while not self._stop.is_set():
+            try:
+                query = self.predict_queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                body = query.payload.to_bytes() if query.payload is not None else b""
+                ok, reply = predict.handle(self.est, body)
+                if ok:
+                    query.reply(self.cfg.key("predict"), reply)
+                else:
+                    query.reply_err(reply)
+            except Exception:
+                log.exception("predict failed")
+                query.reply_err(b'{"error": "internal"}')
+            finally:
+                query.drop()

@@ -1,0 +1,90 @@
+"""Rerun logging of the rope, the fused cloud, the observed flags, the grippers and the timings, on a
+``message_time`` timeline. A separate thread with a bounded queue does the logging so that a slow
+sink can only drop log entries, never delay the tick."""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+
+import numpy as np
+
+from service.config import RerunSettings
+from service.geometry import quat_to_matrix
+
+log = logging.getLogger("deform.service")
+NS = 1_000_000_000
+
+
+class RerunLogger(threading.Thread):
+    def __init__(self, settings: RerunSettings, namespace: str, stats=None):
+        super().__init__(name=f"rerun[{namespace}]", daemon=True)
+        import rerun as rr
+
+        self.rr = rr
+        self.settings = settings
+        self.stats = stats
+        self.rec = rr.RecordingStream(f"deform_service/{namespace}")
+        if settings.mode == "file":
+            self.rec.save(settings.path)
+        else:
+            self.rec.spawn()
+        self.queue: queue.Queue = queue.Queue(maxsize=256)
+        self._clouds = 0
+        self._last_mode = None
+
+    def submit(self, kind: str, *payload) -> None:
+        try:
+            self.queue.put_nowait((kind, payload))
+        except queue.Full:
+            if self.stats is not None:
+                self.stats.drop("rerun_log_entry")
+
+    def close(self) -> None:
+        self.queue.put(("stop", ()))
+        self.join(timeout=10)
+        self.rec.flush()
+        self.rec.disconnect()
+
+    def run(self) -> None:
+        while True:
+            kind, payload = self.queue.get()
+            if kind == "stop":
+                return
+            try:
+                getattr(self, "_log_" + kind)(*payload)
+            except Exception:
+                log.exception("rerun logging failed")
+
+    def _time(self, stamp_ns: int) -> None:
+        self.rec.set_time("message_time", timestamp=stamp_ns / NS)
+
+    def _log_estimate(self, est, step_ms: float | None, publish_ms: float | None, mode: str) -> None:
+        rr, rec = self.rr, self.rec
+        self._time(est.stamp_ns)
+        colors = np.where(est.observed[:, None], [[40, 200, 80]], [[230, 80, 60]]).astype(np.uint8)
+        rec.log("world/rope", rr.LineStrips3D([est.x], colors=[[240, 200, 60]], radii=0.004))
+        rec.log("world/rope/vertices", rr.Points3D(est.x, colors=colors, radii=0.008))
+        axes = quat_to_matrix(est.poses[:, 3:])[:, :, 0]
+        rec.log("world/grippers", rr.Arrows3D(origins=est.poses[:, :3], vectors=0.08 * axes, colors=[[80, 140, 255]]))
+        rec.log("world/grippers/gripped", rr.Points3D(est.grip, colors=[[80, 140, 255]], radii=0.01))
+        rec.log("rope/observed_fraction", rr.Scalars(float(est.observed.mean())))
+        if step_ms is not None:
+            rec.log("timing/step_ms", rr.Scalars(step_ms))
+        if publish_ms is not None:
+            rec.log("timing/tick_to_publish_ms", rr.Scalars(publish_ms))
+        if mode != self._last_mode:
+            rec.log("status/mode", rr.TextLog(f"mode: {mode}"))
+            self._last_mode = mode
+
+    def _log_cloud(self, cloud) -> None:
+        self._clouds += 1
+        if (self._clouds - 1) % self.settings.cloud_every:
+            return
+        self._time(cloud.stamp_ns)
+        world = cloud.camera.to_world(cloud.xyz)
+        self.rec.log("world/cloud", self.rr.Points3D(world, colors=cloud.rgb, radii=0.002))
+
+    def _log_truth(self, stamp_ns: int, x: np.ndarray) -> None:
+        self._time(stamp_ns)
+        self.rec.log("world/ground_truth", self.rr.LineStrips3D([x], colors=[[200, 200, 200]], radii=0.002))
