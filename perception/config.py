@@ -44,6 +44,7 @@ class TrackerConfig:
     settle_tol: float = 1e-3        # m/s
     init_em_rounds: int = 3
     rope_radius: float = 0.005      # m
+    velocity_gain: float = 0.5      # corrections also nudge velocities: v += gain * shift / time since last update
 
 
 @dataclass

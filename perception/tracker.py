@@ -147,7 +147,11 @@ class Tracker:
             self._observed[:] = False
             return self.x, self.observed
         x_t = torch.as_tensor(x_new, dtype=self.state.x.dtype).unsqueeze(0)
-        self.state = replace(self.state, x=x_t)
+        v_t = self.state.v
+        gain = self.config.tracker.velocity_gain
+        if gain > 0 and self.physics and np.isfinite(self._since_update) and self._since_update > 0:
+            v_t = v_t + gain * (x_t - self.state.x) / (self._since_update * self.dt)
+        self.state = replace(self.state, x=x_t, v=v_t)
         self._mark(observed)
         return self.x, self.observed
 
