@@ -95,7 +95,7 @@ class Tracker:
         self.state = replace(state, v=torch.zeros_like(state.x))
         self._grip = grip
         self._observed[:] = False
-        self._since_update = np.inf
+        self._since_update = np.inf  # no velocity nudge from the corrections below
         if xyz is not None and camera is not None:
             return self.correct(xyz, rgb, camera)
         return self.x, self.observed
