@@ -80,6 +80,16 @@ def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
     return groups
 
 
+def clamp_physical(model: DeformModel) -> None:
+    """Keep identified parameters in physically plausible ranges (explicit integration stays stable)."""
+    with torch.no_grad():
+        model.log_beta.clamp_(math.log(1e-6), math.log(5e-2))
+        model.log_gamma.clamp_(math.log(1e-6), math.log(5e-2))
+        model.wbar.clamp_(-1.0, 1.0)
+        model.log_damping.clamp_(math.log(1e-3), math.log(20.0))
+        model.extra_mass_raw.clamp_(-10.0, 10.0)
+
+
 def horizon_at(it: int, cfg: TrainConfig) -> int:
     stage = it // max(cfg.curriculum_iters, 1)
     return cfg.curriculum[stage] if stage < len(cfg.curriculum) else cfg.horizon
@@ -115,6 +125,7 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
     bar = tqdm(range(start, cfg.iterations), initial=start, total=cfg.iterations, disable=not progress,
                desc=f"train {model.cfg.name}", unit="it")
     log = (out_dir / "log.jsonl").open("a")
+    skipped = 0
     last = {}
     for it in bar:
         t0 = time.perf_counter()
@@ -122,12 +133,19 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
         windows = sample_windows(train_recs, cfg.batch, horizon, rng)
         opt.zero_grad(set_to_none=True)
         loss = rollout_loss(model, windows)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], 1.0)
-        opt.step()
+        params = [p for g in opt.param_groups for p in g["params"]]
+        if torch.isfinite(loss):
+            loss.backward()
+        if torch.isfinite(loss) and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
+            torch.nn.utils.clip_grad_norm_(params, 1.0)
+            opt.step()
+            clamp_physical(model)
+        else:  # an unstable window: skip the update rather than poison the parameters
+            skipped += 1
         iter_times.append(time.perf_counter() - t0)
         bar.set_postfix(loss=f"{loss.item() * 100:.3f}cm", h=horizon)
-        last = {"iteration": it + 1, "loss_m": loss.item(), "horizon": horizon, "seconds": iter_times[-1]}
+        last = {"iteration": it + 1, "loss_m": loss.item(), "horizon": horizon, "seconds": iter_times[-1],
+                "skipped": skipped}
         done = it + 1 == cfg.iterations or (cfg.time_limit_s and time.perf_counter() - t_start > cfg.time_limit_s)
         if val_recs and ((it + 1) % cfg.log_every == 0 or done):
             val = validation_l1(model, val_recs, val_steps)

@@ -40,7 +40,6 @@ class Grippers(_Strict):
 class Camera(_Strict):
     pose: list[float] = Field(default=[0.0, -1.2, 0.5, -0.7071068, 0.0, 0.0, 0.7071068], min_length=7, max_length=7)
     use_pose_topic: bool = True
-    max_points: int = Field(default=4000, ge=10)
 
 
 class Timeouts(_Strict):

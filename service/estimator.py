@@ -37,8 +37,8 @@ class Estimate:
 class Cloud:
     """A decoded, subsampled cloud ready for the tracker."""
     stamp_ns: int
-    xyz: np.ndarray   # (N, 3) float64, camera frame
-    rgb: np.ndarray   # (N, 3) uint8
+    xyz: np.ndarray   # (H, W, 3) float32, camera frame, NaN = no return
+    rgb: np.ndarray   # (H, W, 3) uint8
     camera: object    # perception Camera (intrinsics + world_from_camera)
 
 
@@ -137,7 +137,7 @@ class Estimator:
 
     def decode_cloud(self, raw: bytes) -> Cloud:
         """Decode and validate a PointCloud2; raises InputError (the caller counts it)."""
-        stamp, _, xyz, rgb, _ = M.parse_point_cloud(raw)
+        stamp, xyz, rgb, _ = M.parse_point_cloud(raw)
         with self.lock:
             self._check_stamp("points", stamp, self.last_cloud_ns)
             if self.camera_info is None:
@@ -147,10 +147,9 @@ class Estimator:
             self._arrive("points", stamp)
             K, w, h = self.camera_info
             pose = self.camera_pose.copy()
-        if len(xyz) > self.cfg.camera.max_points:  # deterministic stride keeps replay bit-exact
-            idx = np.linspace(0, len(xyz) - 1, self.cfg.camera.max_points).astype(np.int64)
-            xyz, rgb = xyz[idx], rgb[idx]
-        return Cloud(stamp, xyz.astype(np.float64), rgb, make_camera(K, w, h, pose))
+        if xyz.shape[:2] != (h, w):
+            raise M.InputError("cloud_size_mismatch", f"cloud {xyz.shape[1]}x{xyz.shape[0]}, camera_info {w}x{h}")
+        return Cloud(stamp, xyz, rgb, make_camera(K, w, h, pose))
 
     def on_cloud_sync(self, raw: bytes) -> bool:
         """Message clock: decode now and fuse at the first tick at or after the cloud's stamp."""

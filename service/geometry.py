@@ -60,3 +60,20 @@ def poses_from_vertices(x: np.ndarray, offsets: Grippers) -> np.ndarray:
         u = u / np.linalg.norm(u, axis=-1, keepdims=True)
         out.append(np.concatenate([x[..., i0, :] - off.d0 * u, quat_from_x_axis(u)], axis=-1))
     return np.stack(out, axis=-2)
+
+
+def matrix_to_pose(M: np.ndarray) -> np.ndarray:
+    """(4, 4) homogeneous transform -> (7,) pose x y z qx qy qz qw."""
+    R = np.asarray(M, dtype=float)[:3, :3]
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
+        q[i], q[j], q[k] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[k, i] + R[i, k]) / s
+    q = np.asarray(q) / np.linalg.norm(q)
+    return np.concatenate([np.asarray(M, dtype=float)[:3, 3], q])

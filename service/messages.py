@@ -156,17 +156,20 @@ def _structured(msg, wanted: dict[str, tuple[int, ...]]) -> np.ndarray:
     return np.ascontiguousarray(data).view(dtype).reshape(H * W)
 
 
-def parse_point_cloud(raw: bytes) -> tuple[int, tuple[int, int], np.ndarray, np.ndarray, str]:
-    """-> stamp, (H, W), xyz (N, 3) float32 of the finite points, rgb (N, 3) uint8, frame_id."""
+def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
+    """-> stamp, xyz (H, W, 3) float32 (NaN where nothing was seen), rgb (H, W, 3) uint8, frame_id.
+    The cloud stays organized: the tracker reasons about occlusion on the image grid."""
     msg = decode(raw, POINT_CLOUD2)
     if msg.height <= 1:
         raise InputError("unorganized_cloud", f"height {msg.height}")
     rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), "rgb": (FLOAT32, UINT32)})
-    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
-    keep = np.isfinite(xyz).all(axis=1)
-    packed = rec["rgb"][keep].view(np.uint32) if rec["rgb"].dtype == np.float32 else rec["rgb"][keep]
-    rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8)
-    return stamp_ns(msg.header), (int(msg.height), int(msg.width)), xyz[keep], rgb, msg.header.frame_id
+    H, W = int(msg.height), int(msg.width)
+    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).reshape(H, W, 3)
+    packed = rec["rgb"].view(np.uint32) if rec["rgb"].dtype == np.float32 else rec["rgb"]
+    rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8).reshape(H, W, 3)
+    if not np.isfinite(xyz).any():
+        raise InputError("empty_cloud")
+    return stamp_ns(msg.header), xyz, rgb, msg.header.frame_id
 
 
 def vertices_cloud(stamp: int, x: np.ndarray, observed: np.ndarray, frame_id: str = "world") -> bytes:

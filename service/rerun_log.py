@@ -82,8 +82,9 @@ class RerunLogger(threading.Thread):
         if (self._clouds - 1) % self.settings.cloud_every:
             return
         self._time(cloud.stamp_ns)
-        world = cloud.camera.to_world(cloud.xyz)
-        self.rec.log("world/cloud", self.rr.Points3D(world, colors=cloud.rgb, radii=0.002))
+        keep = np.isfinite(cloud.xyz).all(axis=-1)
+        world = cloud.camera.to_world(cloud.xyz[keep])
+        self.rec.log("world/cloud", self.rr.Points3D(world, colors=cloud.rgb[keep], radii=0.002))
 
     def _log_truth(self, stamp_ns: int, x: np.ndarray) -> None:
         self._time(stamp_ns)

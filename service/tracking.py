@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 
 import numpy as np
 import torch
@@ -115,4 +114,4 @@ def rod_state(tracker, model, x_prev: np.ndarray | None, x: np.ndarray):
     return model.initial_state(torch.tensor(x_prev)[None], torch.tensor(x)[None])
 
 
-__all__ = ["make_camera", "make_tracker", "clone_tracker", "rod_state", "OpenLoopTracker", "hanging_guess", "math"]
+

@@ -99,12 +99,24 @@ def newton_theta(
 
 def attach_implicit_gradient(
     theta_star: Tensor, a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor,
-    beta: Tensor, gamma: Tensor, rest_vor: Tensor, wbar: Tensor,
+    beta: Tensor, gamma: Tensor, rest_vor: Tensor, wbar: Tensor, converged_tol: float = 1e-6,
 ) -> Tensor:
-    """Value ``theta*``; derivative ``-H^{-1} dg/dp`` (implicit function theorem)."""
+    """Value ``theta*``; derivative ``-H^{-1} dg/dp`` (implicit function theorem).
+
+    Rods whose solve did not reach a minimum (gradient above ``converged_tol`` or Hessian not
+    positive definite) keep ``theta*`` with no gradient rather than a meaningless one.
+    """
     theta0 = _with_free(theta_ends, theta_star.detach()[..., 1:-1])
     grad, diag, off = gradient_and_hessian(theta0, a, b, m_ref, beta, gamma, rest_vor, wbar)
-    free = theta_star.detach()[..., 1:-1] - solve_tridiagonal(diag.detach(), off.detach(), grad)
+    diag, off = diag.detach(), off.detach()
+    _, pd = solve_tridiagonal_pd(diag, off, grad.detach())
+    ok = pd & (grad.detach().abs().amax(-1) < converged_tol)
+    if not bool(ok.all()):
+        c = (2.0 * gamma / rest_vor).detach()
+        twist_diag = c[..., :-1] + c[..., 1:]
+        diag = torch.where(ok.unsqueeze(-1), diag, twist_diag + (diag - twist_diag).abs())
+        grad = grad * ok.unsqueeze(-1)
+    free = theta_star.detach()[..., 1:-1] - solve_tridiagonal(diag, off, grad)
     return _with_free(theta_ends, free)
 
 

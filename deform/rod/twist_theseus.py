@@ -5,7 +5,12 @@ term is ``beta/(2L) |w - wbar|^2 = c (1 - cos x) + const`` with ``c = beta |w| |
 the angle between ``w`` and ``wbar`` (``|w|`` does not depend on theta), so its residual is the
 2-vector ``sqrt(c/2) (w/|w| - wbar/|wbar|)``, whose Gauss-Newton curvature ``c`` matches the true
 one ``c cos x`` near the minimum (the plain ``w - wbar`` residual overestimates it by ``|w|/|wbar|``
-and converges very slowly). The twist residual is ``sqrt(gamma/L) (theta_i - theta_{i-1} + m_ref)``. Gauss-Newton on them reaches the same minimiser
+and converges very slowly). The twist residual is ``sqrt(gamma/L) (theta_i - theta_{i-1} + m_ref)``.
+
+Gradients: ``backward_mode="implicit"`` (Theseus's implicit differentiation) linearises with the
+Gauss-Newton Hessian, which differs from the true one where residuals are non-zero at the minimum,
+so its gradients are approximate here; ``"unroll"`` through the converged iterations is exact and
+is what the tests compare the fast solver's implicit-function-theorem gradients against. Gauss-Newton on them reaches the same minimiser
 as the fast Newton solver; gradients come from Theseus's implicit backward mode. Slow (a Python
 optimiser per call): tests and the ``--theta-solver theseus`` training option use it, the run-time
 path never does.
@@ -21,7 +26,8 @@ from deform.rod.twist_solver import twist_only_minimiser
 
 def theseus_theta(
     a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor, beta: Tensor, gamma: Tensor, rest_vor: Tensor,
-    wbar: Tensor, theta_init: Tensor | None = None, max_iterations: int = 50, tol: float = 1e-14,
+    wbar: Tensor, theta_init: Tensor | None = None, max_iterations: int = 300, tol: float = 1e-20,
+    backward_mode: str = "implicit",
 ) -> Tensor:
     """Same contract as :func:`deform.rod.twist_solver.solve_theta` for a batch (B, ...)."""
     import theseus as th
@@ -70,10 +76,10 @@ def theseus_theta(
     objective = th.Objective(dtype=dtype)
     objective.add(cost)
     optimizer = th.GaussNewton(objective, max_iterations=max_iterations, step_size=1.0, abs_err_tolerance=tol,
-                               rel_err_tolerance=1e-14)
+                               rel_err_tolerance=1e-16)
     layer = th.TheseusLayer(optimizer)
     inputs = {"theta": init}
     inputs.update({name: var.tensor for name, var in aux.items()})
-    solution, _ = layer.forward(inputs, optimizer_kwargs={"backward_mode": "implicit", "track_best_solution": False})
+    solution, _ = layer.forward(inputs, optimizer_kwargs={"backward_mode": backward_mode, "track_best_solution": False})
     free = solution["theta"]
     return torch.cat([theta_ends[..., :1], free, theta_ends[..., 1:]], dim=-1)

@@ -1,0 +1,119 @@
+"""MCAP record and replay with ROS 2 schemas (ros2msg + CDR), readable by ros2 bag, Foxglove and Rerun.
+
+Topics are ROS names (``/deform/rod1/ee_poses``); Zenoh keys are the same without the leading slash,
+which is how zenoh-bridge-ros2dds maps them. Replay can remap to another namespace.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from service import messages as M
+
+TYPES = {"ee_poses": M.POSE_ARRAY, "points": M.POINT_CLOUD2, "camera_info": M.CAMERA_INFO,
+         "camera_pose": M.POSE_STAMPED, "vertices": M.POINT_CLOUD2}
+
+
+@dataclass
+class Message:
+    name: str        # input name: ee_poses, points, ...
+    log_time: int    # ns; replay paces by it
+    data: bytes      # CDR
+
+
+class McapWriter:
+    """Appends messages of the known inputs under a namespace; schemas are registered once."""
+
+    def __init__(self, path: str | Path, namespace: str):
+        self._f = open(path, "wb")
+        self._w = Writer(self._f)
+        self._w.start(profile="ros2", library="deform-service")
+        self.namespace = namespace
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._seq = 0
+        self._lock = threading.Lock()
+
+    def _channel(self, name: str) -> int:
+        if name not in self._channels:
+            typename = TYPES[name]
+            if typename not in self._schemas:
+                self._schemas[typename] = self._w.register_schema(name=typename, encoding="ros2msg",
+                                                                  data=M.definition(typename).encode())
+            self._channels[name] = self._w.register_channel(topic=f"/{self.namespace}/{name}", message_encoding="cdr",
+                                                            schema_id=self._schemas[typename])
+        return self._channels[name]
+
+    def write(self, name: str, log_time: int, data: bytes) -> None:
+        with self._lock:
+            self._seq += 1
+            self._w.add_message(channel_id=self._channel(name), log_time=int(log_time), publish_time=int(log_time),
+                                data=data, sequence=self._seq)
+
+    def close(self) -> None:
+        with self._lock:
+            self._w.finish()
+            self._f.close()
+
+
+def write_messages(path: str | Path, namespace: str, messages) -> None:
+    w = McapWriter(path, namespace)
+    for m in messages:
+        w.write(m.name, m.log_time, m.data)
+    w.close()
+
+
+def read_messages(path: str | Path) -> list[Message]:
+    """All messages of known input names, in log-time order (stable for equal times)."""
+    out = []
+    with open(path, "rb") as f:
+        for _, channel, msg in make_reader(f).iter_messages(log_time_order=True):
+            name = channel.topic.rstrip("/").rsplit("/", 1)[-1]
+            if name in TYPES and name != "vertices":
+                out.append(Message(name, msg.log_time, bytes(msg.data)))
+    return out
+
+
+def record(session: zenoh.Session, namespace: str, path: str | Path, stop: threading.Event,
+           names=("ee_poses", "points", "camera_info", "camera_pose")) -> int:
+    """Write what arrives on the input keys until ``stop`` is set; returns the message count."""
+    w = McapWriter(path, namespace)
+    count = [0]
+
+    def on(name):
+        def cb(sample):
+            w.write(name, time.time_ns(), sample.payload.to_bytes())
+            count[0] += 1
+        return cb
+
+    subs = [session.declare_subscriber(f"{namespace}/{n}", on(n)) for n in names]
+    stop.wait()
+    for s in subs:
+        s.undeclare()
+    w.close()
+    return count[0]
+
+
+def replay(session: zenoh.Session, namespace: str, messages: list[Message], fast: bool = True,
+           speed: float = 1.0) -> int:
+    """Publish on ``{namespace}/<name>``: as fast as possible (reliable, blocking: nothing dropped) or
+    paced by the recorded log times. Returns the number of messages sent."""
+    pubs = {n: session.declare_publisher(f"{namespace}/{n}", congestion_control=zenoh.CongestionControl.BLOCK,
+                                         reliability=zenoh.Reliability.RELIABLE)
+            for n in {m.name for m in messages}}
+    t0_log, t0_wall = (messages[0].log_time if messages else 0), time.perf_counter()
+    for m in messages:
+        if not fast:
+            delay = (m.log_time - t0_log) / 1e9 / speed - (time.perf_counter() - t0_wall)
+            if delay > 0:
+                time.sleep(delay)
+        pubs[m.name].put(m.data)
+    for p in pubs.values():
+        p.undeclare()
+    return len(messages)
