@@ -46,6 +46,7 @@ class Timeouts(_Strict):
     pose_s: float = Field(default=0.2, gt=0)
     cloud_s: float = Field(default=0.5, gt=0)
     stale_s: float = Field(default=1.0, gt=0)
+    reorder_s: float = Field(default=1.0, gt=0)  # message clock: how far clouds may lag poses in transit
 
 
 class Limits(_Strict):

@@ -79,47 +79,58 @@ class Estimator:
     def _check_stamp(self, topic: str, stamp: int, last: int | None) -> None:
         if last is not None and stamp <= last:
             raise M.InputError("out_of_order", f"stamp {stamp} <= {last}")
-        if self.newest_ns is not None and stamp < self.newest_ns - self.stale_ns:
-            raise M.InputError("stale", f"{(self.newest_ns - stamp) / NS:.3f} s old")
+        # message clock: compare with the time already estimated (arrival order across keys is not
+        # guaranteed, so the newest stamp seen would make the outcome depend on transport timing)
+        ref = int(self.clock_s * NS) if self.message_clock else self.newest_ns
+        if ref and stamp < ref - self.stale_ns:
+            raise M.InputError("stale", f"{(ref - stamp) / NS:.3f} s old")
 
     def _see(self, stamp: int) -> None:
         self.newest_ns = stamp if self.newest_ns is None else max(self.newest_ns, stamp)
 
     # ----- inputs ------------------------------------------------------------------------------
-    def on_poses(self, raw: bytes) -> bool:
+    def parse_poses(self, raw: bytes, last: int | None):
+        """-> (stamp, poses (2, 7), grip (4, 3)) or None (counted and logged)."""
         try:
             stamp, poses = M.parse_pose_array(raw)
-            with self.lock:
-                self._check_stamp("ee_poses", stamp, self.poses[0] if self.poses else None)
-                grip = grips_from_poses(poses, self.cfg.grippers)
-                self.poses = (stamp, poses, grip)
-                self._see(stamp)
-                self._arrive("ee_poses", stamp)
-            return True
+            self._check_stamp("ee_poses", stamp, last)
+            return stamp, poses, grips_from_poses(poses, self.cfg.grippers)
         except M.InputError as exc:
             self.stats.reject("ee_poses", exc.reason, str(exc))
-            return False
+            return None
+
+    def set_poses(self, parsed) -> None:
+        with self.lock:
+            self.poses = parsed
+            self._see(parsed[0])
+            self._arrive("ee_poses", parsed[0])
+
+    def on_poses(self, raw: bytes) -> bool:
+        parsed = self.parse_poses(raw, self.poses[0] if self.poses else None)
+        if parsed is not None:
+            self.set_poses(parsed)
+        return parsed is not None
 
     def on_camera_info(self, raw: bytes) -> bool:
         try:
-            _, K, w, h = M.parse_camera_info(raw)
+            stamp, K, w, h = M.parse_camera_info(raw)
         except M.InputError as exc:
             self.stats.reject("camera_info", exc.reason, str(exc))
             return False
         self.camera_info = (K, w, h)
-        self.arrived["camera_info"] = self.now()
+        self._arrive("camera_info", stamp)
         return True
 
     def on_camera_pose(self, raw: bytes) -> bool:
         if not self.cfg.camera.use_pose_topic:
             return False
         try:
-            _, pose = M.parse_pose_stamped(raw)
+            stamp, pose = M.parse_pose_stamped(raw)
         except M.InputError as exc:
             self.stats.reject("camera_pose", exc.reason, str(exc))
             return False
         self.camera_pose = pose
-        self.arrived["camera_pose"] = self.now()
+        self._arrive("camera_pose", stamp)
         return True
 
     def admit_cloud(self, raw: bytes) -> bool:
@@ -156,7 +167,9 @@ class Estimator:
         if not self.admit_cloud(raw):
             return False
         try:
-            self.pending.append(self.decode_cloud(raw))
+            cloud = self.decode_cloud(raw)
+            self.pending.append(cloud)
+            self.pending.sort(key=lambda c: c.stamp_ns)
             return True
         except M.InputError as exc:
             self.stats.reject("points", exc.reason, str(exc))

@@ -70,6 +70,7 @@ class Service:
         self._threads: list[threading.Thread] = []
         self._decl: list = []
         self._last_logged_cloud = None
+        self._idle = True
 
     # ----- lifecycle ---------------------------------------------------------------------------
     def start(self) -> "Service":
@@ -123,7 +124,7 @@ class Service:
         """Message clock: wait until every received message has been processed (tests, replay)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if self.inbox.unfinished_tasks == 0:
+            if self.inbox.unfinished_tasks == 0 and self._idle:
                 return True
             time.sleep(0.005)
         return False
@@ -132,6 +133,7 @@ class Service:
     def _on_input(self, name: str):
         if self.est.message_clock:
             def enqueue(sample):
+                self._idle = False
                 self.inbox.put((name, sample.payload.to_bytes()))  # blocks: back-pressure, never loss
             return enqueue
         handlers = {"ee_poses": self.est.on_poses, "points": self.fusion.submit,
@@ -197,26 +199,48 @@ class Service:
                 self.stats.count("ticks_skipped", skipped)
 
     def _message_loop(self) -> None:
+        """Message clock. Zenoh does not keep the order between keys (large clouds are fragmented and
+        overtaken by small pose messages), so poses wait in a queue and the tick at stamp t runs only
+        once a cloud stamped at or after t has arrived, or poses are ``reorder_s`` ahead, or the input
+        has been idle: then every cloud up to t is known and the result does not depend on timing."""
         torch.set_num_threads(self.cfg.torch_threads)
-        handlers = {"camera_info": self.est.on_camera_info, "camera_pose": self.est.on_camera_pose,
-                    "points": self.est.on_cloud_sync}
+        est = self.est
+        handlers = {"camera_info": est.on_camera_info, "camera_pose": est.on_camera_pose, "points": est.on_cloud_sync}
+        window = int(self.cfg.timeouts.reorder_s * 1e9)
+        poses: list = []
+        last_pose = None
         while not self._stop.is_set():
             try:
-                name, raw = self.inbox.get(timeout=0.1)
+                name, raw = self.inbox.get(timeout=0.05)
             except queue.Empty:
+                self._advance(poses, flush=True)
                 continue
             try:
                 if name == "ee_poses":
-                    if self.est.on_poses(raw):
-                        self.stats.count("ticks")
-                        self._tick(self.est.poses[0])
+                    parsed = est.parse_poses(raw, last_pose)
+                    if parsed is not None:
+                        poses.append(parsed)
+                        last_pose = parsed[0]
                 else:
                     handlers[name](raw)
+                self._advance(poses, window=window)
             except Exception:
                 log.exception("message %s failed", name)
                 self.stats.count("tick_errors")
             finally:
                 self.inbox.task_done()
+
+    def _advance(self, poses: list, window: int = 0, flush: bool = False) -> None:
+        est = self.est
+        while poses:
+            t = poses[0][0]
+            cloud_seen = est.last_cloud_ns is not None and est.last_cloud_ns >= t
+            if not (flush or cloud_seen or poses[-1][0] - t >= window):
+                return
+            est.set_poses(poses.pop(0))
+            self.stats.count("ticks")
+            self._tick(t)
+        self._idle = True
 
     # ----- queries -----------------------------------------------------------------------------
     def _on_vertices_query(self, query) -> None:
