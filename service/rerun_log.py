@@ -24,7 +24,7 @@ class RerunLogger(threading.Thread):
         self.rr = rr
         self.settings = settings
         self.stats = stats
-        self.rec = rr.RecordingStream(f"deform_service/{namespace}")
+        self.rec = rr.RecordingStream("deform_service_" + namespace.replace("/", "_"))
         if settings.mode == "file":
             self.rec.save(settings.path)
         else:

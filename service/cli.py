@@ -1,0 +1,114 @@
+"""`deform-service run | record FILE | replay FILE | demo-bag FILE` (also `python -m service`)."""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from service.config import ServiceConfigError, load_config
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="deform-service", description=__doc__)
+    p.add_argument("--config", help="YAML (default config/service.yaml)")
+    p.add_argument("--namespace", help="key prefix, e.g. deform/rod2")
+    p.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode (client: through a zenohd router)")
+    p.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--listen", action="append", help="Zenoh endpoint to listen on (repeatable)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="command")
+    run = sub.add_parser("run", help="run the estimation service")
+    run.add_argument("--clock", choices=["wall", "message"])
+    run.add_argument("--rod", help="rod config name or checkpoint")
+    run.add_argument("--rerun", choices=["off", "file", "viewer"])
+    run.add_argument("--rrd", help="output .rrd when --rerun file")
+    rec = sub.add_parser("record", help="record the input keys to an MCAP file (Ctrl-C to stop)")
+    rec.add_argument("file")
+    rec.add_argument("--duration", type=float, help="seconds, default until interrupted")
+    rep = sub.add_parser("replay", help="publish an MCAP file on the input keys")
+    rep.add_argument("file")
+    rep.add_argument("--fast", action="store_true", help="as fast as possible (use a service with --clock message)")
+    rep.add_argument("--speed", type=float, default=1.0)
+    bag = sub.add_parser("demo-bag", help="write the demo recording (poses and rendered clouds) to an MCAP file")
+    bag.add_argument("file")
+    bag.add_argument("--frames", type=int, default=500)
+    return p
+
+
+def _config(args):
+    zenoh = {}
+    base = load_config(args.config)
+    if args.mode:
+        zenoh["mode"] = args.mode
+    if args.connect:
+        zenoh["connect"] = args.connect
+    if args.listen:
+        zenoh["listen"] = args.listen
+    over = {"namespace": args.namespace, "zenoh": base.zenoh.model_copy(update=zenoh).model_dump() if zenoh else None}
+    if args.command in (None, "run"):
+        over.update(clock=getattr(args, "clock", None), rod=getattr(args, "rod", None))
+        rr = {}
+        if getattr(args, "rerun", None):
+            rr["mode"] = args.rerun
+        if getattr(args, "rrd", None):
+            rr["path"] = args.rrd
+        if rr:
+            over["rerun"] = base.rerun.model_copy(update=rr).model_dump()
+    return load_config(args.config, **over)
+
+
+def _wait(stop: threading.Event, duration: float | None = None) -> None:
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop.wait(duration)
+    stop.set()
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        cfg = _config(args)
+    except ServiceConfigError as exc:
+        print(f"deform-service: {exc}", file=sys.stderr)
+        return 2
+    from service import bag
+    from service.node import Service, open_session
+
+    if args.command in (None, "run"):
+        svc = Service(cfg).start()
+        _wait(threading.Event())
+        svc.stop()
+        return 0
+    if args.command == "record":
+        session = open_session(cfg.zenoh)
+        stop = threading.Event()
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        timer = threading.Timer(args.duration, stop.set) if args.duration else None
+        if timer:
+            timer.start()
+        n = bag.record(session, cfg.namespace, args.file, stop)
+        print(f"recorded {n} messages to {args.file}")
+        session.close()
+        return 0
+    if args.command == "replay":
+        session = open_session(cfg.zenoh)
+        messages = bag.read_messages(args.file)
+        n = bag.replay(session, cfg.namespace, messages, fast=args.fast, speed=args.speed)
+        print(f"replayed {n} messages on {cfg.namespace}/*")
+        session.close()
+        return 0
+    if args.command == "demo-bag":
+        from service import scenario
+        positions, name = scenario.demo_positions(args.frames, cfg.rod)
+        bag.write_messages(args.file, cfg.namespace, scenario.build_stream(positions, scenario.offsets_for(positions)))
+        print(f"wrote {name} as {args.file}")
+        return 0
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
