@@ -1,0 +1,164 @@
+"""The tracker: camera updates beat open loop, occlusion handling, initialisation, and bad input."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from deform import find_data_root, load_model, load_recording, gripped_indices
+from perception import Camera, Tracker, load_config, render_recording
+from tests.perception.conftest import occluded_config, swung
+
+
+def _run(tracker, positions, frames, grip_idx):
+    by_step = {f.step: f for f in frames}
+    errors = []
+    for k in range(2, len(positions)):
+        x, observed = tracker.step(positions[k, grip_idx])
+        if k in by_step:
+            f = by_step[k]
+            x, observed = tracker.correct(f.xyz, f.rgb, f.camera)
+        errors.append(np.abs(x - positions[k]).mean())
+    return float(np.mean(errors))
+
+
+def test_camera_updates_beat_open_loop_from_a_wrong_start(model, recording, occluded_frames, grip_idx):
+    p = recording.positions
+    wrong0, wrong1 = swung(p[0], 0.3), swung(p[1], 0.3)
+    open_loop = Tracker(model)
+    open_loop.initialize_from_frames(wrong0, wrong1)
+    err_open = _run(open_loop, p, [], grip_idx)
+    tracked = Tracker(model)
+    tracked.initialize_from_frames(wrong0, wrong1)
+    err_cam = _run(tracked, p, occluded_frames, grip_idx)
+    assert err_open > 0.003
+    assert err_cam < 0.5 * err_open
+
+
+def test_model_prediction_beats_hold_baseline_under_occlusion(model, recording, occluded_frames, grip_idx):
+    p = recording.positions
+    errs = {}
+    for physics in (True, False):
+        t = Tracker(model, physics=physics)
+        t.initialize_from_frames(p[0], p[1])
+        errs[physics] = _run(t, p, occluded_frames, grip_idx)
+    assert errs[True] < 0.5 * errs[False]
+
+
+def test_hold_baseline_keeps_free_vertices(model, recording, grip_idx):
+    p = recording.positions
+    t = Tracker(model, physics=False)
+    t.initialize_from_frames(p[0], p[1])
+    x, _ = t.step(p[5, grip_idx])
+    assert np.allclose(x[2:-2], p[1, 2:-2]) and np.allclose(x[grip_idx], p[5, grip_idx])
+
+
+def test_initialize_under_occlusion(model, recording, grip_idx):
+    p = recording.positions
+    f = render_recording(p, steps=[0], config=occluded_config(0.3), seed=5)[0]
+    assert not f.visible[2:-2].all()
+    rest = np.linalg.norm(np.diff(p[0], axis=0), axis=1)
+    cfg = replace(load_config(), tracker=replace(load_config().tracker, settle_max_steps=150))
+    t = Tracker(model, config=cfg, rest=rest)
+    x, observed = t.initialize(p[0, grip_idx], (f.xyz, f.rgb), f.camera)
+    assert np.all(np.isfinite(x)) and x.shape == p[0].shape
+    assert not np.any(observed & ~f.visible)
+    assert np.abs(x - p[0]).mean() < 0.02
+    assert np.linalg.norm(x - p[0], axis=1)[~f.visible].max() < 0.1  # hidden vertices filled in plausibly
+
+
+def test_observed_flags_expire(model, recording, occluded_frames, grip_idx):
+    p = recording.positions
+    t = Tracker(model)
+    t.initialize_from_frames(p[0], p[1])
+    f = occluded_frames[1]
+    for k in range(2, f.step + 1):
+        t.step(p[k, grip_idx])
+    _, observed = t.correct(f.xyz, f.rgb, f.camera)
+    assert observed.any() and not observed[grip_idx].any()
+    for k in range(f.step + 1, f.step + 40):
+        _, observed = t.step(p[k, grip_idx])
+    assert not observed.any()
+
+
+def _bad_clouds(camera: Camera):
+    h, w = camera.height, camera.width
+    nan = np.full((h, w, 3), np.nan, np.float32)
+    far = np.full((h, w, 3), 50.0, np.float32)
+    table_only = np.zeros((h, w, 3), np.float32)
+    table_only[..., 2] = 1.0
+    orange = np.zeros((h, w, 3), np.uint8)
+    orange[:] = (230, 110, 25)
+    rng = np.random.default_rng(0)
+    return {
+        "empty": (np.zeros((0, 3), np.float32), None),
+        "all_nan": (nan, orange),
+        "nan_points": (rng.normal(0, 1, (500, 3)).astype(np.float32) * np.nan, None),
+        "filtered_out": (far, orange),
+        "wrong_colour_everywhere": (table_only, np.zeros((h, w, 3), np.uint8)),
+        "wrong_camera_size": (rng.normal([0, 0, 1], 0.2, (100, 120, 3)).astype(np.float32), orange[:100, :120]),
+        "rgb_wrong_shape": (table_only, orange[:10]),
+        "not_a_cloud": (np.zeros(7, np.float32), None),
+        "none": (None, None),
+        "inf": (np.full((h, w, 3), np.inf, np.float32), orange),
+    }
+
+
+def test_bad_input_never_raises_nor_returns_nan(model, recording, occluded_frames, grip_idx):
+    p = recording.positions
+    camera = occluded_frames[0].camera
+    t = Tracker(model, camera=camera)
+    t.initialize_from_frames(p[0], p[1])
+    k = 2
+    for name, (xyz, rgb) in _bad_clouds(camera).items():
+        x, observed = t.step(p[k, grip_idx])
+        k += 1
+        x, observed = t.correct(xyz, rgb)
+        assert np.all(np.isfinite(x)), name
+        assert not observed.any(), name
+        assert x.shape == (model.n, 3) and observed.shape == (model.n,)
+    for grip in (np.full((4, 3), np.nan), np.zeros(5), None):
+        x, observed = t.step(grip)
+        assert np.all(np.isfinite(x))
+    x, _ = t.correct(occluded_frames[0].xyz, occluded_frames[0].rgb, camera=None)  # falls back to the default camera
+    assert np.all(np.isfinite(x))
+
+
+def test_rope_hidden_for_seconds_runs_open_loop(model, recording, grip_idx):
+    p = recording.positions
+    empty = np.zeros((0, 3), np.float32)
+    t = Tracker(model)
+    t.initialize_from_frames(p[0], p[1])
+    ref = Tracker(model)
+    ref.initialize_from_frames(p[0], p[1])
+    cam = Camera.kinect()
+    for k in range(2, len(p)):
+        x, observed = t.step(p[k, grip_idx])
+        x_ref, _ = ref.step(p[k, grip_idx])
+        if k % 3 == 0:
+            x, observed = t.correct(empty, None, cam)
+            assert not observed.any()
+    assert np.all(np.isfinite(x)) and np.allclose(x, x_ref)  # exactly the open-loop prediction
+
+
+def test_uninitialised_tracker_does_not_raise(model, grip_idx):
+    t = Tracker(model)
+    x, observed = t.correct(np.zeros((10, 3), np.float32), None, Camera.kinect())
+    assert np.all(np.isfinite(x)) and not observed.any()
+    x, observed = t.step(np.full((4, 3), np.nan))
+    assert np.all(np.isfinite(x)) and not observed.any()
+
+
+@pytest.mark.skipif(find_data_root() is None, reason="DEFORM recordings not available")
+def test_real_recording_camera_tracking_beats_open_loop_and_baseline():
+    root = find_data_root()
+    path = sorted((root / "DLO1" / "eval").glob("*.pkl"))[0]
+    p = load_recording(path).positions[:150]
+    model = load_model("DLO1")
+    gi = gripped_indices(model.n)
+    frames = render_recording(p, fps=30, config=occluded_config(0.25, 0.2, 1.0), seed=0)
+    errs = {}
+    for name, physics, fr in (("open", True, []), ("cam", True, frames), ("hold", False, frames)):
+        t = Tracker(model, physics=physics)
+        t.initialize_from_frames(p[0], p[1])
+        errs[name] = _run(t, p, fr, gi)
+    assert errs["cam"] < errs["open"] and errs["cam"] < 0.5 * errs["hold"]
