@@ -1,0 +1,86 @@
+"""CDR round trips of every message the service speaks, and rejection of malformed ones."""
+import numpy as np
+import pytest
+
+from service import messages as M
+from service.geometry import grips_from_poses, matrix_to_pose, pose_matrix, poses_from_vertices
+from service.config import Grippers
+
+
+def test_pose_array_round_trip():
+    poses = np.array([[0.1, 0.2, 0.3, 0, 0, 0, 1], [0.4, 0.5, 0.6, 0, 0, 1, 0]], dtype=float)
+    stamp, out = M.parse_pose_array(M.pose_array(1_700_000_000_123_456_789, poses))
+    assert stamp == 1_700_000_000_123_456_789
+    np.testing.assert_array_equal(out, poses)
+
+
+def test_organized_cloud_round_trip():
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(6, 7, 3)).astype(np.float32)
+    xyz[0, :3] = np.nan
+    rgb = rng.integers(0, 256, (6, 7, 3)).astype(np.uint8)
+    stamp, xyz2, rgb2, frame = M.parse_point_cloud(M.point_cloud(42, xyz, rgb, "cam"))
+    assert stamp == 42 and frame == "cam"
+    np.testing.assert_array_equal(xyz2, xyz)
+    np.testing.assert_array_equal(rgb2, rgb)
+
+
+def test_vertices_camera_info_pose_stamped_round_trip():
+    x = np.random.default_rng(1).normal(size=(13, 3))
+    obs = np.arange(13) % 3 == 0
+    stamp, x2, obs2 = M.parse_vertices(M.vertices_cloud(7, x, obs))
+    assert stamp == 7
+    np.testing.assert_array_equal(x2, x.astype(np.float32))
+    np.testing.assert_array_equal(obs2, obs)
+    K = np.array([[250.0, 0, 160], [0, 251, 144], [0, 0, 1]])
+    _, K2, w, h = M.parse_camera_info(M.camera_info(3, K, 320, 288))
+    assert (w, h) == (320, 288)
+    np.testing.assert_array_equal(K2, K)
+    pose = np.array([1, 2, 3, 0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    _, p2 = M.parse_pose_stamped(M.pose_stamped(5, pose))
+    np.testing.assert_allclose(p2, pose)
+
+
+def test_schema_text_is_ros2():
+    text = M.definition(M.POSE_ARRAY)
+    assert "builtin_interfaces/Time stamp" in text and "MSG: geometry_msgs/Pose" in text
+
+
+@pytest.mark.parametrize("raw", [b"", b"\x00\x01\x00\x00garbage", bytes(range(256))])
+def test_malformed_cdr_rejected(raw):
+    with pytest.raises(M.InputError) as err:
+        M.parse_pose_array(raw)
+    assert err.value.reason == "malformed_cdr"
+
+
+def test_bad_pose_content_rejected():
+    nan = np.array([[np.nan, 0, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0, 1.0]])
+    with pytest.raises(M.InputError, match="nan_pose"):
+        M.parse_pose_array(M.pose_array(1, nan))
+    with pytest.raises(M.InputError, match="wrong_pose_count"):
+        M.parse_pose_array(M.pose_array(1, np.tile([0, 0, 0, 0, 0, 0, 1.0], (3, 1))))
+    with pytest.raises(M.InputError, match="bad_quaternion"):
+        M.parse_pose_array(M.pose_array(1, np.tile([0, 0, 0, 0, 0, 0, 3.0], (2, 1))))
+
+
+def test_wrong_point_fields_rejected():
+    # a vertices cloud has no rgb field and is not organized: both are refused as input clouds
+    with pytest.raises(M.InputError) as err:
+        M.parse_point_cloud(M.vertices_cloud(1, np.zeros((4, 3)), np.zeros(4)))
+    assert err.value.reason == "unorganized_cloud"
+    msg = M.decode(M.point_cloud(1, np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.uint8)), M.POINT_CLOUD2)
+    msg.fields[3].name = "intensity"
+    with pytest.raises(M.InputError, match="wrong_point_fields"):
+        M.parse_point_cloud(M.encode(msg, M.POINT_CLOUD2))
+
+
+def test_gripper_geometry_round_trip():
+    g = Grippers(first={"d0": 0.01, "d1": 0.03}, last={"d0": 0.0, "d1": 0.025})
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(13, 3))
+    for i0, i1, d in ((0, 1, 0.02), (12, 11, 0.025)):
+        u = x[i1] - x[i0]
+        x[i1] = x[i0] + d * u / np.linalg.norm(u)
+    np.testing.assert_allclose(grips_from_poses(poses_from_vertices(x, g), g), x[[0, 1, 11, 12]], atol=1e-12)
+    pose = np.array([0.1, -1.0, 0.5, -0.5, 0.5, -0.5, 0.5])
+    np.testing.assert_allclose(pose_matrix(matrix_to_pose(pose_matrix(pose))), pose_matrix(pose), atol=1e-12)
