@@ -160,8 +160,10 @@ class DeformModel(nn.Module):
         return solve_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar,
                            theta_init=theta_init, tol=self.options.theta_tol)
 
-    def step(self, state: RodState, grip_next: Tensor, theta_ends: Tensor | None = None, create_graph: bool = False) -> RodState:
-        """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time."""
+    def step(self, state: RodState, grip_next: Tensor | None, theta_ends: Tensor | None = None,
+             create_graph: bool = False) -> RodState:
+        """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
+        (``None``: nothing is held, e.g. a dropped rope)."""
         dt = self.dt
         x, v = state.x, state.v
         force, theta = self.forces(state, theta_ends, create_graph)
@@ -171,10 +173,11 @@ class DeformModel(nn.Module):
         if self.options.residual:
             v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32)).to(x.dtype)
         x_pred = x + dt * v_pred
-        idx = gripped_indices(self.n)
-        x_pred = x_pred.clone()
-        x_pred[..., idx, :] = grip_next.to(x_pred.dtype)
-        inv_mass = (1.0 - self.gripped.to(x.dtype)) / mass
+        inv_mass = 1.0 / mass
+        if grip_next is not None:
+            x_pred = x_pred.clone()
+            x_pred[..., gripped_indices(self.n), :] = grip_next.to(x_pred.dtype)
+            inv_mass = inv_mass * (1.0 - self.gripped.to(x.dtype))
         if not self.options.weighted_pbd:
             inv_mass = unweighted_inv_mass(inv_mass)
         x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,

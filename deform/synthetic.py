@@ -64,6 +64,21 @@ def gripper_trajectory(cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: 
         yaw = 0.3 * np.sin(2 * math.pi * rng.uniform(0.1, 0.4) * t) * np.clip((t - 1.0) / 0.5, 0, 1)
         rotated = np.einsum("tij,kj->tki", _rotation_z(sign * yaw), local)
         out[:, 2 * side: 2 * side + 2] = anchor + pull[:, None] + wiggle[:, None] + rotated
+    free_length = np.linalg.norm(np.diff(x_rest, axis=0), axis=1)[1:-1].sum()
+    return _keep_slack(out, free_length * (1 - sag / 2))
+
+
+def _keep_slack(grips: np.ndarray, max_span: float) -> np.ndarray:
+    """Pull both ends towards their midpoint where the inner gripped vertices would be further
+    apart than ``max_span`` (after the first frame), so that the rod is never stretched taut."""
+    inner = grips[:, 2] - grips[:, 1]
+    span = np.linalg.norm(inner, axis=-1)
+    excess = np.clip(span - max_span, 0, None)
+    excess[0] = 0.0
+    shift = (excess / np.maximum(span, 1e-9) / 2)[:, None] * inner
+    out = grips.copy()
+    out[:, :2] += shift[:, None]
+    out[:, 2:] -= shift[:, None]
     return out
 
 

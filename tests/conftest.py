@@ -1,6 +1,8 @@
 import pytest
 import torch
 
+torch.set_num_threads(1)  # small tensors: one thread is fastest, and CI has two cores
+
 from deform.io.recordings import find_data_root
 
 

@@ -76,7 +76,7 @@ def newton_theta(
     with torch.no_grad():
         a, b, m_ref, theta_ends = a.detach(), b.detach(), m_ref.detach(), theta_ends.detach()
         beta, gamma, rest_vor, wbar = beta.detach(), gamma.detach(), rest_vor.detach(), wbar.detach()
-        k = a.shape[-2] - 1
+        tol = max(tol, 50 * torch.finfo(a.dtype).eps)  # reachable in float32 too
         if theta_init is None:
             free = twist_only_minimiser(m_ref, theta_ends)
         else:
@@ -103,14 +103,14 @@ def attach_implicit_gradient(
 ) -> Tensor:
     """Value ``theta*``; derivative ``-H^{-1} dg/dp`` (implicit function theorem).
 
-    Rods whose solve did not reach a minimum (gradient above ``converged_tol`` or Hessian not
-    positive definite) keep ``theta*`` with no gradient rather than a meaningless one.
+    Rods whose solve did not reach a minimum (Newton step above ``converged_tol`` rad or Hessian
+    not positive definite) keep ``theta*`` with no gradient rather than a meaningless one.
     """
     theta0 = _with_free(theta_ends, theta_star.detach()[..., 1:-1])
     grad, diag, off = gradient_and_hessian(theta0, a, b, m_ref, beta, gamma, rest_vor, wbar)
     diag, off = diag.detach(), off.detach()
-    _, pd = solve_tridiagonal_pd(diag, off, grad.detach())
-    ok = pd & (grad.detach().abs().amax(-1) < converged_tol)
+    step, pd = solve_tridiagonal_pd(diag, off, grad.detach())
+    ok = pd & (step.abs().amax(-1) < converged_tol)
     if not bool(ok.all()):
         c = (2.0 * gamma / rest_vor).detach()
         twist_diag = c[..., :-1] + c[..., 1:]
