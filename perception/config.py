@@ -23,7 +23,8 @@ class SegmentationConfig:
 
 @dataclass
 class EstimationConfig:
-    voxel: float = 0.006            # m, voxel grid downsampling of the rope points
+    max_points: int = 100_000       # larger clouds are decimated (pixel stride) before segmentation
+    voxel: float = 0.008            # m, voxel grid downsampling of the rope points
     filter_radius: float = 0.08     # m, keep points this close to a predicted vertex
     occlusion_margin: float = 0.03  # m, a vertex is occluded if the scene is this much closer than it
     occlusion_window: int = 1       # half size of the pixel window for the observed depth

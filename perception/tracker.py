@@ -14,7 +14,7 @@ import torch
 
 from deform import gripped_indices
 from perception.camera import Camera
-from perception.cloud import depth_image
+from perception.cloud import decimate, depth_image
 from perception.config import load_config
 from perception.estimate import correct_vertices
 from perception.initial import default_rest, initial_guess
@@ -136,7 +136,8 @@ class Tracker:
             if xyz.ndim < 2 or xyz.shape[-1] != 3:
                 raise ValueError(f"cloud of shape {xyz.shape}")
             colours = None if rgb is None else np.asarray(rgb)
-            pts = camera.to_world(segment_rope(xyz, colours, self.config.segmentation))
+            small, colours = decimate(xyz, colours, self.config.estimation.max_points)
+            pts = camera.to_world(segment_rope(small, colours, self.config.segmentation))
             depth = depth_image(xyz, camera)
             x_new, observed = correct_vertices(self.x, pts, depth, camera, self.config.estimation,
                                                self.movable, self.gmm_backend)
