@@ -56,7 +56,8 @@ class Estimator:
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.camera_pose = np.asarray(cfg.camera.pose, dtype=float)
         self.last_cloud_ns: int | None = None
-        self.last_cloud_arrival = -1e9
+        self.last_cloud_arrival = time.monotonic()
+        self.cloud_tokens = 3.0
         self.pending: list[Cloud] = []          # message clock: clouds waiting for their tick
         self.arrived: dict[str, float] = {}     # input -> arrival (wall monotonic or message time, s)
         self.fused_at: float | None = None
@@ -139,11 +140,14 @@ class Estimator:
             self.stats.reject("points", "too_large", f"{len(raw)} bytes")
             return False
         if not self.message_clock:
-            now = time.monotonic()
-            if now - self.last_cloud_arrival < 1.0 / self.cfg.limits.max_cloud_rate_hz:
-                self.stats.reject("points", "flood", f"faster than {self.cfg.limits.max_cloud_rate_hz} Hz")
-                return False
+            # token bucket: bursts of a few clouds (transport jitter) pass, a sustained flood does not
+            now, rate = time.monotonic(), self.cfg.limits.max_cloud_rate_hz
+            self.cloud_tokens = min(3.0, self.cloud_tokens + (now - self.last_cloud_arrival) * rate)
             self.last_cloud_arrival = now
+            if self.cloud_tokens < 1.0:
+                self.stats.reject("points", "flood", f"more than {rate} Hz")
+                return False
+            self.cloud_tokens -= 1.0
         return True
 
     def decode_cloud(self, raw: bytes) -> Cloud:

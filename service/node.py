@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import sys
 import threading
 import time
 
@@ -49,6 +50,9 @@ class Service:
     def __init__(self, cfg: ServiceConfig, model=None, tracker=None, session: zenoh.Session | None = None,
                  rerun_logger=None):
         torch.set_num_threads(cfg.torch_threads)
+        # the loop shares the GIL with fusion and Zenoh callbacks: hand it over every 0.5 ms, not 5 ms,
+        # so a tick waits at most that long for the interpreter
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
         if model is None:
             from deform import load_model
             model = load_model(cfg.rod)

@@ -48,7 +48,6 @@ def test_bad_clouds_rejected(est):
     worker = FusionWorker(est)
     est.cfg.limits.max_cloud_bytes = 10_000
     worker.submit(bytes(20_000))                                  # too large
-    est.last_cloud_arrival = -1e9
     for raw, reason in [(b"garbage", "malformed_cdr"),
                         (M.vertices_cloud(T0, np.zeros((5, 3)), np.zeros(5)), "unorganized_cloud"),
                         (M.point_cloud(T0, np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.uint8)), "empty_cloud"),
@@ -65,7 +64,7 @@ def test_cloud_flood_rejected(est):
     for _ in range(20):
         worker.submit(raw)
     st = est.status()
-    assert st["rejected"].get("points:flood", 0) >= 18  # 60 Hz limit: at most a couple pass in a burst
+    assert st["rejected"].get("points:flood", 0) >= 16  # 60 Hz limit: a burst of 3 passes, then a trickle
 
 
 def test_modes_follow_inputs(model):

@@ -1,0 +1,180 @@
+"""Service benchmark: the live 100 Hz loop with clouds at 30 Hz, tick-to-publish latency, predict for
+64 plans x 100 steps, and a memory soak.
+
+    .venv/bin/python benchmarks/service_bench.py [--loop-s 30] [--soak-s 1800] [--json out.json]
+
+The robot and the camera are simulated by a separate feeder process publishing over Zenoh on
+loopback (poses at 100 Hz, rendered clouds at 30 Hz, looping over a recording), so the service
+process is measured alone, as deployed. Use ``--soak-s 120`` for a short soak.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def feeder(endpoint: str, seconds: float, fps: float) -> None:
+    """Publish poses at 100 Hz and clouds at ``fps`` with the current time as stamp, looping."""
+    from service import messages as M
+    from service import scenario
+    from service.config import ZenohSettings
+    from service.geometry import poses_from_vertices
+    from service.node import open_session
+
+    positions, _ = scenario.demo_positions(300)
+    grippers = scenario.offsets_for(positions)
+    frames = scenario.render(positions, 0.01, fps)
+    poses = poses_from_vertices(positions, grippers)
+    s = open_session(ZenohSettings(connect=[endpoint], multicast_scouting=False))
+    import zenoh
+    pp = s.declare_publisher("deform/rod1/ee_poses", congestion_control=zenoh.CongestionControl.DROP)
+    pc = s.declare_publisher("deform/rod1/points", congestion_control=zenoh.CongestionControl.DROP)
+    pi = s.declare_publisher("deform/rod1/camera_info")
+    pk = s.declare_publisher("deform/rod1/camera_pose")
+    from service.geometry import matrix_to_pose
+    cam = frames[0].camera
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    by_step = {f.step: f for f in frames}
+    print("ready", flush=True)
+    t0 = time.perf_counter()
+    k = 0
+    while time.perf_counter() - t0 < seconds:
+        now = time.time_ns()
+        if k % 100 == 0:
+            pi.put(M.camera_info(now, K, cam.width, cam.height))
+            pk.put(M.pose_stamped(now, matrix_to_pose(cam.world_from_camera)))
+        i = k % len(positions)
+        pp.put(M.pose_array(now, poses[i]))
+        if i in by_step:
+            f = by_step[i]
+            pc.put(M.point_cloud(now, f.xyz, f.rgb))
+        k += 1
+        delay = t0 + k * 0.01 - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+    s.close()
+
+
+def rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def status(session, key="deform/rod1/status") -> dict:
+    for r in session.get(key, timeout=5.0):
+        return json.loads(r.ok.payload.to_bytes())
+
+
+def start_feeder(endpoint: str, seconds: float, fps: float):
+    p = subprocess.Popen([sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)],
+                         stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    assert p.stdout.readline().strip() == "ready"
+    return p
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--loop-s", type=float, default=30.0)
+    ap.add_argument("--soak-s", type=float, default=1800.0)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--json")
+    ap.add_argument("--feeder")
+    ap.add_argument("--feeder-s", type=float)
+    args = ap.parse_args()
+    if args.feeder:
+        feeder(args.feeder, args.feeder_s, args.fps)
+        return 0
+
+    import logging
+    logging.basicConfig(level=logging.WARNING)
+    from service.config import load_config
+    from service.demo import free_port
+    from service.node import Service, open_session
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    cfg = load_config(zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
+    svc = Service(cfg).start()
+    client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
+    out: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                             "processor": platform.processor()}, "tracker": type(svc.est.tracker).__name__}
+
+    # 1. live loop with clouds at 30 Hz
+    feed = start_feeder(ep, args.loop_s + 3, args.fps)
+    time.sleep(3.0)   # initialization and warm-up
+    s0 = status(client)
+    time.sleep(args.loop_s)
+    s1 = status(client)
+    feed.wait()
+    ticks = s1["counts"]["ticks"] - s0["counts"]["ticks"]
+    misses = s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0)
+    skipped = s1["counts"].get("ticks_skipped", 0) - s0["counts"].get("ticks_skipped", 0)
+    fused = s1["counts"].get("clouds_fused", 0) - s0["counts"].get("clouds_fused", 0)
+    out["loop"] = {"seconds": args.loop_s, "ticks": ticks, "deadline_misses": misses, "ticks_skipped": skipped,
+                   "deadline_miss_pct": round(100.0 * (misses + skipped) / max(ticks + skipped, 1), 3),
+                   "rate_hz": s1["rate_hz"], "clouds_fused": fused, "clouds_per_s": round(fused / args.loop_s, 1),
+                   "step_ms": s1["step_ms"], "tick_to_publish_ms": s1["tick_to_publish_ms"],
+                   "fusion_ms": s1["fusion_ms"], "dropped": s1["dropped"], "rejected": s1["rejected"]}
+    print(json.dumps(out["loop"]), flush=True)
+
+    # 2. predict 64 plans x 100 steps (from the current estimate)
+    from service.geometry import poses_from_vertices
+    from service import messages as M
+    x = None
+    for r in client.get("deform/rod1/vertices", timeout=5.0):
+        x = M.parse_vertices(r.ok.payload.to_bytes())[1].astype(float)
+    base = poses_from_vertices(x, cfg.grippers)
+    rng = np.random.default_rng(0)
+    times = []
+    for _ in range(5):
+        plans = base[None, None] + np.linspace(0, 1, 100)[None, :, None, None] * np.concatenate(
+            [rng.uniform(-0.1, 0.1, (64, 1, 2, 3)), np.zeros((64, 1, 2, 4))], axis=-1)
+        body = json.dumps({"plans": plans.tolist(), "dt": 0.01}).encode()
+        t = time.perf_counter()
+        for r in client.get("deform/rod1/predict", payload=body, timeout=60.0):
+            assert r.ok is not None, r.err.payload.to_bytes()
+            n = len(r.ok.payload.to_bytes())
+        times.append(1e3 * (time.perf_counter() - t))
+    out["predict_64x100"] = {"ms": [round(t, 1) for t in times], "p50_ms": round(float(np.median(times)), 1),
+                             "reply_bytes": n, "note": "service idle (no feeder) during the queries"}
+    print(json.dumps(out["predict_64x100"]), flush=True)
+
+    # 3. memory soak
+    feed = start_feeder(ep, args.soak_s + 10, args.fps)
+    time.sleep(min(60.0, max(10.0, args.soak_s / 10)))
+    samples = [(0.0, rss_mb())]
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < args.soak_s:
+        time.sleep(min(10.0, args.soak_s / 10))
+        samples.append((round(time.perf_counter() - t0, 1), rss_mb()))
+    s2 = status(client)
+    feed.kill()
+    growth = 100.0 * (samples[-1][1] - samples[0][1]) / samples[0][1]
+    out["soak"] = {"seconds": args.soak_s, "rss_start_mb": round(samples[0][1], 1), "rss_end_mb": round(samples[-1][1], 1),
+                   "growth_pct": round(growth, 2), "samples": [(t, round(m, 1)) for t, m in samples],
+                   "ticks": s2["ticks"], "deadline_misses_total": s2["deadline_misses"],
+                   "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+    print(json.dumps({k: v for k, v in out["soak"].items() if k != "samples"}), flush=True)
+    client.close()
+    svc.stop()
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
