@@ -113,7 +113,8 @@ def main(argv=None):
             frames = render_recording(positions, dt=model.dt, fps=30, config=cfg, seed=hash((rod, name)) % 1000)
             frames = [f for f in frames if f.step >= 2]
             during = [1 - f.visible[2:n - 2].mean() for f in frames if f.occluded]
-            hidden.setdefault(occ, []).extend(during)
+            if during:
+                hidden.setdefault(occ, []).extend(during)
             for fps in RATES:
                 sub = set(camera_steps(len(positions), model.dt, fps))
                 fr = [f for f in frames if f.step in sub]
@@ -126,8 +127,8 @@ def main(argv=None):
             print(f"{rod} {name} occlusion {occ:.2f}: " + ", ".join(
                 f"{r['tracker'][0]}{r['fps']}={r['l1_cm']:.2f}" for r in rows if r["recording"] == name
                 and r["rod"] == rod and r["occlusion"] == occ), flush=True)
-    lat_full, shape_full = full_resolution_latency(models[args.rods[0]], positions if False else
-                                                   next(recordings(1, args.rods[:1]))[2], base)
+    first = next(recordings(1, args.rods[:1]))[2]
+    lat_full, shape_full = full_resolution_latency(models[args.rods[0]], first, base)
     summary = {}
     for r in rows:
         summary.setdefault((r["occlusion"], r["tracker"], r["fps"]), []).append(r["l1_cm"])
