@@ -50,13 +50,23 @@ def any_perpendicular(t: Tensor) -> Tensor:
     return normalize(helper - dot(helper, t).unsqueeze(-1) * t)
 
 
-def space_parallel_frame(t: Tensor) -> Tensor:
-    """Reference directors ``d1`` (..., m, 3) made by transporting a perpendicular of edge 0 along the rod.
+def up_perpendicular(t: Tensor) -> Tensor:
+    """The world up direction (+z) made perpendicular to ``t``; ``any_perpendicular`` where ``t`` is vertical."""
+    up = torch.zeros_like(t)
+    up[..., 2] = 1.0
+    d = up - dot(up, t).unsqueeze(-1) * t
+    ok = (d.norm(dim=-1, keepdim=True) > 1e-3)
+    return torch.where(ok, normalize(d), any_perpendicular(t))
 
-    Its reference twist is zero, which is the natural twist-free start for a recording whose twist
-    we cannot observe.
+
+def space_parallel_frame(t: Tensor) -> Tensor:
+    """Reference directors ``d1`` (..., m, 3): up at edge 0, parallel-transported along the rod.
+
+    Its reference twist is zero, the natural twist-free start for a recording whose twist we cannot
+    observe; starting from "up" (not an arbitrary perpendicular) gives every recording the same
+    convention, so that a rest curvature identified in the material frame means the same thing in all.
     """
-    d1 = [any_perpendicular(t[..., 0, :])]
+    d1 = [up_perpendicular(t[..., 0, :])]
     for j in range(1, t.shape[-2]):
         d1.append(normalize(parallel_transport(d1[-1], t[..., j - 1, :], t[..., j, :])))
     return torch.stack(d1, dim=-2)

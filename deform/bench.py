@@ -1,0 +1,118 @@
+"""Speed benchmark of the model: latency, batched throughput, cost against vertex count, training.
+
+Every figure is a median (and p99 for latencies) over many steps, measured in one process; the
+Theseus twist solver runs in the same process as the baseline the fast solver is compared to.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import random
+import time
+
+import numpy as np
+import torch
+
+from deform.config import load_rod_config
+from deform.io.recordings import find_data_root, load_recordings
+from deform.model import DeformModel, ModelOptions, gripped_indices, load_model
+from deform.synthetic import generate_recording
+
+
+def _trajectory(model: DeformModel, frames: int = 500) -> np.ndarray:
+    root = find_data_root()
+    if root is not None and (root / model.cfg.name / "train").is_dir() and model.n == 13:
+        return load_recordings(root / model.cfg.name / "train", model.n)[0].positions
+    return generate_recording(model, n_frames=frames, seed=1).positions
+
+
+def _percentiles(seconds: list[float]) -> dict:
+    ms = np.asarray(seconds) * 1e3
+    return {"p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "steps": len(ms)}
+
+
+def step_latency(model: DeformModel, positions: np.ndarray, steps: int) -> dict:
+    """Single rollout (B = 1): the whole step, replaying the recording's grippers in a loop."""
+    X = torch.tensor(positions, dtype=torch.float64).unsqueeze(0)
+    idx = gripped_indices(model.n)
+    times = []
+    with torch.no_grad():
+        state = model.initial_state(X[:, 0], X[:, 1])
+        for k in range(steps + 20):
+            f = 2 + k % (X.shape[1] - 2)
+            if f == 2:
+                state = model.initial_state(X[:, 0], X[:, 1])
+            t0 = time.perf_counter()
+            state = model.step(state, X[:, f, idx])
+            times.append(time.perf_counter() - t0)
+    return _percentiles(times[20:])
+
+
+def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int) -> float:
+    X = torch.tensor(positions[: steps + 2], dtype=torch.float64).unsqueeze(0).expand(batch, -1, -1, -1)
+    X = X + 1e-4 * torch.randn_like(X)
+    idx = gripped_indices(model.n)
+    with torch.no_grad():
+        state = model.initial_state(X[:, 0], X[:, 1])
+        state = model.step(state, X[:, 2, idx])
+        t0 = time.perf_counter()
+        for k in range(steps):
+            state = model.step(state, X[:, 2 + k, idx])
+        dt = time.perf_counter() - t0
+    return batch * steps / dt
+
+
+def vertex_scaling(counts=(13, 25, 50, 100), steps: int = 300) -> dict:
+    out = {}
+    base = load_rod_config("DLO1")
+    for n in counts:
+        model = DeformModel(base.model_copy(update={"n_vertices": n}))
+        rec = generate_recording(model, n_frames=200, seed=2)
+        out[str(n)] = step_latency(model, rec.positions, steps)
+    return out
+
+
+def training_iteration(model: DeformModel, positions: np.ndarray, batch: int = 32, horizon: int = 100, iters: int = 3) -> dict:
+    from deform.io.recordings import Recording
+    from deform.train import rollout_loss, sample_windows
+
+    rec = Recording("bench", positions)
+    rng = random.Random(0)
+    times = []
+    for _ in range(iters):
+        w = sample_windows([rec], batch, horizon, rng)
+        t0 = time.perf_counter()
+        loss = rollout_loss(model, w)
+        loss.backward()
+        times.append(time.perf_counter() - t0)
+        model.zero_grad(set_to_none=True)
+    return {"seconds_p50": float(np.median(times)), "iterations": iters, "batch": batch, "horizon": horizon}
+
+
+def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
+    steps = 300 if quick else 2000
+    model = load_model(rod)
+    positions = _trajectory(model)
+    torch.set_num_threads(1)
+    result = {
+        "machine": {"cpu_count": os.cpu_count(), "processor": platform.processor() or platform.machine(),
+                    "torch": torch.__version__, "python": platform.python_version()},
+        "rod": rod,
+        "n_vertices": model.n,
+    }
+    result["single_rollout_1_thread"] = step_latency(model, positions, steps)
+    theseus_model = load_model(rod)
+    theseus_model.options.theta_solver = "theseus"
+    result["single_rollout_theseus_theta_1_thread"] = step_latency(theseus_model, positions, 20 if quick else 60)
+    result["speedup_vs_theseus_theta"] = (result["single_rollout_theseus_theta_1_thread"]["p50_ms"]
+                                          / result["single_rollout_1_thread"]["p50_ms"])
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    result["throughput_rod_steps_per_s_2_threads"] = {
+        str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50))
+        for b in ((1, 32, 256) if quick else (1, 32, 256, 1024))
+    }
+    torch.set_num_threads(1)
+    result["vertex_scaling_1_thread"] = vertex_scaling(steps=100 if quick else 300)
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    result["training_iteration_2_threads"] = training_iteration(load_model(rod), positions, iters=2 if quick else 5)
+    return result
