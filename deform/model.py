@@ -131,6 +131,13 @@ class DeformModel(nn.Module):
         return RodState(x=x, v=torch.zeros_like(x), d1=G.space_parallel_frame(t),
                         theta=torch.zeros(t.shape[:-1], dtype=x.dtype), rest=rest)
 
+    def reposition(self, state: RodState, x: Tensor, v: Tensor | None = None) -> RodState:
+        """The state moved to positions ``x`` (e.g. corrected by perception): reference frames are
+        parallel-transported to the new edges so that twist is carried over consistently."""
+        x = x.to(state.x.dtype)
+        d1 = G.time_transport(state.d1, G.normalize(G.edges(state.x)), G.normalize(G.edges(x)))
+        return RodState(x=x, v=state.v if v is None else v.to(state.x.dtype), d1=d1, theta=state.theta, rest=state.rest)
+
     # ----- dynamics ---------------------------------------------------------------------------
     def forces(self, state: RodState, theta_ends: Tensor | None = None, create_graph: bool = False) -> tuple[Tensor, Tensor]:
         """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles.

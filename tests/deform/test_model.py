@@ -95,3 +95,14 @@ def test_save_and_load_round_trip(tmp_path, model):
     model.save(tmp_path / "m.pt")
     loaded = load_model(tmp_path / "m.pt")
     assert torch.equal(loaded.log_beta, model.log_beta)
+
+
+def test_reposition_keeps_frames_perpendicular_to_new_edges(model, recording):
+    from deform.rod import geometry as G
+
+    X = torch.tensor(recording.positions[:3], dtype=torch.float64)
+    state = model.initial_state(X[0:1], X[1:2])
+    moved = model.reposition(state, X[2:3] + 0.01 * torch.randn_like(X[2:3]))
+    t = G.normalize(G.edges(moved.x))
+    assert G.dot(moved.d1, t).abs().max() < 1e-12
+    assert torch.allclose(moved.d1.norm(dim=-1), torch.ones_like(moved.d1[..., 0]))
