@@ -152,7 +152,7 @@ class Tracker:
         gain = self.config.tracker.velocity_gain
         if gain > 0 and self.physics and np.isfinite(self._since_update) and self._since_update > 0:
             v_t = v_t + gain * (x_t - self.state.x) / (self._since_update * self.dt)
-        self.state = replace(self.state, x=x_t, v=v_t)
+        self.state = self.model.reposition(self.state, x_t, v_t)
         self._mark(observed)
         return self.x, self.observed
 
