@@ -61,7 +61,7 @@ class ModelOptions:
     pbd_tol: float = 1e-3
     pbd_max_sweeps: int = 20
     pbd_method: str = "projection"  # or "gauss_seidel"
-    theta_tol: float = 1e-8
+    theta_tol: float = 1e-6  # last Newton step [rad]; convergence is quadratic, so the error is ~1e-12
     theta_solver: str = "newton"  # or "theseus" (reference; slow)
 
 
@@ -145,19 +145,22 @@ class DeformModel(nn.Module):
         Closed form (:mod:`deform.rod.forces`); differentiable with first-order autograd when
         ``create_graph`` (training), the angles then carrying implicit-function-theorem gradients.
         """
+        force, theta, _ = self._forces(state, self.vertex_mass(state.rest), theta_ends, create_graph)
+        return force, theta
+
+    def _forces(self, state: RodState, mass: Tensor, theta_ends: Tensor | None, create_graph: bool):
         x = state.x if create_graph else state.x.detach()
         params = self.elastic_params(state.rest)
-        mass = self.vertex_mass(state.rest)
         if not create_graph:
             params = ElasticParams(*(p.detach() for p in (params.beta, params.gamma, params.wbar, params.rest_vor)))
             mass = mass.detach()
         if theta_ends is None:
             theta_ends = state.theta[..., [0, -1]].detach()
         # the frame is carried along by parallel transport: identity at x, but it moves with x
-        geo = rod_geometry(x, state.d1, G.normalize(G.edges(x)).detach())
+        geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
         a, b = curvature_projections(geo)
         theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta)
-        return rod_forces(x, geo, a, b, theta, params, mass), theta
+        return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
 
     def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init):
         if self.options.theta_solver == "theseus":
@@ -173,8 +176,8 @@ class DeformModel(nn.Module):
         (``None``: nothing is held, e.g. a dropped rope)."""
         dt = self.dt
         x, v = state.x, state.v
-        force, theta = self.forces(state, theta_ends, create_graph)
         mass = self.vertex_mass(state.rest)
+        force, theta, t_old = self._forces(state, mass, theta_ends, create_graph)
         accel = force / mass.unsqueeze(-1) - self.damping.to(x.dtype) * v
         v_pred = v + dt * accel
         if self.options.residual:
@@ -190,7 +193,6 @@ class DeformModel(nn.Module):
         x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
                                         self.options.pbd_method)
         v_new = (x_new - x) / dt
-        t_old = G.normalize(G.edges(x))
         t_new = G.normalize(G.edges(x_new))
         d1_new = G.time_transport(state.d1, t_old, t_new)
         if not create_graph:

@@ -36,10 +36,20 @@ class RodGeometry:
     m_ref: Tensor  # (..., n-2) reference twist
 
 
-def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor) -> RodGeometry:
+def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor | None = None) -> RodGeometry:
+    """Geometry at ``x`` with last step's directors carried to the current tangents.
+
+    ``t_prev=None``: the directors already belong to ``x``; they are still differentiated as
+    carried by parallel transport (they move with ``x``) when ``x`` requires grad.
+    """
     e = G.edges(x)
     t = G.normalize(e)
-    d1 = G.time_transport(d1_prev, t_prev, t)
+    if t_prev is not None:
+        d1 = G.time_transport(d1_prev, t_prev, t)
+    elif torch.is_grad_enabled() and x.requires_grad:
+        d1 = G.time_transport(d1_prev, t.detach(), t)
+    else:
+        d1 = d1_prev
     d2 = torch.linalg.cross(t, d1, dim=-1)
     return RodGeometry(t=t, d1=d1, d2=d2, kb=G.curvature_binormal(e), m_ref=G.reference_twist(d1, t))
 
