@@ -27,6 +27,7 @@ class RodConfig(BaseModel):
     bend_stiffness: float = Field(gt=0, description="EI [N m^2]")
     twist_stiffness: float = Field(gt=0, description="GJ [N m^2]")
     damping: float = Field(default=0.5, ge=0, description="linear velocity damping [1/s]")
+    drag: float = Field(default=0.1, ge=0, description="quadratic air drag on the normal velocity [1/m]")
     stiffness_rank: int | None = None
 
 

@@ -4,13 +4,13 @@ One step (semi-implicit Euler, ``dt``), for positions ``x`` and velocities ``v``
 
 1. material angles ``theta* = argmin E`` over interior edges (ends from the grippers);
 2. forces ``F = -dE/dx`` at ``theta*`` (autograd of the energy: exact by construction);
-3. ``v' = v + dt (F / M - c v) + r(x, v)`` with ``r`` the residual network;
+3. ``v' = v + dt (F / M - c v - k |v_n| v_n) + r(x, v)`` with ``r`` the residual network;
 4. ``x' = x + dt v'``; gripped vertices 0, 1, n-2, n-1 set to their inputs;
 5. PBD projects edges to their rest lengths, gripped vertices being infinitely heavy;
 6. ``v = (x_new - x) / dt`` and reference frames are parallel-transported in time.
 
 Parameters identified from data: per-vertex bending and twisting stiffness (log scale), rest
-material curvature, extra point masses per vertex, linear damping.
+material curvature, extra point masses per vertex, linear damping and quadratic air drag.
 """
 from __future__ import annotations
 
@@ -83,6 +83,7 @@ class DeformModel(nn.Module):
         # extra point masses (markers) in grams through a softplus; rod mass is fixed from the config
         self.extra_mass_raw = nn.Parameter(torch.full((n,), _inv_softplus(cfg.marker_mass_kg * 1e3)))
         self.log_damping = nn.Parameter(torch.tensor(math.log(max(cfg.damping, 1e-4))))
+        self.log_drag = nn.Parameter(torch.tensor(math.log(max(cfg.drag, 1e-4))))
         self.residual = ResidualGNN(n)
         grip = torch.zeros(n)
         grip[gripped_indices(n)] = 1.0
@@ -108,6 +109,18 @@ class DeformModel(nn.Module):
     @property
     def damping(self) -> Tensor:
         return self.log_damping.exp()
+
+    @property
+    def drag(self) -> Tensor:
+        return self.log_drag.exp()
+
+    def drag_acceleration(self, x: Tensor, v: Tensor) -> Tensor:
+        """Air drag: linear damping ``-c v`` plus quadratic drag on the normal velocity
+        ``-k |v_n| v_n`` (``v_n`` = velocity across the rod; a rope whipping at a few m/s feels it)."""
+        tangent = G.normalize(torch.cat([x[..., 1:2, :] - x[..., :1, :], x[..., 2:, :] - x[..., :-2, :],
+                                         x[..., -1:, :] - x[..., -2:-1, :]], dim=-2))
+        v_n = v - G.dot(v, tangent).unsqueeze(-1) * tangent
+        return -self.damping.to(x.dtype) * v - self.drag.to(x.dtype) * v_n.norm(dim=-1, keepdim=True) * v_n
 
     # ----- state ------------------------------------------------------------------------------
     def initial_state(self, x0: Tensor, x1: Tensor, dt: float | None = None) -> RodState:
@@ -178,7 +191,7 @@ class DeformModel(nn.Module):
         x, v = state.x, state.v
         mass = self.vertex_mass(state.rest)
         force, theta, t_old = self._forces(state, mass, theta_ends, create_graph)
-        accel = force / mass.unsqueeze(-1) - self.damping.to(x.dtype) * v
+        accel = force / mass.unsqueeze(-1) + self.drag_acceleration(x, v)
         v_pred = v + dt * accel
         if self.options.residual:
             v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32)).to(x.dtype)
@@ -226,7 +239,9 @@ class DeformModel(nn.Module):
     def load(cls, path: str | Path) -> "DeformModel":
         payload = torch.load(path, map_location="cpu", weights_only=True)
         model = cls(RodConfig(**payload["config"]), ModelOptions(**payload["options"]))
-        model.load_state_dict(payload["state_dict"])
+        missing, unexpected = model.load_state_dict(payload["state_dict"], strict=False)
+        if unexpected or any(not k.startswith("log_drag") for k in missing):
+            raise RuntimeError(f"{path}: checkpoint does not match the model (missing {missing}, unexpected {unexpected})")
         return model
 
 

@@ -101,7 +101,7 @@ def coarse_identification(model: DeformModel, recordings: list[Recording], steps
 
 
 def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
-    physics = [model.log_beta, model.log_gamma, model.extra_mass_raw, model.log_damping]
+    physics = [model.log_beta, model.log_gamma, model.extra_mass_raw, model.log_damping, model.log_drag]
     groups = []
     if cfg.sysid:
         groups.append({"params": physics, "lr": cfg.lr_physics})
@@ -126,6 +126,7 @@ def clamp_physical(model: DeformModel) -> None:
         model.log_gamma.clamp_(math.log(1e-6), math.log(0.3))
         model.wbar.clamp_(-1.0, 1.0)
         model.log_damping.clamp_(math.log(1e-3), math.log(20.0))
+        model.log_drag.clamp_(math.log(1e-4), math.log(20.0))
         model.extra_mass_raw.clamp_(-10.0, 10.0)
 
 
