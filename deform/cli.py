@@ -65,12 +65,17 @@ def cmd_eval(args) -> int:
     from deform.model import ModelOptions, load_model
 
     torch.set_num_threads(args.threads)
-    model = load_model(args.model or args.rod)
-    if args.no_residual:
-        model.options.residual = False
+    if args.method == "deform":
+        model = load_model(args.model or args.rod)
+        if args.no_residual:
+            model.options.residual = False
+    else:
+        from deform.baselines import load_baseline  # same interface: n, initial_state, step
+
+        model = load_baseline(args.method, args.rod, args.model)
     directory = _data_dir(args.rod, "eval", args.recordings)
     recs = load_recordings(directory, model.n)
-    result = {"rod": args.rod, "method": "deform", "recordings_dir": str(directory), **evaluate(model, recs, args.steps)}
+    result = {"rod": args.rod, "method": args.method, "recordings_dir": str(directory), **evaluate(model, recs, args.steps)}
     if args.json:
         print(json.dumps(result, indent=2))
     else:
@@ -85,6 +90,12 @@ def cmd_bench(args) -> int:
     result = run_benchmarks(quick=args.quick)
     print(json.dumps(result, indent=2) if args.json else result)
     return 0
+
+
+def cmd_diagnose(args) -> int:
+    from deform.diagnose import run_cli
+
+    return int(run_cli(args) or 0)
 
 
 def cmd_demo(args) -> int:
@@ -130,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--model", help="checkpoint (.pt); default: the shipped model of the rod")
     e.add_argument("--steps", type=int, default=500)
     e.add_argument("--no-residual", action="store_true")
+    e.add_argument("--method", default="deform", help="deform (default) or a baseline: see deform.baselines")
     e.add_argument("--json", action="store_true")
     e.add_argument("--threads", type=int, default=1)
     e.set_defaults(func=cmd_eval)
@@ -138,6 +150,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true")
     b.add_argument("--quick", action="store_true")
     b.set_defaults(func=cmd_bench)
+
+    g = sub.add_parser("diagnose", help="locate and name the physics a simulation leaves out (see deform.diagnose)")
+    g.add_argument("--rod", required=True, help="ROD.json: length_m, mass_kg, n_vertices, dt")
+    g.add_argument("--fit", required=True, help="directory of recordings to fit")
+    g.add_argument("--check", required=True, help="directory of held-out recordings")
+    g.add_argument("--out", required=True, help="output directory (report.json, report.md, plots)")
+    g.add_argument("--model", help="starting model (.pt)")
+    g.add_argument("--json", action="store_true", help="print report.json")
+    g.set_defaults(func=cmd_diagnose)
 
     d = sub.add_parser("demo", help="the main job: the service on a demo replay (or the model demo)")
     d.add_argument("--model-only", action="store_true")

@@ -85,6 +85,9 @@ class DeformModel(nn.Module):
         self.log_damping = nn.Parameter(torch.tensor(math.log(max(cfg.damping, 1e-4))))
         self.log_drag = nn.Parameter(torch.tensor(math.log(max(cfg.drag, 1e-4))))
         self.residual = ResidualGNN(n)
+        # optional physics terms added by tools (e.g. the discrepancy tool's candidate effects):
+        # modules with `acceleration(x, v, mass, rest) -> (B, n, 3)` and/or `mass(mass) -> (B, n)`
+        self.extensions = nn.ModuleList()
         grip = torch.zeros(n)
         grip[gripped_indices(n)] = 1.0
         self.register_buffer("gripped", grip)
@@ -95,7 +98,11 @@ class DeformModel(nn.Module):
         half = 0.5 * rest
         vor = torch.cat([half[..., :1], half[..., :-1] + half[..., 1:], half[..., -1:]], dim=-1)
         rod = self.cfg.mass_kg * vor / rest.sum(-1, keepdim=True)
-        return rod + nn.functional.softplus(self.extra_mass_raw).to(rest.dtype) * 1e-3
+        mass = rod + nn.functional.softplus(self.extra_mass_raw).to(rest.dtype) * 1e-3
+        for ext in self.extensions:
+            if hasattr(ext, "mass"):
+                mass = ext.mass(mass)
+        return mass
 
     def elastic_params(self, rest: Tensor) -> ElasticParams:
         dtype = rest.dtype
@@ -192,6 +199,9 @@ class DeformModel(nn.Module):
         mass = self.vertex_mass(state.rest)
         force, theta, t_old = self._forces(state, mass, theta_ends, create_graph)
         accel = force / mass.unsqueeze(-1) + self.drag_acceleration(x, v)
+        for ext in self.extensions:
+            if hasattr(ext, "acceleration"):
+                accel = accel + ext.acceleration(x, v, mass, state.rest)
         v_pred = v + dt * accel
         if self.options.residual:
             v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32)).to(x.dtype)
