@@ -1,0 +1,71 @@
+"""The command line: clear one-line errors, non-zero exit, nothing written; eval JSON fields."""
+import json
+import os
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from deform import DeformModel, generate_recording, load_rod_config, save_recording
+from deform.cli import main
+
+
+def _run(*args, cwd=None):
+    env = dict(os.environ, PYTHONPATH=os.getcwd())
+    return subprocess.run([sys.executable, "-m", "deform.cli", *args], capture_output=True, text=True, cwd=cwd, env=env,
+                          timeout=300)
+
+
+@pytest.fixture(scope="module")
+def synthetic_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("recs")
+    model = DeformModel(load_rod_config("DLO2"))
+    for s in range(2):
+        save_recording(d / f"{s}.pkl", generate_recording(model, n_frames=40, seed=s).positions)
+    return d
+
+
+def test_eval_json_on_a_directory_of_unseen_recordings(synthetic_dir):
+    out = _run("eval", "--rod", "DLO2", "--recordings", str(synthetic_dir), "--json", "--steps", "30")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    for key in ("rod", "recordings", "steps", "l1_m", "mean_vertex_dist_m", "l1_by_horizon_m", "step_ms_p50"):
+        assert key in result
+    assert result["recordings"] == 2 and result["steps"] == 30
+    assert set(result["l1_by_horizon_m"]) == {"1", "10", "100", "500"}
+    assert 0 < result["l1_m"] < 0.05
+
+
+@pytest.mark.parametrize(
+    "setup, args, message",
+    [
+        ("empty", ["eval", "--rod", "DLO2"], "no .pkl recordings"),
+        ("hostile", ["eval", "--rod", "DLO2"], "refusing to load global"),
+        ("nan", ["eval", "--rod", "DLO2"], "NaN"),
+        ("wrong_n", ["eval", "--rod", "DLO2"], "has 5 markers, the rod has 12"),
+        ("ok", ["eval", "--rod", "DLO9"], "unknown rod 'DLO9'"),
+        ("empty", ["train", "--rod", "DLO2", "--iterations", "1"], "no .pkl recordings"),
+    ],
+)
+def test_bad_input_gives_one_error_line_and_writes_nothing(tmp_path, monkeypatch, capsys, setup, args, message):
+    d = tmp_path / "recs"
+    d.mkdir()
+    if setup == "hostile":
+        (d / "evil.pkl").write_bytes(b"cos\nsystem\n(S'echo hi'\ntR.")
+    elif setup == "nan":
+        (d / "a.pkl").write_bytes(pickle.dumps([np.full((3, 12), np.nan)] * 5))
+    elif setup == "wrong_n":
+        (d / "a.pkl").write_bytes(pickle.dumps([np.zeros((3, 5))] * 5))
+    elif setup == "ok":
+        (d / "a.pkl").write_bytes(pickle.dumps([np.zeros((3, 12))] * 5))
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    code = main([*args, "--recordings", str(d), *(["--out", str(work / "run")] if args[0] == "train" else [])])
+    assert code == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], err
+    assert list(work.iterdir()) == []
