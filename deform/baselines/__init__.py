@@ -1,0 +1,57 @@
+"""Baselines beside DEFORM, all with the predictor interface of :mod:`deform.evaluate`:
+attribute ``n``, ``initial_state(x0, x1)`` (torch (B, n, 3) frames 0 and 1) returning a state with
+``x`` (B, n, 3), and ``step(state, grip_next)`` with ``grip_next`` (B, 4, 3) the gripped vertices
+0, 1, n-2, n-1 at the next frame.
+
+- ``hold_shape``: the interior shape of frame 1 held still, gripped vertices following the inputs.
+- ``der_initial``: plain discrete elastic rod (DEFORM without the residual network), the rod
+  config's initial parameters.
+- ``der_identified``: the same with physical parameters identified on the train recordings
+  (``weights/der_ROD.pt``).
+- ``xpbd``: an XPBD rope (distance and bending constraints), compliances and damping tuned on the
+  train recordings (``weights/xpbd_ROD.json``).
+- ``bilstm``: a bidirectional LSTM over the vertices in the style of Yan et al. 2020, trained on
+  the train recordings (``weights/bilstm_ROD.pt``).
+
+``load_baseline(name, rod, path=None)``: ``path`` overrides the shipped weight file.
+Training of everything: ``benchmarks/baselines.py``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+WEIGHT_DIR = Path(__file__).resolve().parent / "weights"
+
+BASELINES = ("hold_shape", "der_initial", "der_identified", "xpbd", "bilstm")
+
+
+class UnknownBaselineError(ValueError):
+    pass
+
+
+def load_baseline(name: str, rod: str, path: str | None = None):
+    """A predictor for ``rod`` (a rod config name such as ``DLO1``). Unknown names: ValueError."""
+    from deform.cli import UsageError
+
+    if name == "hold_shape":
+        from deform.baselines.hold_shape import HoldShape
+        from deform.config import load_rod_config
+
+        return HoldShape(load_rod_config(rod).n_vertices)
+    if name == "der_initial":
+        from deform.baselines.der import der_initial
+
+        return der_initial(rod)
+    if name == "der_identified":
+        from deform.baselines.der import der_identified
+
+        return der_identified(rod, path)
+    if name == "xpbd":
+        from deform.baselines.xpbd import load_xpbd
+
+        return load_xpbd(rod, path)
+    if name == "bilstm":
+        from deform.baselines.bilstm import load_bilstm
+
+        return load_bilstm(rod, path)
+    raise UsageError(f"unknown method {name!r}; known: deform, {', '.join(BASELINES)}")
