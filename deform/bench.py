@@ -89,6 +89,17 @@ def training_iteration(model: DeformModel, positions: np.ndarray, batch: int = 3
     return {"seconds_p50": float(np.median(times)), "iterations": iters, "batch": batch, "horizon": horizon}
 
 
+def theta_solver_training_ratio(rod: str, positions: np.ndarray, batch: int = 4, horizon: int = 10) -> dict:
+    """Forward + backward of a small training window with each twist solver, same weights and data."""
+    out = {}
+    for solver in ("newton", "theseus"):
+        model = load_model(rod)
+        model.options.theta_solver = solver
+        out[solver] = training_iteration(model, positions, batch=batch, horizon=horizon, iters=2)["seconds_p50"]
+    return {"batch": batch, "horizon": horizon, "seconds_newton": out["newton"], "seconds_theseus": out["theseus"],
+            "theseus_over_newton": out["theseus"] / out["newton"]}
+
+
 def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
     steps = 300 if quick else 2000
     model = load_model(rod)
@@ -115,4 +126,5 @@ def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
     result["vertex_scaling_1_thread"] = vertex_scaling(steps=100 if quick else 300)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     result["training_iteration_2_threads"] = training_iteration(load_model(rod), positions, iters=2 if quick else 5)
+    result["training_theta_solver_2_threads"] = theta_solver_training_ratio(rod, positions)
     return result

@@ -15,7 +15,7 @@ material curvature, extra point masses per vertex, linear damping and quadratic 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -266,5 +266,5 @@ def load_model(rod: str | Path, options: ModelOptions | None = None) -> DeformMo
     else:
         model = DeformModel(load_rod_config(rod))
     if options is not None:
-        model.options = replace(model.options, **vars(options)) if False else options
+        model.options = options
     return model

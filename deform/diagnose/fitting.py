@@ -1,0 +1,142 @@
+"""Fitting through the simulator: Adam on open-loop multi-step L1 windows of the fit recordings.
+
+Windows are short (tens of steps) and batched so that one candidate costs seconds; every candidate
+sees the same window sequence (same seed) so that their fits are comparable.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import random
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from deform.diagnose.simulator import Nominal, Simulator
+from deform.io.recordings import Recording
+
+
+@dataclass
+class FitBudget:
+    iterations: int = 40
+    batch: int = 16
+    horizon: int = 30
+    lr_terms: float = 0.08
+    lr_nominal: float = 0.03
+    margin: int = 3  # frames kept around a window for the delay term
+    seed: int = 0
+    progress: bool = True
+
+
+def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: int, rng: random.Random) -> torch.Tensor:
+    """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings."""
+    out = []
+    length = horizon + 2 + 2 * margin
+    for _ in range(batch):
+        r = rng.choice(recordings)
+        s = rng.randrange(0, r.n_frames - length + 1)
+        out.append(r.positions[s:s + length])
+    return torch.tensor(np.stack(out), dtype=torch.float64)
+
+
+def window_loss(sim: Simulator, windows: torch.Tensor, horizon: int, margin: int, create_graph: bool) -> torch.Tensor:
+    pred = sim.rollout(windows, horizon, margin, create_graph=create_graph)
+    return (pred - windows[:, margin + 2:margin + 2 + horizon]).abs().mean()
+
+
+def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: str = "fit",
+        fit_nominal: bool = True) -> dict:
+    """Fit the simulator's term parameters (and the nominal ones, more slowly) in place."""
+    rng = random.Random(budget.seed)
+    groups = []
+    if sim.term_parameters():
+        groups.append({"params": sim.term_parameters(), "lr": budget.lr_terms})
+    if fit_nominal:
+        groups.append({"params": list(sim.nominal.parameters()), "lr": budget.lr_nominal})
+    opt = torch.optim.Adam(groups)
+    history, skipped = [], 0
+    bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
+    best = (math.inf, None)
+    for it in bar:
+        windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, rng)
+        opt.zero_grad(set_to_none=True)
+        exprs = sim.sync()
+        loss = window_loss(sim, windows, budget.horizon, budget.margin, create_graph=True)
+        params = sim.parameters()
+        if torch.isfinite(loss):
+            sim.backward(loss, exprs)
+        if torch.isfinite(loss) and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
+            torch.nn.utils.clip_grad_norm_(params, 5.0)
+            opt.step()
+            sim.nominal.clamp_()
+        else:
+            skipped += 1
+        history.append(float(loss))
+        bar.set_postfix(loss=f"{float(loss) * 100:.3f}cm")
+    return {"loss_history_m": history, "skipped": skipped}
+
+
+def coarse_nominal(sim: Simulator, recordings: list[Recording], steps: int = 150, max_recordings: int = 4) -> dict:
+    """Log-grid search of EI (GJ tied at 0.7 EI) and damping: puts Adam in the right basin."""
+    recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
+    X = torch.tensor(np.stack([r.positions[:steps + 2] for r in recs]), dtype=torch.float64)
+    best = (math.inf, None)
+    nom = sim.nominal
+    for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2):
+        for c in (0.3, 1.0, 3.0):
+            with torch.no_grad():
+                nom.log_ei.fill_(math.log(ei))
+                nom.log_gj.fill_(math.log(0.7 * ei))
+                nom.log_damping.fill_(math.log(c))
+                sim.sync()
+                err = float(torch.nan_to_num((sim.rollout(X, steps) - X[:, 2:]).abs().mean(), nan=1.0))
+            if err < best[0]:
+                best = (err, (ei, c))
+    ei, c = best[1]
+    with torch.no_grad():
+        nom.log_ei.fill_(math.log(ei))
+        nom.log_gj.fill_(math.log(0.7 * ei))
+        nom.log_damping.fill_(math.log(c))
+    return {"l1_m": best[0], "bend_stiffness": ei, "damping": c}
+
+
+def clone_nominal(nominal: Nominal) -> Nominal:
+    return copy.deepcopy(nominal)
+
+
+def laplace_uncertainty(sim: Simulator, recordings: list[Recording], budget: FitBudget, term) -> dict[str, float]:
+    """Approximate 1-sigma of the term's physical parameters: diagonal curvature of the window
+    loss by finite differences, residual windows treated as independent Laplace samples."""
+    rng = random.Random(budget.seed + 777)
+    windows = make_windows(recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng)
+
+    def loss() -> float:
+        sim.sync()
+        with torch.no_grad():
+            return float(window_loss(sim, windows, budget.horizon, budget.margin, False))
+
+    base = loss()
+    n_eff = windows.shape[0]
+    center = term.params()
+    spread: dict[str, float] = {k: 0.0 for k in center}
+    for p in term.parameters():
+        flat = p.data.view(-1)
+        for i in range(flat.numel()):
+            orig = float(flat[i])
+            d = 0.05
+            flat[i] = orig + d
+            up = loss()
+            flat[i] = orig - d
+            down = loss()
+            curv = (up + down - 2 * base) / d ** 2
+            sigma_raw = math.sqrt(base / (n_eff * curv)) if curv > 0 else math.inf
+            sigma_raw = min(sigma_raw, 10.0)
+            flat[i] = orig + sigma_raw
+            hi = term.params()
+            flat[i] = orig
+            for k in center:
+                spread[k] = math.hypot(spread[k], hi[k] - center[k]) if math.isfinite(hi[k]) else math.inf
+    sim.sync()
+    return spread

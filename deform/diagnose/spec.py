@@ -1,0 +1,105 @@
+"""What the user knows about the rod (ROD.json) and the checks that the recordings agree with it.
+
+A diagnosis on inconsistent inputs would name spurious physics, so contradictions are errors (the
+data cannot be used) or warnings carried into the report (it can, but the user should know).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from deform.io.recordings import Recording, RecordingError, load_recordings
+
+LENGTH_TOLERANCE = 0.10  # ROD.json length vs the markers' polyline length
+
+
+class RodSpec(BaseModel):
+    """ROD.json: length, mass, marker count and frame period; gripped vertices 0, 1, n-2, n-1."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    length_m: float = Field(gt=0)
+    mass_kg: float = Field(gt=0)
+    n_vertices: int = Field(ge=6)
+    dt: float = Field(default=0.01, gt=0)
+    name: str = "rod"
+
+
+def load_rod_spec(path: str | Path) -> RodSpec:
+    """Parse ROD.json; any problem is a one-line :class:`RecordingError` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise RecordingError(f"{path}: no such file")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise RecordingError(f"{path}: expected a JSON object with length_m, mass_kg, n_vertices, dt")
+    try:
+        return RodSpec(**data)
+    except ValidationError as exc:
+        fields = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise RecordingError(f"{path}: {fields}") from None
+
+
+@dataclass
+class Inputs:
+    spec: RodSpec
+    fit: list[Recording]
+    check: list[Recording]
+    warnings: list[str] = field(default_factory=list)
+
+
+def polyline_length(rec: Recording) -> float:
+    """Median over frames of the markers' polyline length (a lower bound of the arc length)."""
+    seg = np.linalg.norm(np.diff(rec.positions, axis=1), axis=-1).sum(-1)
+    return float(np.median(seg))
+
+
+def load_inputs(rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min_fit: int = 2,
+                min_check: int = 1) -> Inputs:
+    """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed."""
+    spec = load_rod_spec(rod)
+    fit = load_recordings(fit_dir)
+    check = load_recordings(check_dir)
+    for name, recs, d in (("fit", fit, fit_dir), ("check", check, check_dir)):
+        n = recs[0].n_vertices
+        if n != spec.n_vertices:
+            raise RecordingError(f"{d}: recordings have {n} markers, {rod} says n_vertices={spec.n_vertices}")
+    if len(fit) < min_fit:
+        raise RecordingError(f"{fit_dir}: {len(fit)} recording(s); at least {min_fit} are needed to fit")
+    if len(check) < min_check:
+        raise RecordingError(f"{check_dir}: {len(check)} recording(s); at least {min_check} are needed for a held-out check")
+    short = [r.name for r in fit + check if r.n_frames < 40]
+    if short:
+        raise RecordingError(f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} have fewer than 40 frames")
+    warnings: list[str] = []
+    lengths = np.array([polyline_length(r) for r in fit + check])
+    measured = float(np.median(lengths))
+    rel = (measured - spec.length_m) / spec.length_m
+    if abs(rel) > LENGTH_TOLERANCE:
+        raise RecordingError(f"{rod}: length_m={spec.length_m} but the markers span {measured:.3f} m "
+                             f"({rel * 100:+.0f} %, tolerance {LENGTH_TOLERANCE * 100:.0f} %)")
+    if abs(rel) > 0.05:
+        warnings.append(f"ROD.json length {spec.length_m} m differs from the marker polyline {measured:.3f} m by {rel * 100:+.1f} %")
+    if len(check) < 3:
+        warnings.append(f"only {len(check)} check recording(s): the bootstrap interval over recordings is unreliable")
+    names = {r.name for r in fit} & {r.name for r in check}
+    if names and any(np.array_equal(a.positions, b.positions) for a in fit for b in check if a.name == b.name):
+        warnings.append(f"fit/ and check/ share identical recordings {sorted(names)}: the check is not held out")
+    jumps = []
+    for r in fit + check:
+        v = np.linalg.norm(np.diff(r.positions, axis=0), axis=-1) / spec.dt
+        if float(np.percentile(v, 99.99)) > 20.0:
+            jumps.append(r.name)
+    if jumps:
+        warnings.append(f"marker speeds above 20 m/s (tracking glitches?) in {jumps}")
+    if any(not math.isclose(r.dt, spec.dt) for r in fit + check):
+        warnings.append(f"ROD.json dt={spec.dt} differs from the recordings' frame period")
+    return Inputs(spec=spec, fit=fit, check=check, warnings=warnings)

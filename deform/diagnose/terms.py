@@ -1,0 +1,263 @@
+"""Library of candidate physics terms the plain DER model may be missing.
+
+Each term is a small ``nn.Module`` with a few physical parameters in a raw, well-scaled form (so one
+Adam learning rate suits all). A term acts on the simulator in one or more of three ways:
+
+* ``acceleration(x, v, mass, rest)`` / ``mass(mass)``: DeformModel extension hooks;
+* ``bind(exprs)``: rewrite the model's identified parameters (``log_beta``, ``wbar``...) as
+  differentiable expressions of the term's parameters (see :mod:`deform.diagnose.simulator`);
+* ``delay_frames``: a fractional shift of the gripper input sequence.
+
+``params()`` gives the physical values for the report; ``init_from_data`` sets data-driven starts.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn.functional import softplus
+
+
+def _inv_softplus(y: float) -> float:
+    return y + math.log(-math.expm1(-y))
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1 - p))
+
+
+def _normal_velocity(x: Tensor, v: Tensor) -> Tensor:
+    """Velocity across the rod (central-difference tangents)."""
+    t = torch.cat([x[..., 1:2, :] - x[..., :1, :], x[..., 2:, :] - x[..., :-2, :], x[..., -1:, :] - x[..., -2:-1, :]], -2)
+    t = t / t.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return v - (v * t).sum(-1, keepdim=True) * t
+
+
+class Term(nn.Module):
+    """Base class: ``name``, a one-line physical ``description``, raw parameters."""
+
+    name = "term"
+    description = ""
+
+    def __init__(self, n: int, arclength: np.ndarray):
+        super().__init__()
+        self.n = n
+        self.register_buffer("s", torch.as_tensor(arclength, dtype=torch.float64))  # (n,) in [0, 1]
+
+    @property
+    def n_params(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def init_from_data(self, context: dict) -> None:
+        """Data-driven starting values (``context``: lowest z, localisation peak...)."""
+
+    def bind(self, exprs: dict[str, Tensor]) -> dict[str, Tensor]:
+        return exprs
+
+    def params(self) -> dict[str, float]:
+        raise NotImplementedError
+
+
+class AerodynamicDrag(Term):
+    name = "aerodynamic_drag"
+    description = "air drag on the velocity across the rod, linear and quadratic in speed"
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.log_lin = nn.Parameter(torch.tensor(math.log(0.02), dtype=torch.float64))
+        self.log_quad = nn.Parameter(torch.tensor(math.log(0.02), dtype=torch.float64))
+
+    def acceleration(self, x, v, mass, rest):
+        vn = _normal_velocity(x, v)
+        return -(self.log_lin.exp() + self.log_quad.exp() * vn.norm(dim=-1, keepdim=True)) * vn
+
+    def params(self):
+        return {"linear_1_per_s": float(self.log_lin.exp()), "quadratic_1_per_m": float(self.log_quad.exp())}
+
+
+class InternalDamping(Term):
+    name = "internal_damping"
+    description = "damping of the bending rate (dissipation of relative motion of neighbouring vertices)"
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.log_eta = nn.Parameter(torch.tensor(math.log(0.05), dtype=torch.float64))
+
+    def acceleration(self, x, v, mass, rest):
+        # Rayleigh dissipation 1/2 eta sum |second difference of v|^2 -> -eta D^T D v
+        d2 = v[..., :-2, :] - 2 * v[..., 1:-1, :] + v[..., 2:, :]
+        f = torch.zeros_like(v)
+        f = f.clone()
+        f[..., :-2, :] += d2
+        f[..., 1:-1, :] -= 2 * d2
+        f[..., 2:, :] += d2
+        return -self.log_eta.exp() * f
+
+    def params(self):
+        return {"bending_rate_damping_1_per_s": float(self.log_eta.exp())}
+
+
+class GroundContact(Term):
+    name = "ground_contact"
+    description = "a horizontal plane with height, contact stiffness and Coulomb friction"
+    width = 0.002  # softplus width of the penalty [m]
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.register_buffer("h0", torch.tensor(0.0, dtype=torch.float64))
+        self.raw_h = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.log_k = nn.Parameter(torch.tensor(math.log(2000.0), dtype=torch.float64))
+        self.raw_mu = nn.Parameter(torch.tensor(_logit(0.3), dtype=torch.float64))
+
+    def init_from_data(self, context):
+        self.h0.fill_(float(context.get("lowest_z", 0.0)) + 0.002)
+
+    @property
+    def height(self) -> Tensor:
+        return self.h0 + 0.02 * self.raw_h
+
+    def acceleration(self, x, v, mass, rest):
+        pen = softplus((self.height - x[..., 2]) / self.width) * self.width
+        normal = self.log_k.exp() * pen  # (B, n) [m/s^2]
+        vxy = v[..., :2]
+        speed = (vxy.pow(2).sum(-1) + 1e-4).sqrt()
+        fric = -torch.sigmoid(self.raw_mu) * normal.unsqueeze(-1) * vxy / speed.unsqueeze(-1)
+        return torch.cat([fric, normal.unsqueeze(-1)], -1)
+
+    def params(self):
+        return {"height_m": float(self.height), "stiffness_1_per_s2": float(self.log_k.exp()),
+                "friction": float(torch.sigmoid(self.raw_mu))}
+
+
+class PointMass(Term):
+    name = "point_mass"
+    description = "an extra mass attached at one arc-length position"
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.raw_pos = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.raw_g = nn.Parameter(torch.tensor(_inv_softplus(0.5), dtype=torch.float64))
+        self.sigma = 0.5 / (n - 1)
+
+    def init_from_data(self, context):
+        self.raw_pos.fill_(_logit(min(max(context.get("peak_s", 0.5), 0.1), 0.9)))
+
+    def mass(self, mass):
+        pos = torch.sigmoid(self.raw_pos)
+        w = torch.exp(-0.5 * ((self.s - pos) / self.sigma) ** 2)
+        w = w / w.sum()
+        return mass + (5e-3 * softplus(self.raw_g)) * w.to(mass.dtype)
+
+    def params(self):
+        return {"mass_kg": float(5e-3 * softplus(self.raw_g)), "position_s": float(torch.sigmoid(self.raw_pos))}
+
+
+class StiffnessVariation(Term):
+    name = "stiffness_variation"
+    description = "a stretch of the rod with a different bending stiffness"
+    edge = 0.03
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.log_ratio = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.raw_c = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.raw_w = nn.Parameter(torch.tensor(_logit(0.25), dtype=torch.float64))
+
+    def init_from_data(self, context):
+        self.raw_c.fill_(_logit(min(max(context.get("peak_s", 0.5), 0.15), 0.85)))
+
+    def window(self) -> Tensor:
+        c, w = torch.sigmoid(self.raw_c), 0.05 + 0.9 * torch.sigmoid(self.raw_w)
+        s = self.s[1:-1]
+        return torch.sigmoid((s - (c - w / 2)) / self.edge) * torch.sigmoid(((c + w / 2) - s) / self.edge)
+
+    def bind(self, exprs):
+        exprs = dict(exprs)
+        exprs["log_beta"] = exprs["log_beta"] + 2.0 * self.log_ratio * self.window()
+        return exprs
+
+    def params(self):
+        c, w = float(torch.sigmoid(self.raw_c)), float(0.05 + 0.9 * torch.sigmoid(self.raw_w))
+        return {"stiffness_ratio": float(torch.exp(2.0 * self.log_ratio)), "start_s": c - w / 2, "end_s": c + w / 2}
+
+
+class ExternalForce(Term):
+    name = "external_force"
+    description = "a uniform force field per unit mass (wind, a tilted gravity)"
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.raw = nn.Parameter(torch.zeros(3, dtype=torch.float64))
+
+    def acceleration(self, x, v, mass, rest):
+        return (0.5 * self.raw).expand_as(x)
+
+    def params(self):
+        a = (0.5 * self.raw).tolist()
+        return {"ax_m_per_s2": a[0], "ay_m_per_s2": a[1], "az_m_per_s2": a[2]}
+
+
+class MassScale(Term):
+    name = "mass_scale"
+    description = "wrong rod mass and mass of the markers (a point mass at every marker)"
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.log_scale = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.raw_g = nn.Parameter(torch.tensor(_inv_softplus(0.2), dtype=torch.float64))
+
+    def mass(self, mass):
+        return mass * self.log_scale.exp() + 1e-3 * softplus(self.raw_g)
+
+    def params(self):
+        return {"rod_mass_scale": float(self.log_scale.exp()), "marker_mass_kg": float(1e-3 * softplus(self.raw_g))}
+
+
+class ActuationDelay(Term):
+    name = "actuation_delay"
+    description = "gripper inputs lagging (or leading) the rod's motion by a fraction of frames"
+
+    def __init__(self, n, arclength, max_frames: float = 3.0):
+        super().__init__(n, arclength)
+        self.raw = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.max_frames = max_frames
+
+    @property
+    def delay_frames(self) -> Tensor:
+        return self.max_frames * torch.tanh(self.raw / self.max_frames)
+
+    def params(self):
+        return {"delay_frames": float(self.delay_frames)}
+
+
+class RestCurvature(Term):
+    name = "rest_curvature"
+    description = "a natural (rest) curvature of the rod in its material frame"
+
+    def __init__(self, n, arclength):
+        super().__init__(n, arclength)
+        self.raw = nn.Parameter(torch.zeros(2, dtype=torch.float64))
+
+    def bind(self, exprs):
+        exprs = dict(exprs)
+        exprs["wbar"] = exprs["wbar"] + (0.05 * self.raw).expand(self.n - 2, 2, 2)
+        return exprs
+
+    def params(self):
+        w = (0.05 * self.raw).tolist()
+        return {"kappa1_per_vertex": w[0], "kappa2_per_vertex": w[1]}
+
+
+LIBRARY: dict[str, type[Term]] = {c.name: c for c in (
+    AerodynamicDrag, InternalDamping, GroundContact, PointMass, StiffnessVariation, ExternalForce, MassScale,
+    ActuationDelay, RestCurvature)}
+
+
+def make_term(name: str, n: int, arclength: np.ndarray, context: dict | None = None) -> Term:
+    """A fresh term of the library, started from the data (``context``)."""
+    term = LIBRARY[name](n, arclength)
+    with torch.no_grad():
+        term.init_from_data(context or {})
+    return term
