@@ -32,7 +32,7 @@ $(STAMP): pyproject.toml Makefile
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m deform.cli demo
+	$(PY) -m service.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -x tests
