@@ -161,7 +161,7 @@ def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: in
             if progress:
                 print(f"  bilstm it {it + 1} h {horizon} loss {float(loss) * 100:.3f} cm val {val * 100:.3f} cm "
                       f"({time.perf_counter() - t0:.0f} s)", flush=True)
-            if val <= best:
+            if val <= best or not val_recs:  # without held-out recordings: the last weights
                 best, best_state = val, {k: t.clone() for k, t in model.state_dict().items()}
         if done:
             break
