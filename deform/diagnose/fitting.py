@@ -73,8 +73,8 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
             sim.nominal.clamp_()
         else:
             skipped += 1
-        history.append(float(loss))
-        bar.set_postfix(loss=f"{float(loss) * 100:.3f}cm")
+        history.append(float(loss.detach()))
+        bar.set_postfix(loss=f"{float(loss.detach()) * 100:.3f}cm")
     return {"loss_history_m": history, "skipped": skipped}
 
 

@@ -54,7 +54,7 @@ class Simulator:
 
     def __init__(self, spec: RodSpec, nominal: Nominal, terms: list[Term] | None = None):
         cfg = RodConfig(name=spec.name, length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=spec.n_vertices,
-                        dt=spec.dt, marker_mass_kg=0.0, bend_stiffness=1e-3, twist_stiffness=7e-4)
+                        dt=spec.dt, marker_mass_kg=1e-9, bend_stiffness=1e-3, twist_stiffness=7e-4)
         self.model = DeformModel(cfg, ModelOptions(residual=False))
         self.n = spec.n_vertices
         self.nominal = nominal
@@ -98,7 +98,7 @@ class Simulator:
     def backward(self, loss: Tensor, exprs: dict[str, Tensor]) -> None:
         """Backpropagate ``loss`` to the nominal and term parameters through the bound model."""
         model_params = {k: getattr(self.model, k) for k in exprs}
-        for p in self.model.parameters():
+        for p in model_params.values():
             p.grad = None
         loss.backward()
         outs, grads = [], []
@@ -109,7 +109,7 @@ class Simulator:
                 grads.append(g.to(e.dtype))
         if outs:
             torch.autograd.backward(outs, grads)
-        for p in self.model.parameters():
+        for p in model_params.values():
             p.grad = None
 
     def delay(self) -> Tensor | None:

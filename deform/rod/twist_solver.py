@@ -69,6 +69,9 @@ def newton_theta(
 ) -> Tensor:
     """Minimise over the free angles by damped Newton; returns all m angles (ends included), detached.
 
+    ``tol`` is the target error in rad: iterations stop once a plain Newton step is below
+    ``sqrt(tol)`` (quadratic convergence leaves an error of order ``tol``) or any step below ``tol``.
+
     Where the exact Hessian is positive definite the step is plain Newton (quadratic convergence at
     a minimum); elsewhere it uses the twist Hessian plus the absolute value of the bending curvature,
     which is positive definite and so a descent direction. Steps are clipped to ``max_step`` rad.
@@ -84,22 +87,25 @@ def newton_theta(
         for _ in range(max_iter):
             theta = _with_free(theta_ends, free)
             grad, diag, off = gradient_and_hessian(theta, a, b, m_ref, beta, gamma, rest_vor, wbar)
-            c = 2.0 * gamma / rest_vor
-            twist_diag = c[..., :-1] + c[..., 1:]
             step, ok = solve_tridiagonal_pd(diag, off, grad)
-            if not bool(ok.all()):
+            exact = bool(ok.all())
+            if not exact:
+                c = 2.0 * gamma / rest_vor
+                twist_diag = c[..., :-1] + c[..., 1:]
                 safe = twist_diag + (diag - twist_diag).abs()
                 step = torch.where(ok.unsqueeze(-1), step, solve_tridiagonal(safe, off, grad))
             step = step.clamp(-max_step, max_step)
             free = free - step
-            if float(step.abs().max()) < tol:
+            size = float(step.abs().max())
+            # exact Newton converges quadratically: the error left after a step of size s is ~s^2
+            if size < tol or (exact and size * size < tol):
                 break
         return _with_free(theta_ends, free)
 
 
 def attach_implicit_gradient(
     theta_star: Tensor, a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor,
-    beta: Tensor, gamma: Tensor, rest_vor: Tensor, wbar: Tensor, converged_tol: float = 1e-6,
+    beta: Tensor, gamma: Tensor, rest_vor: Tensor, wbar: Tensor, converged_tol: float = 1e-4,
 ) -> Tensor:
     """Value ``theta*``; derivative ``-H^{-1} dg/dp`` (implicit function theorem).
 
