@@ -33,7 +33,7 @@ PAPER = {  # paper's Table 1 (DEFORM, DER) in cm; ablation rows are compared aga
 }
 
 
-def run_variant(name: str, rod: str, root: Path, iterations: int, out_root: Path) -> dict:
+def run_variant(name: str, rod: str, root: Path, iterations: int, out_root: Path, batch: int = 32) -> dict:
     cfg = load_rod_config(rod)
     spec = VARIANTS[name]
     out = out_root / name / rod
@@ -46,13 +46,13 @@ def run_variant(name: str, rod: str, root: Path, iterations: int, out_root: Path
         model = DeformModel(cfg, ModelOptions(**spec["options"]))
         recs = load_recordings(root / rod / "train", cfg.n_vertices)
         tr, val = split_validation(recs)
-        tcfg = TrainConfig(iterations=iterations, **spec["train"])
+        tcfg = TrainConfig(iterations=iterations, batch=batch, **spec["train"])
         train(model, tr, val, tcfg, out)
         model = DeformModel.load(out / "best.pt")
         model.options = ModelOptions(**spec["options"])
     res = evaluate(model, load_recordings(root / rod / "eval", cfg.n_vertices))
     out.mkdir(parents=True, exist_ok=True)
-    row = {"variant": name, "rod": rod, "iterations": 0 if spec is None else iterations, "l1_m": res["l1_m"],
+    row = {"variant": name, "rod": rod, "iterations": 0 if spec is None else iterations, "batch": batch, "l1_m": res["l1_m"],
            "step_ms_p50": res["step_ms_p50"]}
     result_file.write_text(json.dumps(row))
     return row
@@ -63,6 +63,7 @@ def main():
     ap.add_argument("--rods", nargs="*", default=["DLO1", "DLO2", "DLO3"])
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS))
     ap.add_argument("--iterations", type=int, default=150)
+    ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--out", default="runs/ablations")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -72,7 +73,7 @@ def main():
     rows = []
     for name in args.variants:
         for rod in args.rods:
-            row = run_variant(name, rod, root, args.iterations, Path(args.out))
+            row = run_variant(name, rod, root, args.iterations, Path(args.out), args.batch)
             print(f"{name:26s} {rod}: {row['l1_m'] * 100:.3f} cm", flush=True)
             rows.append(row)
     results = Path(__file__).parent / "results"
@@ -81,7 +82,8 @@ def main():
     table = {}
     for r in rows:
         table.setdefault(r["variant"], {})[r["rod"]] = r["l1_m"] * 100
-    lines = ["| variant | " + " | ".join(args.rods) + " |", "|---|" + "---:|" * len(args.rods)]
+    lines = [f"Each trained variant: {args.iterations} iterations, batch {args.batch}, seed 0, same curriculum.", "",
+             "| variant | " + " | ".join(args.rods) + " |", "|---|" + "---:|" * len(args.rods)]
     for name, vals in table.items():
         lines.append(f"| {name} | " + " | ".join(f"{vals.get(rod, float('nan')):.3f}" for rod in args.rods) + " |")
     lines.append("| paper DER | " + " | ".join(f"{PAPER[r]['der']:.2f}" for r in args.rods) + " |")
