@@ -1,0 +1,154 @@
+"""Recordings with one planted effect, from a simulator configured unlike the tool's model.
+
+The truth is a finer rod (``refine`` sub-edges per marker interval, so 3-5x more vertices) stepped
+with a smaller time step, gripper motions replayed from real recordings (interpolated between
+frames), markers a subset of the simulated nodes, and 0.3 mm motion-capture noise. One effect from
+the candidate library (or none, for controls) is added to the truth with known parameters.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from deform.diagnose.simulator import Nominal, Simulator
+from deform.diagnose.spec import RodSpec
+from deform.diagnose.terms import make_term
+from deform.io.recordings import Recording
+from deform.model import gripped_indices
+
+EFFECTS = ("aerodynamic_drag", "internal_damping", "ground_contact", "point_mass", "stiffness_variation",
+           "external_force", "mass_scale", "actuation_delay", "rest_curvature")
+
+
+class MarkerMass(nn.Module):
+    """Point masses on the marker nodes only (the truth of ``mass_scale``)."""
+
+    def __init__(self, n: int, nodes: list[int], kg: float):
+        super().__init__()
+        w = torch.zeros(n, dtype=torch.float64)
+        w[nodes] = kg
+        self.register_buffer("w", w)
+
+    def mass(self, mass):
+        return mass + self.w
+
+
+def _layout(markers0: np.ndarray, refine: int) -> tuple[np.ndarray, list[int]]:
+    """Sim node positions (N, 3) interpolated from one frame of markers, and the marker node ids."""
+    n = markers0.shape[0]
+    nodes = [markers0[0], markers0[1]]
+    ids = [0, 1]
+    for j in range(1, n - 2):
+        for k in range(1, refine + 1):
+            a = k / refine
+            nodes.append((1 - a) * markers0[j] + a * markers0[j + 1])
+        ids.append(len(nodes) - 1)
+    nodes.append(markers0[n - 1])
+    ids.append(len(nodes) - 1)
+    return np.stack(nodes), ids
+
+
+def planted_truth(effect: str | None, spec: RodSpec, lowest_z: float) -> dict:
+    """Physical parameters of the planted effect, in the tool's conventions (for parameter error)."""
+    return {
+        None: {},
+        "aerodynamic_drag": {"linear_1_per_s": 0.8, "quadratic_1_per_m": 2.0},
+        "internal_damping": {"bending_rate_damping_1_per_s": 0.6},
+        "ground_contact": {"height_m": lowest_z, "stiffness_1_per_s2": 3000.0, "friction": 0.5},
+        "point_mass": {"mass_kg": 0.25 * spec.mass_kg, "position_s": 0.35},
+        "stiffness_variation": {"stiffness_ratio": 5.0, "start_s": 0.3, "end_s": 0.55},
+        "external_force": {"ax_m_per_s2": 0.8, "ay_m_per_s2": 0.5, "az_m_per_s2": 0.0},
+        "mass_scale": {"marker_mass_kg": 0.004},
+        "actuation_delay": {"delay_frames": 2.0},
+        "rest_curvature": {"kappa1_per_m": 0.6, "kappa2_per_m": 0.0},
+    }[effect]
+
+
+def _truth_terms(effect, truth, n_sim, s_sim, marker_ids, refine, mean_marker_edge):
+    if effect is None or effect == "actuation_delay":
+        return []
+    if effect == "mass_scale":
+        return [MarkerMass(n_sim, marker_ids, truth["marker_mass_kg"])]
+    term = make_term(effect, n_sim, s_sim)
+    with torch.no_grad():
+        if effect == "aerodynamic_drag":
+            term.log_lin.fill_(math.log(truth["linear_1_per_s"]))
+            term.log_quad.fill_(math.log(truth["quadratic_1_per_m"]))
+        elif effect == "internal_damping":  # second differences shrink as spacing^2 on a finer rod
+            term.log_eta.fill_(math.log(truth["bending_rate_damping_1_per_s"] * refine ** 4))
+        elif effect == "ground_contact":
+            term.h0.fill_(truth["height_m"])
+            term.raw_h.fill_(0.0)
+            term.log_k.fill_(math.log(truth["stiffness_1_per_s2"]))
+            term.raw_mu.fill_(math.log(truth["friction"] / (1 - truth["friction"])))
+        elif effect == "point_mass":
+            term.raw_pos.fill_(math.log(0.35 / 0.65))
+            term.raw_g.fill_(math.log(math.expm1(truth["mass_kg"] / 5e-3)))
+            term.sigma = 0.25 / (n_sim - 1)
+        elif effect == "stiffness_variation":
+            c, w = 0.425, 0.25
+            term.raw_c.fill_(math.log(c / (1 - c)))
+            term.raw_w.fill_(math.log((w - 0.05) / 0.9 / (1 - (w - 0.05) / 0.9)))
+            term.log_ratio.fill_(0.5 * math.log(truth["stiffness_ratio"]))
+        elif effect == "external_force":
+            term.raw.copy_(torch.tensor([truth["ax_m_per_s2"], truth["ay_m_per_s2"], truth["az_m_per_s2"]]) / 0.5)
+        elif effect == "rest_curvature":  # per-vertex turning = curvature x edge length
+            edge = mean_marker_edge / refine
+            term.raw.copy_(torch.tensor([truth["kappa1_per_m"] * edge, truth["kappa2_per_m"] * edge]) / 0.05)
+    return [term]
+
+
+def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec, n_frames: int = 300,
+                     refine: int = 3, substeps: int = 5, noise_m: float = 3e-4, seed: int = 0,
+                     ei: float = 3e-3, gj: float = 2e-3, damping: float = 1.0, settle_s: float = 1.0):
+    """-> (recordings, truth params). Each source recording gives the gripper motion of one output."""
+    rng = np.random.default_rng(seed)
+    n = spec.n_vertices
+    lowest = float(np.percentile([r.positions[:n_frames, 2:-2, 2].min() for r in sources], 40))
+    truth = planted_truth(effect, spec, lowest)
+    starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
+    grips_rec = np.stack([r.positions[s:s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)])
+    x0_markers = np.stack([r.positions[s] for r, s in zip(sources, starts)])
+    nodes, ids = zip(*[_layout(x, refine) for x in x0_markers])
+    X0 = np.stack(nodes)
+    n_sim = X0.shape[1]
+    rest = np.linalg.norm(np.diff(X0, axis=1), axis=-1)
+    s_sim = np.concatenate([[0.0], np.cumsum(rest.mean(0))])
+    s_sim /= s_sim[-1]
+    sim_spec = RodSpec(length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=n_sim, dt=spec.dt / substeps)
+    mean_edge = float(rest.sum(1).mean() / (n - 3 + 2))
+    terms = _truth_terms(effect, truth, n_sim, s_sim, list(ids[0]), refine, float(rest[:, 1:-1].mean() * refine))
+    sim = Simulator(sim_spec, Nominal(ei, gj, damping), [t for t in terms if not isinstance(t, MarkerMass)])
+    for t in terms:
+        if isinstance(t, MarkerMass):
+            sim.model.extensions.append(t)
+    sim.sync()
+    model = sim.model
+    delay = truth.get("delay_frames", 0.0)
+    # gripper input of the simulated rod at fractional frame f: the recorded grips at f - delay
+    T = n_frames
+    def grip_at(f: float) -> torch.Tensor:
+        f = min(max(f - delay, 0.0), T - 1.0)
+        i = min(int(math.floor(f)), T - 2)
+        a = f - i
+        return torch.tensor((1 - a) * grips_rec[:, i] + a * grips_rec[:, i + 1])
+    state = model.static_state(torch.tensor(X0), rest=torch.tensor(rest))
+    g0 = grip_at(0.0)
+    out = np.empty((len(sources), T, n, 3))
+    with torch.no_grad():
+        for _ in range(int(settle_s / sim_spec.dt)):
+            state = model.step(state, g0)
+        out[:, 0] = state.x.numpy()[:, list(ids[0])]
+        for k in range(1, T):
+            for j in range(1, substeps + 1):
+                state = model.step(state, grip_at(k - 1 + j / substeps))
+            out[:, k] = state.x.numpy()[:, list(ids[0])]
+    out[:, :, gripped_indices(n)] = grips_rec  # the recorded inputs (the sim's ends lag them by `delay`)
+    out = out + rng.normal(0, noise_m, out.shape)
+    if not np.all(np.isfinite(out)):
+        raise RuntimeError(f"planted {effect}: the truth simulation diverged")
+    recs = [Recording(name=f"{effect or 'control'}_{seed}_{i}", positions=out[i], dt=spec.dt) for i in range(len(sources))]
+    return recs, truth
