@@ -1,0 +1,49 @@
+"""Discrepancy tool: locate where the plain DER model and recordings differ, name the missing physics.
+
+``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]``
+
+Modules: :mod:`.spec` (inputs and their checks), :mod:`.simulator` (bound DER model),
+:mod:`.terms` (candidate library), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
+:mod:`.scoring` (bootstrap + parameter penalty), :mod:`.selection` (forward selection),
+:mod:`.report`, :mod:`.planted` (benchmark data with planted effects).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+
+def run_cli(args) -> int:
+    """Entry point of ``deform diagnose``: errors are raised before anything is written."""
+    import torch
+
+    from deform.cli import UsageError
+    from deform.diagnose.report import write_report
+    from deform.diagnose.selection import DiagnoseBudget, diagnose
+    from deform.diagnose.spec import load_inputs
+
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: --out exists and is not a directory")
+    if getattr(args, "model", None) and not Path(args.model).is_file():
+        raise UsageError(f"{args.model}: --model: no such file")
+    inputs = load_inputs(args.rod, args.fit, args.check)
+    diag = diagnose(inputs, DiagnoseBudget(), start_model=getattr(args, "model", None))
+    tmp = Path(tempfile.mkdtemp(prefix=".diagnose-", dir=out.parent if out.parent.exists() else None))
+    try:
+        write_report(diag, inputs.check, tmp)
+        out.mkdir(parents=True, exist_ok=True)
+        for f in tmp.iterdir():
+            shutil.move(str(f), out / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    if args.json:
+        print(json.dumps(diag.report, indent=2))
+    else:
+        print(f"selected: {', '.join(diag.report['selected']) or 'none'}; check L1 "
+              f"{diag.report['nominal']['check_l1_m'] * 100:.3f} -> {diag.report['final_check_l1_m'] * 100:.3f} cm; "
+              f"report in {out / 'report.md'}")
+    return 0

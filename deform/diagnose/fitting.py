@@ -81,6 +81,7 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
 def coarse_nominal(sim: Simulator, recordings: list[Recording], steps: int = 150, max_recordings: int = 4) -> dict:
     """Log-grid search of EI (GJ tied at 0.7 EI) and damping: puts Adam in the right basin."""
     recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
+    steps = min(steps, min(r.n_frames for r in recs) - 2)
     X = torch.tensor(np.stack([r.positions[:steps + 2] for r in recs]), dtype=torch.float64)
     best = (math.inf, None)
     nom = sim.nominal

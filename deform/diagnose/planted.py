@@ -60,7 +60,7 @@ def planted_truth(effect: str | None, spec: RodSpec, lowest_z: float) -> dict:
         "ground_contact": {"height_m": lowest_z, "stiffness_1_per_s2": 3000.0, "friction": 0.5},
         "point_mass": {"mass_kg": 0.25 * spec.mass_kg, "position_s": 0.35},
         "stiffness_variation": {"stiffness_ratio": 5.0, "start_s": 0.3, "end_s": 0.55},
-        "external_force": {"ax_m_per_s2": 0.8, "ay_m_per_s2": 0.5, "az_m_per_s2": 0.0},
+        "external_force": {"ax_m_per_s2": 0.8, "ay_m_per_s2": 0.5},
         "mass_scale": {"marker_mass_kg": 0.004},
         "actuation_delay": {"delay_frames": 2.0},
         "rest_curvature": {"kappa1_per_m": 0.6, "kappa2_per_m": 0.0},
@@ -94,7 +94,7 @@ def _truth_terms(effect, truth, n_sim, s_sim, marker_ids, refine, mean_marker_ed
             term.raw_w.fill_(math.log((w - 0.05) / 0.9 / (1 - (w - 0.05) / 0.9)))
             term.log_ratio.fill_(0.5 * math.log(truth["stiffness_ratio"]))
         elif effect == "external_force":
-            term.raw.copy_(torch.tensor([truth["ax_m_per_s2"], truth["ay_m_per_s2"], truth["az_m_per_s2"]]) / 0.5)
+            term.raw.copy_(torch.tensor([truth["ax_m_per_s2"], truth["ay_m_per_s2"]]) / 0.5)
         elif effect == "rest_curvature":  # per-vertex turning = curvature x edge length
             edge = mean_marker_edge / refine
             term.raw.copy_(torch.tensor([truth["kappa1_per_m"] * edge, truth["kappa2_per_m"] * edge]) / 0.05)

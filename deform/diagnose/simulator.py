@@ -31,6 +31,7 @@ class Nominal(nn.Module):
         self.log_gj = nn.Parameter(torch.tensor(math.log(gj), dtype=torch.float64))
         self.log_damping = nn.Parameter(torch.tensor(math.log(damping), dtype=torch.float64))
 
+    @torch.no_grad()
     def params(self) -> dict[str, float]:
         return {"bend_stiffness_Nm2": float(self.log_ei.exp()), "twist_stiffness_Nm2": float(self.log_gj.exp()),
                 "damping_1_per_s": float(self.log_damping.exp())}

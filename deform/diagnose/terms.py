@@ -73,6 +73,7 @@ class AerodynamicDrag(Term):
         vn = _normal_velocity(x, v)
         return -(self.log_lin.exp() + self.log_quad.exp() * vn.norm(dim=-1, keepdim=True)) * vn
 
+    @torch.no_grad()
     def params(self):
         return {"linear_1_per_s": float(self.log_lin.exp()), "quadratic_1_per_m": float(self.log_quad.exp())}
 
@@ -95,6 +96,7 @@ class InternalDamping(Term):
         f[..., 2:, :] += d2
         return -self.log_eta.exp() * f
 
+    @torch.no_grad()
     def params(self):
         return {"bending_rate_damping_1_per_s": float(self.log_eta.exp())}
 
@@ -126,6 +128,7 @@ class GroundContact(Term):
         fric = -torch.sigmoid(self.raw_mu) * normal.unsqueeze(-1) * vxy / speed.unsqueeze(-1)
         return torch.cat([fric, normal.unsqueeze(-1)], -1)
 
+    @torch.no_grad()
     def params(self):
         return {"height_m": float(self.height), "stiffness_1_per_s2": float(self.log_k.exp()),
                 "friction": float(torch.sigmoid(self.raw_mu))}
@@ -150,6 +153,7 @@ class PointMass(Term):
         w = w / w.sum()
         return mass + (5e-3 * softplus(self.raw_g)) * w.to(mass.dtype)
 
+    @torch.no_grad()
     def params(self):
         return {"mass_kg": float(5e-3 * softplus(self.raw_g)), "position_s": float(torch.sigmoid(self.raw_pos))}
 
@@ -178,6 +182,7 @@ class StiffnessVariation(Term):
         exprs["log_beta"] = exprs["log_beta"] + 2.0 * self.log_ratio * self.window()
         return exprs
 
+    @torch.no_grad()
     def params(self):
         c, w = float(torch.sigmoid(self.raw_c)), float(0.05 + 0.9 * torch.sigmoid(self.raw_w))
         return {"stiffness_ratio": float(torch.exp(2.0 * self.log_ratio)), "start_s": c - w / 2, "end_s": c + w / 2}
@@ -185,18 +190,20 @@ class StiffnessVariation(Term):
 
 class ExternalForce(Term):
     name = "external_force"
-    description = "a uniform force field per unit mass (wind, a tilted gravity)"
+    description = "a uniform horizontal force field per unit mass (wind); a vertical one is only a gravity error"
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
-        self.raw = nn.Parameter(torch.zeros(3, dtype=torch.float64))
+        self.raw = nn.Parameter(torch.zeros(2, dtype=torch.float64))
 
     def acceleration(self, x, v, mass, rest):
-        return (0.5 * self.raw).expand_as(x)
+        a = torch.cat([0.5 * self.raw, self.raw.new_zeros(1)])
+        return a.expand_as(x)
 
+    @torch.no_grad()
     def params(self):
         a = (0.5 * self.raw).tolist()
-        return {"ax_m_per_s2": a[0], "ay_m_per_s2": a[1], "az_m_per_s2": a[2]}
+        return {"ax_m_per_s2": a[0], "ay_m_per_s2": a[1]}
 
 
 class MassScale(Term):
@@ -211,6 +218,7 @@ class MassScale(Term):
     def mass(self, mass):
         return mass * self.log_scale.exp() + 1e-3 * softplus(self.raw_g)
 
+    @torch.no_grad()
     def params(self):
         return {"rod_mass_scale": float(self.log_scale.exp()), "marker_mass_kg": float(1e-3 * softplus(self.raw_g))}
 
@@ -228,6 +236,7 @@ class ActuationDelay(Term):
     def delay_frames(self) -> Tensor:
         return self.max_frames * torch.tanh(self.raw / self.max_frames)
 
+    @torch.no_grad()
     def params(self):
         return {"delay_frames": float(self.delay_frames)}
 
@@ -245,6 +254,7 @@ class RestCurvature(Term):
         exprs["wbar"] = exprs["wbar"] + (0.05 * self.raw).expand(self.n - 2, 2, 2)
         return exprs
 
+    @torch.no_grad()
     def params(self):
         w = (0.05 * self.raw).tolist()
         return {"kappa1_per_vertex": w[0], "kappa2_per_vertex": w[1]}

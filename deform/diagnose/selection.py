@@ -1,0 +1,123 @@
+"""Nominal fit, then forward selection of candidate terms scored on check/.
+
+Round 1 fits every term of the library on top of the nominal model; each later round adds, on top
+of the terms selected so far, the most promising remaining ones. Every round also refits a
+reference (the current model with the same budget) so a candidate is only credited for what its
+physics adds, not for the extra optimisation.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
+from deform.diagnose.localize import localize, short_rollout_residuals
+from deform.diagnose.scoring import score
+from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
+from deform.diagnose.spec import Inputs
+from deform.diagnose.terms import LIBRARY, make_term
+
+
+@dataclass
+class DiagnoseBudget:
+    nominal_iterations: int = 60
+    candidate: FitBudget = field(default_factory=FitBudget)
+    max_rounds: int = 3
+    later_round_candidates: int = 4
+    localization_recordings: int = 6
+    candidates: tuple[str, ...] = tuple(LIBRARY)
+    progress: bool = True
+
+
+@dataclass
+class Diagnosis:
+    report: dict
+    nominal_sim: Simulator
+    final_sim: Simulator
+    residuals: dict
+
+
+def _nominal_from_model(path: str) -> Nominal:
+    from deform.model import DeformModel
+
+    m = DeformModel.load(path)
+    return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()), float(m.damping))
+
+
+def _fit_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str):
+    sim = Simulator(spec, copy.deepcopy(nominal), terms)
+    fit(sim, inputs.fit, budget, desc=desc)
+    err = per_recording_l1(sim.predict(inputs.check), inputs.check)
+    return sim, err
+
+
+def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None) -> Diagnosis:
+    budget = budget or DiagnoseBudget()
+    t0 = time.perf_counter()
+    spec = inputs.spec
+    s = arclength_of(inputs.fit)
+    cb = dataclasses.replace(budget.candidate, progress=budget.progress)
+    nominal = _nominal_from_model(start_model) if start_model else Nominal()
+    sim = Simulator(spec, nominal)
+    coarse = None if start_model else coarse_nominal(sim, inputs.fit)
+    nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
+    fit(sim, inputs.fit, nb, desc="nominal fit")
+    e_nom = per_recording_l1(sim.predict(inputs.check), inputs.check)
+    loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[: budget.localization_recordings]
+    res = short_rollout_residuals(sim, loc_recs)
+    loc = localize(res, s)
+    context = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit), "peak_s": loc["peak_s"]}
+    selected: list = []
+    selected_names: list[str] = []
+    base_nominal, base_err, base_sim = nominal, e_nom, sim
+    remaining = list(budget.candidates)
+    candidates_out: list[dict] = []
+    for rnd in range(budget.max_rounds):
+        if not remaining:
+            break
+        ref_sim, e_ref = _fit_check(spec, base_nominal, [copy.deepcopy(t) for t in selected], inputs, cb,
+                                    f"round {rnd + 1}: reference")
+        results = []
+        for name in remaining:
+            term = make_term(name, spec.n_vertices, s, context)
+            csim, e = _fit_check(spec, base_nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, cb,
+                                 f"round {rnd + 1}: {name}")
+            sc = score(e_ref, e, term.n_params)
+            results.append((name, term, csim, e, sc))
+            candidates_out.append({
+                "name": name, "params": term.params(), "check_l1_m": float(e.mean()), "improvement": sc.improvement,
+                "significant": sc.significant, "round": rnd + 1, "on_top_of": list(selected_names),
+                "n_params": term.n_params, "improvement_ci90": [sc.ci_low, sc.ci_high], "threshold": sc.threshold,
+                "reference_check_l1_m": float(e_ref.mean())})
+        sig = [r for r in results if r[4].significant]
+        if not sig:
+            break
+        name, term, csim, e, sc = max(sig, key=lambda r: r[4].improvement)
+        selected.append(term)
+        selected_names.append(name)
+        base_nominal, base_err, base_sim = csim.nominal, e, csim
+        order = sorted((r for r in results if r[0] != name), key=lambda r: -r[4].improvement)
+        remaining = [r[0] for r in order if r[4].improvement > 0][: budget.later_round_candidates]
+    for t in selected:
+        std = laplace_uncertainty(base_sim, inputs.fit, cb, t)
+        for c in candidates_out:
+            if c["name"] == t.name and c["on_top_of"] == selected_names[:selected_names.index(t.name)]:
+                c["params_std"] = std
+    report = {
+        "nominal": {"params": nominal.params(), "check_l1_m": float(e_nom.mean()),
+                    "check_l1_by_recording_m": dict(zip([r.name for r in inputs.check], e_nom.tolist())),
+                    "coarse_identification": coarse, "warnings": list(inputs.warnings)},
+        "localization": loc,
+        "candidates": candidates_out,
+        "selected": selected_names,
+        "final_check_l1_m": float(base_err.mean()),
+    }
+    report["nominal"]["final_params"] = {"nominal": base_nominal.params(), **{t.name: t.params() for t in selected}}
+    report["nominal"]["seconds"] = time.perf_counter() - t0
+    return Diagnosis(report=report, nominal_sim=sim, final_sim=base_sim, residuals=res)

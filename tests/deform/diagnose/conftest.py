@@ -1,0 +1,26 @@
+"""Tiny synthetic datasets for the diagnosis tests (seconds, not minutes)."""
+import numpy as np
+import pytest
+import torch
+
+from deform import DeformModel, RodConfig, generate_recording
+from deform.diagnose.fitting import FitBudget
+from deform.diagnose.selection import DiagnoseBudget
+from deform.diagnose.spec import RodSpec
+
+N = 8
+SPEC = RodSpec(length_m=0.6, mass_kg=0.04, n_vertices=N, name="tiny")
+
+
+@pytest.fixture(scope="session")
+def sources():
+    torch.set_num_threads(1)
+    cfg = RodConfig(name="tiny", length_m=0.6, mass_kg=0.04, n_vertices=N, bend_stiffness=2e-3, twist_stiffness=1.4e-3)
+    model = DeformModel(cfg)
+    model.options.residual = False
+    return [generate_recording(model, n_frames=90, seed=s, warmup_s=1.0, amplitude=0.25) for s in range(6)]
+
+
+def tiny_budget(candidates):
+    return DiagnoseBudget(nominal_iterations=15, candidate=FitBudget(iterations=15, batch=6, horizon=15, lr_terms=0.15),
+                          max_rounds=1, candidates=tuple(candidates), localization_recordings=3, progress=False)

@@ -1,0 +1,71 @@
+"""Bad inputs: one clear error naming the file (exit code 2, nothing written) or a report warning."""
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from deform.cli import main
+from deform.diagnose import run_cli
+from deform.diagnose.spec import load_inputs
+from deform.io.recordings import RecordingError
+from deform.io import save_recording
+
+
+def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=False):
+    rng = np.random.default_rng(0)
+    fit, check = tmp_path / "fit", tmp_path / "check"
+    fit.mkdir()
+    check.mkdir()
+    base = np.zeros((50, n, 3))
+    base[:, :, 0] = np.linspace(0, 0.6, n)
+    for i in range(n_fit):
+        save_recording(fit / f"{i}.pkl", base + rng.normal(0, 1e-3, base.shape))
+    cn = check_n or n
+    cbase = np.zeros((50, cn, 3))
+    cbase[:, :, 0] = np.linspace(0, 0.6, cn)
+    for i in range(n_check):
+        x = cbase + rng.normal(0, 1e-3, cbase.shape)
+        if nan and i == 0:
+            x[10, 3, 2] = np.nan
+        save_recording(check / f"{i}.pkl", x)
+    rod = tmp_path / "rod.json"
+    rod.write_text(json.dumps({"length_m": length, "mass_kg": 0.04, "n_vertices": n, "dt": 0.01}))
+    return rod, fit, check
+
+
+def _cli(rod, fit, check, out):
+    return main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check), "--out", str(out)])
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"check_n": 9}, "markers"),
+    ({"nan": True}, "NaN"),
+    ({"n_fit": 1}, "at least"),
+    ({"length": 0.8}, "length_m"),
+])
+def test_bad_input_is_one_error_line_and_nothing_written(tmp_path, capsys, kwargs, needle):
+    rod, fit, check = _write(tmp_path, **kwargs)
+    out = tmp_path / "out"
+    assert _cli(rod, fit, check, out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0] and "error" in err[0]
+    assert not out.exists()
+
+
+def test_bad_rod_json_names_the_file(tmp_path, capsys):
+    rod, fit, check = _write(tmp_path)
+    rod.write_text('{"length_m": -1}')
+    assert _cli(rod, fit, check, tmp_path / "out") == 2
+    assert str(rod) in capsys.readouterr().err
+
+
+def test_length_off_by_a_little_is_a_warning(tmp_path):
+    rod, fit, check = _write(tmp_path, length=0.64)
+    inputs = load_inputs(rod, fit, check)
+    assert any("length" in w for w in inputs.warnings)
+
+
+def test_two_check_recordings_warn_about_the_interval(tmp_path):
+    rod, fit, check = _write(tmp_path)
+    assert any("bootstrap" in w for w in load_inputs(rod, fit, check).warnings)
