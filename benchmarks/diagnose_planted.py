@@ -155,10 +155,12 @@ def main() -> None:
     t0 = time.perf_counter()
     effects = [None] + [e for e in (args.effects or EFFECTS) if e != "none"]
     planted = run_planted(effects, list(range(args.seeds)), args.quick, args.fit, args.check, args.frames) if args.seeds else []
-    real = run_real(args.real, args.quick, args.fit, args.check)
     result = {"command": "python benchmarks/diagnose_planted.py " + " ".join(sys.argv[1:]),
               "machine": "2 CPU cores shared with other jobs, torch 1 thread", "seconds": time.perf_counter() - t0,
-              "summary": summarise(planted), "planted": planted, "real": real}
+              "summary": summarise(planted), "planted": planted, "real": []}
+    write(result)  # the planted part survives an interrupted real part
+    result["real"] = run_real(args.real, args.quick, args.fit, args.check)
+    result["seconds"] = time.perf_counter() - t0
     write(result)
 
 

@@ -43,6 +43,5 @@ def test_report_has_the_issue_schema(wind):
 def test_control_gives_none(sources):
     inputs, _ = _inputs(None, sources)
     rep = diagnose(inputs, tiny_budget(CANDIDATES)).report
-    print({c["name"]: (c["improvement"], c["improvement_ci90"], c["threshold"]) for c in rep["candidates"]})
     assert rep["selected"] == []
     assert rep["final_check_l1_m"] == pytest.approx(rep["nominal"]["check_l1_m"])
