@@ -83,6 +83,8 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
             break
         ref_sim, e_ref = _fit_check(spec, base_nominal, [copy.deepcopy(t) for t in selected], inputs, cb,
                                     f"round {rnd + 1}: reference")
+        if e_ref.mean() > base_err.mean():  # a refit that got worse must not make candidates look good
+            e_ref = base_err
         results = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context)
