@@ -127,7 +127,7 @@ def _val_l1(model, recordings, steps: int) -> float:
 
 
 def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: int = 32,
-                 curriculum: tuple[tuple[int, int], ...] = ((0, 5), (150, 10), (400, 25), (800, 50)),
+                 curriculum: tuple[tuple[int, int], ...] = ((0, 5), (200, 10), (500, 25), (900, 50)),
                  lr: float = 2e-3, hidden: int = 64, seed: int = 0, time_limit_s: float | None = None,
                  val_every: int = 100, val_steps: int = 500, out: str | Path | None = None,
                  progress: bool = False) -> tuple[BiLSTMDynamics, dict]:
@@ -159,7 +159,7 @@ def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: in
             log.append({"iteration": it + 1, "horizon": horizon, "loss_m": float(loss.detach()), "val_l1_m": val,
                         "seconds": time.perf_counter() - t0})
             if progress:
-                print(f"  bilstm it {it + 1} h {horizon} loss {float(loss) * 100:.3f} cm val {val * 100:.3f} cm "
+                print(f"  bilstm it {it + 1} h {horizon} loss {float(loss.detach()) * 100:.3f} cm val {val * 100:.3f} cm "
                       f"({time.perf_counter() - t0:.0f} s)", flush=True)
             if val <= best or not val_recs:  # without held-out recordings: the last weights
                 best, best_state = val, {k: t.clone() for k, t in model.state_dict().items()}
