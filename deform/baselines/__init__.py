@@ -25,14 +25,28 @@ WEIGHT_DIR = Path(__file__).resolve().parent / "weights"
 BASELINES = ("hold_shape", "der_initial", "der_identified", "xpbd", "bilstm")
 
 
-class UnknownBaselineError(ValueError):
-    pass
+def _usage_error_class():
+    # a deform.cli.UsageError that is also a ConfigError: `python -m deform.cli` runs the CLI as
+    # __main__, whose UsageError is another class, but it catches deform.config.ConfigError too
+    from deform.cli import UsageError
+    from deform.config import ConfigError
+
+    class UnknownBaselineError(UsageError, ConfigError):
+        pass
+
+    class MissingWeightsError(ConfigError, FileNotFoundError):
+        pass
+
+    return UnknownBaselineError, MissingWeightsError
+
+
+UnknownBaselineError, MissingWeightsError = _usage_error_class()
 
 
 def load_baseline(name: str, rod: str, path: str | None = None):
-    """A predictor for ``rod`` (a rod config name such as ``DLO1``). Unknown names: ValueError."""
-    from deform.cli import UsageError
-
+    """A predictor for ``rod`` (a rod config name such as ``DLO1``). Unknown names raise
+    :class:`UnknownBaselineError` (a ValueError: ``deform.cli.UsageError`` and ``ConfigError``);
+    missing weight files :class:`MissingWeightsError` (a ConfigError and FileNotFoundError)."""
     if name == "hold_shape":
         from deform.baselines.hold_shape import HoldShape
         from deform.config import load_rod_config
@@ -54,4 +68,4 @@ def load_baseline(name: str, rod: str, path: str | None = None):
         from deform.baselines.bilstm import load_bilstm
 
         return load_bilstm(rod, path)
-    raise UsageError(f"unknown method {name!r}; known: deform, {', '.join(BASELINES)}")
+    raise UnknownBaselineError(f"unknown method {name!r}; known: deform, {', '.join(BASELINES)}")

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from deform.baselines import WEIGHT_DIR
+from deform.baselines import WEIGHT_DIR, MissingWeightsError
 from deform.model import gripped_indices
 
 POS_SCALE = 0.5  # m
@@ -101,7 +101,7 @@ def save_bilstm(model: BiLSTMDynamics, path: str | Path, extra: dict | None = No
 def load_bilstm(rod: str, path: str | Path | None = None) -> BiLSTMDynamics:
     p = Path(path) if path else weight_path(rod)
     if not p.is_file():
-        raise FileNotFoundError(f"{p}: no trained Bi-LSTM for {rod}; run benchmarks/baselines.py")
+        raise MissingWeightsError(f"{p}: no trained Bi-LSTM for {rod}; run benchmarks/baselines.py")
     payload = torch.load(p, map_location="cpu", weights_only=True)
     model = BiLSTMDynamics(payload["n"], payload["hidden"], payload["dt"])
     model.load_state_dict(payload["state_dict"])

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from deform.baselines import WEIGHT_DIR
+from deform.baselines import WEIGHT_DIR, MissingWeightsError
 from deform.config import load_rod_config
 from deform.model import MODEL_DIR, DeformModel, ModelOptions
 
@@ -58,7 +58,7 @@ def der_identified(rod: str, path: str | Path | None = None) -> DeformModel:
             payload = torch.load(p, map_location="cpu", weights_only=True)
             physics = payload.get("physics") or payload["state_dict"]
             return _with_physics(rod, physics, str(p))
-    raise FileNotFoundError(f"no identified DER parameters for {rod}: looked at {', '.join(map(str, candidates))}; "
+    raise MissingWeightsError(f"no identified DER parameters for {rod}: looked at {', '.join(map(str, candidates))}; "
                             "run benchmarks/baselines.py")
 
 

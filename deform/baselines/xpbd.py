@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deform.baselines import WEIGHT_DIR
+from deform.baselines import WEIGHT_DIR, MissingWeightsError
 from deform.config import load_rod_config
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -139,7 +139,7 @@ def weight_path(rod: str) -> Path:
 def load_xpbd(rod: str, path: str | Path | None = None) -> XPBDRope:
     p = Path(path) if path else weight_path(rod)
     if not p.is_file():
-        raise FileNotFoundError(f"{p}: no tuned XPBD parameters for {rod}; run benchmarks/baselines.py")
+        raise MissingWeightsError(f"{p}: no tuned XPBD parameters for {rod}; run benchmarks/baselines.py")
     data = json.loads(p.read_text())
     return XPBDRope.for_rod(rod, XPBDParams(**data["params"]))
 

@@ -119,3 +119,18 @@ def test_cli_eval_method_on_real_data(data_root, capsys):
 def test_cli_eval_rejects_unknown_method(data_root, capsys):
     assert main(["eval", "--rod", "DLO1", "--method", "nope"]) == 2
     assert "known" in capsys.readouterr().err
+
+
+def test_module_cli_unknown_method_is_a_one_line_error(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from deform import save_recording
+
+    model = DeformModel(load_rod_config("DLO2"), ModelOptions(residual=False))
+    save_recording(tmp_path / "0.pkl", generate_recording(model, n_frames=10, seed=0, warmup_s=0.1).positions)
+    env = dict(os.environ, PYTHONPATH=os.getcwd())
+    out = subprocess.run([sys.executable, "-m", "deform.cli", "eval", "--rod", "DLO2", "--recordings", str(tmp_path),
+                          "--method", "nope"], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 2 and "unknown method 'nope'" in out.stderr and "Traceback" not in out.stderr
