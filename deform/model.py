@@ -91,6 +91,10 @@ class DeformModel(nn.Module):
         grip = torch.zeros(n)
         grip[gripped_indices(n)] = 1.0
         self.register_buffer("gripped", grip)
+        # typical edge lengths (m,): from the training recordings (see deform.train); the even
+        # spread of the configured length until then. Used where no recording gives them (a rod
+        # first seen by a camera).
+        self.register_buffer("nominal_rest", torch.full((n - 1,), cfg.length_m / (n - 1), dtype=torch.float64))
 
     # ----- parameters -------------------------------------------------------------------------
     def _physical(self, rest: Tensor, create_graph: bool) -> tuple[ElasticParams, Tensor]:
@@ -170,6 +174,16 @@ class DeformModel(nn.Module):
         rest = G.edges(x).norm(dim=-1) if rest is None else rest
         return RodState(x=x, v=torch.zeros_like(x), d1=G.space_parallel_frame(t),
                         theta=torch.zeros(t.shape[:-1], dtype=x.dtype), rest=rest)
+
+    def rest_lengths(self, grip: Tensor | None = None) -> Tensor:
+        """(m,) rest lengths for a rod seen without a recording: the nominal ones, with the two
+        gripped end edges as the grippers hold them when ``grip`` (4, 3) is given."""
+        rest = self.nominal_rest.clone()
+        if grip is not None:
+            grip = torch.as_tensor(grip, dtype=rest.dtype).reshape(4, 3)
+            rest[0] = (grip[1] - grip[0]).norm()
+            rest[-1] = (grip[3] - grip[2]).norm()
+        return rest
 
     def reposition(self, state: RodState, x: Tensor, v: Tensor | None = None) -> RodState:
         """The state moved to positions ``x`` (e.g. corrected by perception): reference frames are
@@ -268,7 +282,7 @@ class DeformModel(nn.Module):
         payload = torch.load(path, map_location="cpu", weights_only=True)
         model = cls(RodConfig(**payload["config"]), ModelOptions(**payload["options"]))
         missing, unexpected = model.load_state_dict(payload["state_dict"], strict=False)
-        if unexpected or any(not k.startswith("log_drag") for k in missing):
+        if unexpected or any(k not in ("log_drag", "nominal_rest") for k in missing):
             raise RuntimeError(f"{path}: checkpoint does not match the model (missing {missing}, unexpected {unexpected})")
         return model
 

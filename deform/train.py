@@ -44,6 +44,12 @@ class TrainConfig:
     extra: dict = field(default_factory=dict)
 
 
+def nominal_rest_lengths(recordings: list[Recording]) -> torch.Tensor:
+    """(m,) median over recordings of the first frame's edge lengths (the markers' spacing)."""
+    first = np.stack([np.linalg.norm(np.diff(r.positions[0], axis=0), axis=-1) for r in recordings])
+    return torch.tensor(np.median(first, axis=0), dtype=torch.float64)
+
+
 def split_validation(recordings: list[Recording], every: int = 5) -> tuple[list[Recording], list[Recording]]:
     """Every ``every``-th recording (by sorted name) is held out for validation."""
     val = recordings[::every]
@@ -163,6 +169,8 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
         start, best = ck["iteration"], ck["best"]
         rng.setstate(ck["rng"])
         torch.set_rng_state(ck["torch_rng"])
+    with torch.no_grad():
+        model.nominal_rest.copy_(nominal_rest_lengths(train_recs))
     coarse = None
     if start == 0 and cfg.sysid and cfg.coarse_sysid:
         coarse = coarse_identification(model, train_recs, progress=progress)

@@ -10,16 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def default_rest(grip: np.ndarray, n: int, length: float) -> np.ndarray:
-    """(n-1,) rest lengths: the gripped edges from the grippers, the others share the rod length."""
-    e0 = float(np.linalg.norm(grip[1] - grip[0]))
-    e1 = float(np.linalg.norm(grip[3] - grip[2]))
-    inner = max(length - e0 - e1, 0.05 * (n - 3)) / (n - 3) if length > e0 + e1 else length / (n - 1)
-    rest = np.full(n - 1, inner)
-    rest[0], rest[-1] = e0, e1
-    return rest
-
-
 def _parabola_length(chord: float, sag: float, samples: int = 64) -> float:
     s = np.linspace(0, 1, samples)
     y = 4 * sag * s * (1 - s)

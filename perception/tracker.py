@@ -17,7 +17,7 @@ from perception.camera import Camera
 from perception.cloud import decimate, depth_image
 from perception.config import load_config
 from perception.estimate import correct_vertices
-from perception.initial import default_rest, initial_guess
+from perception.initial import initial_guess
 from perception.segment import segment_rope
 
 log = logging.getLogger(__name__)
@@ -73,7 +73,8 @@ class Tracker:
         corrected by the same cloud."""
         grip = np.asarray(grip, dtype=np.float64).reshape(4, 3)
         if self.rest is None:
-            self.rest = default_rest(grip, self.n, float(self.model.cfg.length_m))
+            # the marker spacing the model learnt from recordings; the end edges as the grippers hold them
+            self.rest = self.model.rest_lengths(grip).numpy()
         camera = camera or self.camera
         xyz, rgb = (cloud if isinstance(cloud, (tuple, list)) else (cloud, None))
         pts = None

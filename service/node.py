@@ -213,11 +213,16 @@ class Service:
         window = int(self.cfg.timeouts.reorder_s * 1e9)
         poses: list = []
         last_pose = None
+        last_message = time.perf_counter()
         while not self._stop.is_set():
             try:
                 name, raw = self.inbox.get(timeout=0.05)
+                last_message = time.perf_counter()
             except queue.Empty:
-                self._advance(poses, flush=True)
+                # idle for as long as a cloud may lag the poses: nothing is in transit any more
+                # (a shorter wait made replays on a loaded machine depend on scheduling)
+                if time.perf_counter() - last_message >= self.cfg.timeouts.reorder_s:
+                    self._advance(poses, flush=True)
                 continue
             try:
                 if name == "ee_poses":

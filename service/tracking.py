@@ -34,11 +34,11 @@ def make_camera(K: np.ndarray, width: int, height: int, pose: np.ndarray):
                   pose_matrix(np.asarray(pose, dtype=float)))
 
 
-def hanging_guess(grip: np.ndarray, n: int, length: float) -> tuple[np.ndarray, np.ndarray]:
-    """A rod hanging in a vertical parabola between vertices 1 and n-2, with the given total length.
-    -> positions (n, 3) and rest lengths (n-1,)."""
-    end0, end1 = np.linalg.norm(grip[1] - grip[0]), np.linalg.norm(grip[3] - grip[2])
-    inner = max(length - end0 - end1, 1.05 * np.linalg.norm(grip[2] - grip[1]))
+def hanging_guess(grip: np.ndarray, rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A rod hanging in a vertical parabola between vertices 1 and n-2 with the given rest lengths
+    (n-1,) (the model's nominal ones). -> positions (n, 3) and rest lengths (n-1,)."""
+    n = len(rest) + 1
+    inner = max(float(np.sum(rest[1:-1])), 1.05 * np.linalg.norm(grip[2] - grip[1]))
     s = np.linspace(0.0, 1.0, n - 2)
     chord = grip[1][None] + s[:, None] * (grip[2] - grip[1])[None]
     lo, hi = 0.0, inner
@@ -51,8 +51,7 @@ def hanging_guess(grip: np.ndarray, n: int, length: float) -> tuple[np.ndarray, 
         else:
             hi = sag
     x = np.concatenate([grip[:1], pts, grip[3:]])
-    rest = np.concatenate([[end0], np.full(n - 3, inner / (n - 3)), [end1]])
-    return x, rest
+    return x, np.asarray(rest, dtype=np.float64)
 
 
 class OpenLoopTracker:
@@ -69,7 +68,7 @@ class OpenLoopTracker:
 
     def initialize(self, grip, cloud=None, camera=None):
         grip = np.asarray(grip, dtype=float)
-        x, rest = hanging_guess(grip, self.model.n, self.model.cfg.length_m)
+        x, rest = hanging_guess(grip, self.model.rest_lengths(grip).numpy())
         with torch.no_grad():
             state = self.model.static_state(torch.tensor(x)[None], rest=torch.tensor(rest)[None])
             self.state = self.model.settle(state, torch.tensor(grip)[None], max_steps=self.settle_steps, tol=1e-3)

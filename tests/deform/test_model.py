@@ -107,3 +107,18 @@ def test_reposition_keeps_frames_perpendicular_to_new_edges(model, recording):
     t = G.normalize(G.edges(moved.x))
     assert G.dot(moved.d1, t).abs().max() < 1e-12
     assert torch.allclose(moved.d1.norm(dim=-1), torch.ones_like(moved.d1[..., 0]))
+
+
+def test_nominal_rest_lengths_come_from_training_recordings(tmp_path, recording):
+    from deform.train import nominal_rest_lengths
+
+    model = DeformModel(load_rod_config("DLO2"))
+    rest = nominal_rest_lengths([recording])
+    assert torch.allclose(rest, torch.tensor(np.linalg.norm(np.diff(recording.positions[0], axis=0), axis=-1)))
+    model.nominal_rest.copy_(rest)
+    model.save(tmp_path / "m.pt")
+    loaded = load_model(tmp_path / "m.pt")
+    grip = recording.positions[5, gripped_indices(model.n)]
+    r = loaded.rest_lengths(grip)
+    assert torch.allclose(r[1:-1], rest[1:-1])
+    assert abs(float(r[0]) - np.linalg.norm(grip[1] - grip[0])) < 1e-12

@@ -115,7 +115,7 @@ def test_client_mode_reconnects_after_router_restart(model, endpoint):
         assert p.stdout.readline().strip() == "ready"
         return p
 
-    first = router(2.0)
+    first = router(6.0)  # generous: on a loaded machine the service takes seconds to start and connect
     cfg = make_config(connect=endpoint)
     cfg.zenoh.mode = "client"
     svc = Service(cfg, model=model).start()
@@ -132,7 +132,7 @@ def test_client_mode_reconnects_after_router_restart(model, endpoint):
     try:
         assert int(first.communicate(timeout=30)[0].strip()) > 10
         time.sleep(0.5)                                 # the router is down for a while
-        second = router(4.0)
+        second = router(6.0)
         assert int(second.communicate(timeout=30)[0].strip()) > 10
     finally:
         stop.set()
