@@ -87,6 +87,19 @@ def train_missing(rod: str, train, val, retrain: set[str], args) -> dict:
     return info
 
 
+def weights_info(method: str, rod: str) -> dict | None:
+    """What the shipped weight file says of its training (held-out L1, iterations, parameters)."""
+    if method not in TRAINABLE or not weight_file(method, rod).is_file():
+        return None
+    path = weight_file(method, rod)
+    if method == "xpbd":
+        data = json.loads(path.read_text())
+        return {"file": str(path.relative_to(ROOT)), "params": data["params"], "train_l1_m": data["train_l1_m"]}
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    keys = ("val_l1_m", "best_val_l1_m", "iterations")
+    return {"file": str(path.relative_to(ROOT)), **{k: payload[k] for k in keys if k in payload}}
+
+
 def timing_ms(model, recs, runs: int, first_p50: float) -> list[float]:
     out = [first_p50]
     with torch.no_grad():
@@ -156,6 +169,7 @@ def main(argv=None):
                 print(f"{rod}: {m} skipped ({exc})", flush=True)
                 continue
             results[rod][m] = run_one(model, m, rod, test, split, args.timing_runs)
+            results[rod][m]["weights"] = weights_info(m, rod)
     if "deform" in args.methods:
         for rod in args.rods:
             n = load_rod_config(rod).n_vertices
@@ -235,7 +249,12 @@ shared with other jobs (model training running), torch {m['torch']}, one thread,
 accuracy (deterministic), {m['timing_runs']} timing runs. Raw numbers:
 `benchmarks/results/baselines.json`. DER-identified parameter source per rod: {json.dumps(der_src)}.
 """
-    path.write_text(text)
+    # hand-written notes below the marker survive a re-run
+    marker = "<!-- notes: kept when benchmarks/baselines.py rewrites this file -->"
+    old = path.read_text() if path.is_file() else ""
+    notes = old[old.index(marker):] if marker in old else marker + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text + "\n" + notes)
 
 
 if __name__ == "__main__":
