@@ -66,6 +66,7 @@ class ModelOptions:
 
 
 def _inv_softplus(y: float) -> float:
+    y = max(y, 1e-9)  # softplus never reaches 0: a massless marker is the smallest representable one
     return y + math.log(-math.expm1(-y))
 
 
