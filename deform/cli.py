@@ -36,6 +36,7 @@ def cmd_train(args) -> int:
     from deform.train import TrainConfig, split_validation, train
 
     torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)  # the residual network's initial weights
     cfg = load_rod_config(args.rod)
     recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices)
     train_recs, val_recs = split_validation(recs, args.val_every)
