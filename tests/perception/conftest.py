@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from deform import generate_recording, gripped_indices, load_model
+from deform import DeformModel, generate_recording, gripped_indices, load_rod_config
 from perception import load_config, render_recording
 
 
@@ -20,7 +20,8 @@ def one_thread():
 
 @pytest.fixture(scope="session")
 def model():
-    return load_model("DLO2")
+    """The configured (untrained) rod: tests do not change when the shipped models are retrained."""
+    return DeformModel(load_rod_config("DLO2"))
 
 
 @pytest.fixture(scope="session")
