@@ -88,7 +88,7 @@ def coarse_identification(model: DeformModel, recordings: list[Recording], steps
     shift0 = float(base_beta.mean())
     options = model.options.residual
     model.options.residual = False
-    best = (math.inf, 0.0, float(model.log_damping))
+    best = (math.inf, 0.0, float(model.log_damping.detach()))
     grid = [(math.log(ei), math.log(c)) for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2) for c in (0.3, 1.0, 3.0)]
     for log_ei, log_c in tqdm(grid, desc="coarse identification", disable=not progress, leave=False):
         with torch.no_grad():
