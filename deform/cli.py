@@ -48,7 +48,9 @@ def cmd_train(args) -> int:
     model.options = options
     tcfg = TrainConfig(iterations=args.iterations, batch=args.batch, horizon=args.horizon,
                        residual=not args.no_residual, sysid=not args.no_sysid, seed=args.seed,
-                       time_limit_s=args.time_limit, curriculum=tuple(args.curriculum) if args.horizon > 1 else ())
+                       time_limit_s=args.time_limit, curriculum=tuple(args.curriculum) if args.horizon > 1 else (),
+                       lr_physics=args.lr_physics, lr_network=args.lr_network,
+                       coarse_sysid=not args.init)  # a given starting model is already identified
     out = Path(args.out or f"runs/{args.rod}")
     result = train(model, train_recs, val_recs, tcfg, out, resume=not args.fresh)
     best = DeformModel.load(out / "best.pt")
@@ -130,7 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-sysid", action="store_true")
     t.add_argument("--original-inextensibility", action="store_true")
     t.add_argument("--theta-solver", choices=["newton", "theseus"], default="newton")
-    t.add_argument("--init", help="start from this model (.pt or rod name)")
+    t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
+    t.add_argument("--lr-physics", type=float, default=2e-2)
+    t.add_argument("--lr-network", type=float, default=1e-3)
     t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     t.add_argument("--install", action="store_true", help="copy the best model to deform/models/ROD.pt")
     t.add_argument("--threads", type=int, default=1)
