@@ -127,7 +127,8 @@ def table(results: dict, rods) -> list[str]:
                 cells.append("–")
                 continue
             paper = PAPER_CM.get(PAPER_KEY.get(m, ""), {}).get(rod)
-            cells.append(f"{r['l1_m'] * 100:.2f}" + (f" ({paper:.2f})" if paper else ""))
+            star = "*" if m == "deform" and "no shipped model" in str(r.get("model_file")) else ""
+            cells.append(f"{r['l1_m'] * 100:.2f}{star}" + (f" ({paper:.2f})" if paper else ""))
             steps.append(r["step_ms"])
         p = PAPER_STEP_MS.get(m)
         step = f"{np.median(steps):.2f}" if steps else "–"
@@ -212,6 +213,9 @@ def main(argv=None):
              f"{d['paired_timing_ms']['bilstm']:.2f} ms interleaved: {d['paired_step_ratio_to_bilstm']:.1f}x)"
              for rod in args.rods if "step_ratio_to_bilstm" in (d := results[rod].get("deform", {}))]
     extra = []
+    if any("no shipped model" in str(results[r].get("deform", {}).get("model_file")) for r in args.rods):
+        extra.append("\\* no trained model shipped for this rod at the time of the run: the untrained model "
+                     "(config's initial parameters, untrained residual network).")
     if ratio:
         extra.append(f"DEFORM step time / Bi-LSTM step time, same run: {', '.join(ratio)}; paper: about 9.5 / 0.3 ms "
                      "= 32x.")
