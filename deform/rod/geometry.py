@@ -18,7 +18,14 @@ def edges(x: Tensor) -> Tensor:
     return x[..., 1:, :] - x[..., :-1, :]
 
 
+_EINSUM_ABOVE = 4096  # elements; measured crossover on 2 cores
+
+
 def dot(a: Tensor, b: Tensor) -> Tensor:
+    """Dot product over the last (x, y, z) axis. torch reduces a 3-wide last axis slowly for large
+    batches (3x slower than einsum at B = 1024) but einsum's overhead costs more for one rod."""
+    if a.numel() > _EINSUM_ABOVE:
+        return torch.einsum("...i,...i->...", a, b)
     return (a * b).sum(-1)
 
 

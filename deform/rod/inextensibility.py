@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from deform.rod.geometry import dot
 from deform.rod.tridiagonal import solve_tridiagonal
 
 
@@ -46,7 +47,7 @@ def _projection_sweep(x: Tensor, inv_mass: Tensor, rest: Tensor) -> Tensor:
     unit = e / length.unsqueeze(-1)
     w0, w1 = inv_mass[..., :-1], inv_mass[..., 1:]
     diag = (w0 + w1).clamp_min(1e-12)  # an edge between two gripped vertices keeps l = 0
-    off = -w1[..., :-1] * (unit[..., :-1, :] * unit[..., 1:, :]).sum(-1)
+    off = -w1[..., :-1] * dot(unit[..., :-1, :], unit[..., 1:, :])
     lam = solve_tridiagonal(diag, off, length - rest)
     return apply_pair_corrections(x, inv_mass, lam, unit)
 
