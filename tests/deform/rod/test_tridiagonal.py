@@ -1,0 +1,18 @@
+import torch
+
+from deform.rod.tridiagonal import solve_tridiagonal_pd, thomas, to_dense
+
+
+def test_thomas_and_dense_cholesky_agree_and_detect_indefinite_systems():
+    gen = torch.Generator().manual_seed(0)
+    off = torch.randn(5, 29, generator=gen, dtype=torch.float64)
+    diag = 2.5 * (off.abs().max() + 1) + torch.rand(5, 30, generator=gen, dtype=torch.float64)
+    rhs = torch.randn(5, 30, generator=gen, dtype=torch.float64)
+    x_dense, ok_dense = solve_tridiagonal_pd(diag, off, rhs)
+    x_thomas, ok_thomas = thomas(diag, off, rhs)
+    assert ok_dense.all() and ok_thomas.all()
+    assert torch.allclose(x_dense, x_thomas, atol=1e-12)
+    assert torch.allclose((to_dense(diag, off) @ x_thomas.unsqueeze(-1)).squeeze(-1), rhs, atol=1e-10)
+    diag[2, 7] = -1.0
+    assert not solve_tridiagonal_pd(diag, off, rhs)[1][2] and not thomas(diag, off, rhs)[1][2]
+    assert solve_tridiagonal_pd(diag, off, rhs)[1][[0, 1, 3, 4]].all()
