@@ -238,7 +238,8 @@ def run_one(model, method: str, rod: str, test, split: str, timing_runs: int) ->
 
 def write_docs(path: Path, lines, extra, payload, args) -> None:
     m = payload["machine"]
-    der_src = {rod: payload["results"][rod].get("der_identified", {}).get("source") for rod in payload["results"]}
+    der_src = {rod: str(payload["results"][rod].get("der_identified", {}).get("source")).replace(str(ROOT) + "/", "")
+               for rod in payload["results"]}
     text = f"""# Baselines beside DEFORM
 
 Accuracy on the paper's metric (mean absolute coordinate error over 500 open-loop steps from frames
@@ -267,7 +268,7 @@ Methods (`deform eval --rod ROD --method NAME`, code in `deform/baselines/`):
 - `hold_shape`: frame 1's interior held still, gripped vertices following the inputs.
 
 Command: `.venv/bin/python {payload['command'].split(' ', 1)[1]}` (total {payload['seconds'] / 60:.1f} min,
-training included when weights were missing). Machine: {m['cpu_count']} CPU cores ({m['processor']}),
+training included only for weights that were missing). Machine: {m['cpu_count']} CPU cores ({m['processor']}),
 shared with other jobs (model training running), torch {m['torch']}, one thread, one run for
 accuracy (deterministic), {m['timing_runs']} timing runs. Raw numbers:
 `benchmarks/results/baselines.json`. DER-identified parameter source per rod: {json.dumps(der_src)}.
