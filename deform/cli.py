@@ -11,11 +11,8 @@ import sys
 from pathlib import Path
 
 from deform.config import ConfigError
+from deform.errors import UsageError
 from deform.io.recordings import RecordingError, find_data_root
-
-
-class UsageError(ValueError):
-    pass
 
 
 def _data_dir(rod: str, split: str, explicit: str | None) -> Path:

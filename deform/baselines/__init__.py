@@ -20,33 +20,25 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from deform.errors import UsageError
+
 WEIGHT_DIR = Path(__file__).resolve().parent / "weights"
 
 BASELINES = ("hold_shape", "der_initial", "der_identified", "xpbd", "bilstm")
 
 
-def _usage_error_class():
-    # a deform.cli.UsageError that is also a ConfigError: `python -m deform.cli` runs the CLI as
-    # __main__, whose UsageError is another class, but it catches deform.config.ConfigError too
-    from deform.cli import UsageError
-    from deform.config import ConfigError
-
-    class UnknownBaselineError(UsageError, ConfigError):
-        pass
-
-    class MissingWeightsError(ConfigError, FileNotFoundError):
-        pass
-
-    return UnknownBaselineError, MissingWeightsError
+class UnknownBaselineError(UsageError):
+    """A method name that is not one of :data:`BASELINES`."""
 
 
-UnknownBaselineError, MissingWeightsError = _usage_error_class()
+class MissingWeightsError(UsageError, FileNotFoundError):
+    """A baseline whose trained weights are not on disk."""
 
 
 def load_baseline(name: str, rod: str, path: str | None = None):
     """A predictor for ``rod`` (a rod config name such as ``DLO1``). Unknown names raise
-    :class:`UnknownBaselineError` (a ValueError: ``deform.cli.UsageError`` and ``ConfigError``);
-    missing weight files :class:`MissingWeightsError` (a ConfigError and FileNotFoundError)."""
+    :class:`UnknownBaselineError`, missing weight files :class:`MissingWeightsError` (both
+    :class:`deform.errors.UsageError`, which the CLI reports as one line)."""
     if name == "hold_shape":
         from deform.baselines.hold_shape import HoldShape
         from deform.config import load_rod_config

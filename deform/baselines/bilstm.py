@@ -27,6 +27,7 @@ from torch import nn
 
 from deform.baselines import WEIGHT_DIR, MissingWeightsError
 from deform.model import gripped_indices
+from deform.train import sample_windows
 
 POS_SCALE = 0.5  # m
 VEL_SCALE = 1.0  # m/s
@@ -108,15 +109,6 @@ def load_bilstm(rod: str, path: str | Path | None = None) -> BiLSTMDynamics:
     return model.eval()
 
 
-def _windows(recordings, batch: int, horizon: int, rng: random.Random) -> torch.Tensor:
-    out = []
-    for _ in range(batch):
-        r = rng.choice(recordings)
-        s = rng.randrange(0, r.n_frames - horizon - 2 + 1)
-        out.append(r.positions[s: s + horizon + 2])
-    return torch.tensor(np.stack(out), dtype=torch.float64)
-
-
 def _val_l1(model, recordings, steps: int) -> float:
     from deform.evaluate import metrics, predict_recordings
 
@@ -144,7 +136,7 @@ def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: in
     it = 0
     for it in range(iterations):
         horizon = [h for start, h in curriculum if it >= start][-1]
-        w = _windows(train_recs, batch, horizon, rng)
+        w = sample_windows(train_recs, batch, horizon, rng)
         state = model.initial_state(w[:, 0], w[:, 1])
         pred = model.rollout(state, w[:, 2:, idx])
         loss = (pred - w[:, 2:]).abs().mean()

@@ -19,7 +19,7 @@ def run_cli(args) -> int:
     """Entry point of ``deform diagnose``: errors are raised before anything is written."""
     import torch
 
-    from deform.cli import UsageError
+    from deform.errors import UsageError
     from deform.diagnose.report import write_report
     from deform.diagnose.selection import DiagnoseBudget, diagnose
     from deform.diagnose.spec import load_inputs

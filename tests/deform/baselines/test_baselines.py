@@ -12,7 +12,8 @@ from deform.baselines.bilstm import BiLSTMDynamics, train_bilstm, weight_path as
 from deform.baselines.hold_shape import HoldShape
 from deform.baselines.xpbd import XPBDParams, XPBDRope, weight_path as xpbd_weights
 from deform.baselines.der import der_initial, weight_path as der_weights
-from deform.cli import UsageError, main
+from deform.cli import main
+from deform.errors import UsageError
 from deform.evaluate import evaluate
 
 
