@@ -37,10 +37,11 @@ class Recording:
 
 
 def find_data_root() -> Path | None:
-    """`DEFORM_DATA`, else `../shared/data/deform` beside the project (or the cwd) when it exists."""
+    """`DEFORM_DATA`, else `../shared/data/deform` beside the project (or the cwd); None when the
+    directory does not exist (then everything runs on generated recordings)."""
     env = os.environ.get("DEFORM_DATA")
     if env:
-        return Path(env)
+        return Path(env) if Path(env).is_dir() else None
     here = Path(__file__).resolve().parents[2]
     for base in (here, Path.cwd()):
         candidate = base.parent / "shared" / "data" / "deform"
