@@ -9,7 +9,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
 APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1
 
-.PHONY: install demo test bench train-all clean sysdeps
+.PHONY: install demo test bench clean sysdeps
 
 sysdeps:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -38,7 +38,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q -x tests
 
 bench: $(STAMP)
-	$(PY) -m deform.cli bench --json
+	$(PY) benchmarks/speed.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
