@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from deform.io.recordings import Recording
-from deform.model import DeformModel, gripped_indices
+from deform.model import gripped_indices
 
 HORIZONS = (1, 10, 100, 500)
 
@@ -26,21 +26,25 @@ class RolloutResult:
     step_seconds: np.ndarray  # (S,) wall time per step (batch of one)
 
 
-def predict_recordings(model: DeformModel, recordings: list[Recording], steps: int = 500,
+def predict_recordings(model, recordings: list[Recording], steps: int = 500,
                        batched: bool = True) -> list[RolloutResult]:
-    """Roll out every recording open-loop. Batched: all recordings of equal length in one batch."""
-    n = model.n
-    idx = gripped_indices(n)
+    """Roll out every recording open-loop, in input order. ``model`` is anything with ``n``,
+    ``initial_state`` and ``step`` (the baselines too). Batched: recordings predicted over the same
+    number of steps share one batch; otherwise one rollout each (the timing of a single rollout)."""
+    idx = gripped_indices(model.n)
+    horizon = [min(steps, r.n_frames - 2) for r in recordings]
     if batched:
-        groups: dict[int, list[Recording]] = {}
-        for r in recordings:
-            groups.setdefault(min(steps, r.n_frames - 2), []).append(r)
+        batches: dict[int, list[int]] = {}
+        for i, h in enumerate(horizon):
+            batches.setdefault(h, []).append(i)
+        groups = list(batches.values())
     else:
-        groups = {}
-    results: dict[str, RolloutResult] = {}
+        groups = [[i] for i in range(len(recordings))]
+    results: list[RolloutResult | None] = [None] * len(recordings)
     with torch.no_grad():
-        for s, recs in (groups.items() if batched else [(min(steps, r.n_frames - 2), [r]) for r in recordings]):
-            X = torch.tensor(np.stack([r.positions[: s + 2] for r in recs]), dtype=torch.float64)
+        for members in groups:
+            s = horizon[members[0]]
+            X = torch.tensor(np.stack([recordings[i].positions[: s + 2] for i in members]), dtype=torch.float64)
             state = model.initial_state(X[:, 0], X[:, 1])
             preds, times = [], []
             for k in range(s):
@@ -49,9 +53,10 @@ def predict_recordings(model: DeformModel, recordings: list[Recording], steps: i
                 times.append(time.perf_counter() - t0)
                 preds.append(state.x)
             P = torch.stack(preds, 1).numpy()
-            for i, r in enumerate(recs):
-                results[r.name] = RolloutResult(r.name, P[i], r.positions[2 : s + 2], np.asarray(times))
-    return [results[r.name] for r in recordings]
+            for j, i in enumerate(members):
+                r = recordings[i]
+                results[i] = RolloutResult(r.name, P[j], r.positions[2 : s + 2], np.asarray(times))
+    return results
 
 
 def metrics(results: list[RolloutResult]) -> dict:
@@ -77,7 +82,7 @@ def metrics(results: list[RolloutResult]) -> dict:
     }
 
 
-def evaluate(model: DeformModel, recordings: list[Recording], steps: int = 500) -> dict:
+def evaluate(model, recordings: list[Recording], steps: int = 500) -> dict:
     """Accuracy (batched over recordings) plus single-rollout step latency on the first recording."""
     out = metrics(predict_recordings(model, recordings, steps))
     timing = predict_recordings(model, recordings[:1], min(steps, 200), batched=False)[0].step_seconds
