@@ -115,14 +115,14 @@ def attach_implicit_gradient(
     theta0 = _with_free(theta_ends, theta_star.detach()[..., 1:-1])
     grad, diag, off = gradient_and_hessian(theta0, a, b, m_ref, beta, gamma, rest_vor, wbar)
     diag, off = diag.detach(), off.detach()
-    step, pd = solve_tridiagonal_pd(diag, off, grad.detach())
-    ok = pd & (step.abs().amax(-1) < converged_tol)
+    step, pd = solve_tridiagonal_pd(diag, off, grad)  # differentiable in grad
+    ok = pd & (step.detach().abs().amax(-1) < converged_tol)
     if not bool(ok.all()):
         c = (2.0 * gamma / rest_vor).detach()
         twist_diag = c[..., :-1] + c[..., 1:]
         diag = torch.where(ok.unsqueeze(-1), diag, twist_diag + (diag - twist_diag).abs())
-        grad = grad * ok.unsqueeze(-1)
-    free = theta_star.detach()[..., 1:-1] - solve_tridiagonal(diag, off, grad)
+        step = solve_tridiagonal(diag, off, grad * ok.unsqueeze(-1))
+    free = theta_star.detach()[..., 1:-1] - step
     return _with_free(theta_ends, free)
 
 
