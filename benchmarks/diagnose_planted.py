@@ -5,11 +5,18 @@ Planted data: deform.diagnose.planted (finer rod, smaller dt, markers a subset o
 noise, gripper motions replayed from real DLO2 recordings). The tool is not told the effect.
 Writes benchmarks/results/diagnose.{json,md}.
 
-    python benchmarks/diagnose_planted.py [--quick] [--seeds 3] [--effects a b ...] [--real DLO1 ...]
+    python benchmarks/diagnose_planted.py [--quick] [--seeds 3] [--control-seeds 5] [--effects a b ...]
+        [--real DLO1 ...] [--fit 8 --check 4 --frames 500] [--summary-only]
+
+Every dataset's row is appended to benchmarks/results/diagnose.runs.jsonl as soon as it is done; a
+rerun with the same configuration skips the rows already there (resume after an interruption).
+The significance rule is reported twice: as the tool ran, and calibrated on the controls
+(deform.diagnose.scoring.calibrate_min_gain) and re-applied to the stored candidate scores.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -18,7 +25,9 @@ import numpy as np
 import torch
 
 from deform.diagnose.fitting import FitBudget
-from deform.diagnose.planted import EFFECTS, generate_planted
+from deform.diagnose.planted import EFFECTS, generate_planted, oracle_term
+from deform.diagnose.scoring import MIN_GAIN, PER_PARAM, calibrate_min_gain, reselect
+from deform.diagnose.terms import LIBRARY
 from deform.diagnose.selection import DiagnoseBudget, diagnose
 from deform.diagnose.spec import Inputs, RodSpec, load_inputs
 from deform.io.recordings import find_data_root, load_recordings
@@ -29,113 +38,262 @@ RODS = {"DLO1": (1.152, 0.0345, 13), "DLO2": (0.996, 0.0652, 12), "DLO3": (0.998
         "DLO4": (0.973, 0.022, 12), "DLO5": (0.988, 0.0192, 12)}
 
 
-def budget(quick: bool) -> DiagnoseBudget:
+def budget(quick) -> DiagnoseBudget:
+    if quick == "smoke":  # pipeline check only (seconds per dataset); numbers meaningless
+        return DiagnoseBudget(nominal_iterations=3, candidate=FitBudget(iterations=2, batch=4, horizon=10),
+                              max_rounds=2, later_round_candidates=2, progress=False)
     if quick:
         return DiagnoseBudget(nominal_iterations=40, candidate=FitBudget(iterations=25, batch=12, horizon=25),
                               max_rounds=2, later_round_candidates=3, progress=False)
     return DiagnoseBudget(progress=False)
 
 
-def param_error(found: dict, truth: dict) -> dict:
+def param_error(found: dict, truth: dict, edge_m: float) -> dict:
+    """Relative error of each planted parameter the term reports. Rest curvature: the tool reports a
+    turning per vertex (curvature x marker spacing ``edge_m``) in a material frame whose orientation
+    depends on the unobserved twist, so the magnitude |kappa| is compared."""
+    if "kappa1_per_vertex" in found:
+        k_found = float(np.hypot(found["kappa1_per_vertex"], found["kappa2_per_vertex"])) / edge_m
+        k_true = float(np.hypot(truth["kappa1_per_m"], truth["kappa2_per_m"]))
+        return {"kappa_per_m": abs(k_found - k_true) / k_true}
     out = {}
     for k, v in truth.items():
-        key = k.replace("_per_m", "_per_vertex") if k.startswith("kappa") else k
-        if key in found and v != 0:
-            out[k] = abs(found[key] - v) / abs(v)
+        if k in found and v != 0:
+            out[k] = abs(found[k] - v) / abs(v)
     return out
 
 
-def run_planted(effects, seeds, quick, n_fit, n_check, frames) -> list[dict]:
+def _config(args) -> dict:
+    return {"quick": args.quick, "fit": args.fit, "check": args.check, "frames": args.frames}
+
+
+def load_runs(path: Path, config: dict) -> dict[str, dict]:
+    """Rows already computed with the same configuration (the benchmark resumes where it stopped)."""
+    done = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                row = json.loads(line)
+                if row.get("config") == config:
+                    done[row["key"]] = row
+    return done
+
+
+def append_run(path: Path, row: dict) -> None:
+    with path.open("a") as f:
+        f.write(json.dumps(row) + "\n")
+
+
+def marker_edge(recs) -> float:
+    return float(np.median(np.concatenate([np.linalg.norm(np.diff(r.positions[::25, 1:-1], axis=1), axis=-1).ravel()
+                                           for r in recs])))
+
+
+def oracle_check(spec, nominal_params: dict, effect, truth, inputs, quick: bool) -> float | None:
+    """Check error of the tool's model class with the right term started at the planted truth
+    (nominal refitted with the candidate budget): the 'truth' end of the gap."""
+    from deform.diagnose.fitting import fit
+    from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
+
+    s = arclength_of(inputs.fit)
+    edge = marker_edge(inputs.fit)
+    term = oracle_term(effect, truth, spec.n_vertices, s, edge)
+    if term is None:
+        return None
+    nom = Nominal(nominal_params["bend_stiffness_Nm2"], nominal_params["twist_stiffness_Nm2"],
+                  nominal_params["damping_1_per_s"])
+    sim = Simulator(spec, nom, [term])
+    fit(sim, inputs.fit, dataclasses.replace(budget(quick).candidate, progress=False), desc="oracle")
+    return float(per_recording_l1(sim.predict(inputs.check), inputs.check).mean())
+
+
+def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
     data = find_data_root()
     sources = load_recordings(data / "DLO2" / "train")
     L, M, n = RODS["DLO2"]
     spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name="DLO2-planted")
-    rows = []
-    for seed in seeds:
+    for effect, seed in jobs:
+        key = f"{effect or 'none'}:{seed}"
+        if key in done:
+            continue
         rng = np.random.default_rng(seed)
-        pick = rng.choice(len(sources), n_fit + n_check, replace=False)
+        pick = rng.choice(len(sources), args.fit + args.check, replace=False)
         src = [sources[i] for i in pick]
-        for effect in effects:
-            t0 = time.perf_counter()
-            recs, truth = generate_planted(effect, src, spec, n_frames=frames, seed=seed)
-            inputs = Inputs(spec=spec, fit=recs[:n_fit], check=recs[n_fit:])
-            diag = diagnose(inputs, budget(quick))
-            rep = diag.report
-            sel = rep["selected"]
-            found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
-            row = {"effect": effect or "none", "seed": seed, "selected": sel,
-                   "detected": (sel[:1] == [effect]) if effect else (sel == []),
-                   "exact": (sel == [effect]) if effect else (sel == []),
-                   "truth": truth, "found": found, "param_rel_error": param_error(found, truth),
-                   "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
-                   "round1": {c["name"]: round(c["improvement"], 4) for c in rep["candidates"] if c["round"] == 1},
-                   "seconds": time.perf_counter() - t0}
-            rows.append(row)
-            print(json.dumps({k: row[k] for k in ("effect", "seed", "selected", "nominal_check_l1_m", "final_check_l1_m", "seconds")}), flush=True)
-    # gap closed: the control of the same seed (same grips, no effect) is the model class's floor
-    floor = {r["seed"]: r["nominal_check_l1_m"] for r in rows if r["effect"] == "none"}
-    for r in rows:
-        if r["effect"] != "none" and r["seed"] in floor:
-            gap = r["nominal_check_l1_m"] - floor[r["seed"]]
-            r["gap_m"] = gap
-            r["gap_closed"] = (r["nominal_check_l1_m"] - r["final_check_l1_m"]) / gap if gap > 1e-5 else None
-    return rows
+        t0 = time.perf_counter()
+        recs, truth = generate_planted(effect, src, spec, n_frames=args.frames, seed=seed)
+        inputs = Inputs(spec=spec, fit=recs[:args.fit], check=recs[args.fit:])
+        rep = diagnose(inputs, budget(args.quick)).report
+        t_diag = time.perf_counter() - t0
+        found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
+        fitted = {k: v for k, v in rep["nominal"]["final_params"].items() if k == effect}
+        row = {"key": key, "config": _config(args), "kind": "planted", "effect": effect or "none", "seed": seed,
+               "selected": rep["selected"], "truth": truth, "found_round1": found,
+               "found_selected": fitted.get(effect, {}),
+               "param_rel_error": param_error(fitted.get(effect) or found, truth, marker_edge(inputs.fit)),
+               "nominal_params": rep["nominal"]["params"],
+               "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
+               "candidates": rep["candidates"], "findings": rep["localization"]["findings"],
+               "seconds_diagnose": t_diag}
+        row["oracle_check_l1_m"] = oracle_check(spec, rep["nominal"]["params"], effect, truth, inputs, args.quick)
+        row["seconds"] = time.perf_counter() - t0
+        append_run(runs_path, row)
+        done[key] = row
+        print(json.dumps({k: row[k] for k in ("key", "selected", "nominal_check_l1_m", "final_check_l1_m",
+                                              "oracle_check_l1_m", "seconds")}), flush=True)
 
 
-def run_real(rods, quick, n_fit, n_check) -> list[dict]:
+def run_real(rods, args, runs_path: Path, done: dict) -> None:
     data = find_data_root()
-    rows = []
     for rod in rods:
+        key = f"real:{rod}"
+        if key in done:
+            continue
         L, M, n = RODS[rod]
         recs = load_recordings(data / rod / "train")
         spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=rod)
-        inputs = Inputs(spec=spec, fit=recs[:n_fit], check=recs[n_fit:n_fit + n_check])
+        inputs = Inputs(spec=spec, fit=recs[:args.fit], check=recs[args.fit:args.fit + args.check])
         t0 = time.perf_counter()
-        rep = diagnose(inputs, budget(quick)).report
-        rows.append({"rod": rod, "selected": rep["selected"], "nominal_check_l1_m": rep["nominal"]["check_l1_m"],
-                     "final_check_l1_m": rep["final_check_l1_m"], "findings": rep["localization"]["findings"],
-                     "final_params": rep["nominal"]["final_params"],
-                     "round1": {c["name"]: round(c["improvement"], 4) for c in rep["candidates"] if c["round"] == 1},
-                     "seconds": time.perf_counter() - t0})
-        print(json.dumps(rows[-1]), flush=True)
-    return rows
+        rep = diagnose(inputs, budget(args.quick)).report
+        row = {"key": key, "config": _config(args), "kind": "real", "rod": rod, "selected": rep["selected"],
+               "n_frames": [r.n_frames for r in inputs.fit + inputs.check],
+               "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
+               "findings": rep["localization"]["findings"], "nominal_params": rep["nominal"]["params"],
+               "final_params": rep["nominal"]["final_params"], "candidates": rep["candidates"],
+               "seconds": time.perf_counter() - t0}
+        append_run(runs_path, row)
+        done[key] = row
+        print(json.dumps({k: row[k] for k in ("key", "selected", "nominal_check_l1_m", "final_check_l1_m", "seconds")}),
+              flush=True)
 
 
-def summarise(rows: list[dict]) -> dict:
+def apply_rules(planted: list[dict], real: list[dict], alpha: float) -> dict:
+    """Decisions under (a) the rule the tool ran with and (b) the rule calibrated on the controls.
+    Controls are judged with a leave-one-control-out calibration (their own scores never set their
+    threshold); planted datasets and real rods with the calibration on all controls."""
+    controls = [r for r in planted if r["effect"] == "none"]
+    n_cand = len(LIBRARY)
+
+    def nulls(rows):
+        c = [c for r in rows for c in r["candidates"] if c["round"] == 1]
+        return [x["improvement"] for x in c], [x["n_params"] for x in c]
+
+    cal = None
+    if len(controls) >= 2:
+        imp, k = nulls(controls)
+        cal = calibrate_min_gain(imp, n_cand, alpha=alpha, per_param=PER_PARAM, n_params=k)
+    for r in planted + real:
+        r["as_run"] = {"selected": r["selected"], "final_check_l1_m": r["final_check_l1_m"]}
+        if cal is None:
+            continue
+        if r.get("effect") == "none":
+            others = [c for c in controls if c is not r]
+            if len(others) < 2:
+                continue
+            imp, k = nulls(others)
+            mg = calibrate_min_gain(imp, n_cand, alpha=alpha, per_param=PER_PARAM, n_params=k)["min_gain"]
+        else:
+            mg = cal["min_gain"]
+        r["calibrated"] = {"min_gain": mg, **reselect(r["candidates"], r["nominal_check_l1_m"], mg, PER_PARAM)}
+    return {"calibration": cal, "tool_rule": {"min_gain": MIN_GAIN, "per_param": PER_PARAM}}
+
+
+def _gaps(r: dict, floor: dict, final: float) -> dict:
     out = {}
-    for eff in sorted({r["effect"] for r in rows}):
-        rs = [r for r in rows if r["effect"] == eff]
-        gaps = [r["gap_closed"] for r in rs if r.get("gap_closed") is not None]
-        perr = [np.mean(list(r["param_rel_error"].values())) for r in rs if r["param_rel_error"]]
-        out[eff] = {"runs": len(rs), "detection_rate": float(np.mean([r["detected"] for r in rs])),
+    if r["effect"] == "none":
+        return out
+    o = r.get("oracle_check_l1_m")
+    if o is not None:
+        gap = r["nominal_check_l1_m"] - o
+        out["gap_oracle_m"] = gap
+        out["gap_closed_oracle"] = (r["nominal_check_l1_m"] - final) / gap if gap > 1e-5 else None
+    if r["seed"] in floor:
+        gap = r["nominal_check_l1_m"] - floor[r["seed"]]
+        out["gap_control_m"] = gap
+        out["gap_closed_control"] = (r["nominal_check_l1_m"] - final) / gap if gap > 1e-5 else None
+    return out
+
+
+def summarise(rows: list[dict], rule: str) -> dict:
+    floor = {r["seed"]: r["nominal_check_l1_m"] for r in rows if r["effect"] == "none"}
+    out = {}
+    for eff in sorted({r["effect"] for r in rows}, key=lambda e: (e != "none", e)):
+        rs = [r for r in rows if r["effect"] == eff and rule in r]
+        if not rs:
+            continue
+        sel = [r[rule]["selected"] for r in rs]
+        right = [(s[:1] == [eff]) if eff != "none" else (s == []) for s in sel]
+        finals = [r[rule]["final_check_l1_m"] for r in rs]
+        g = [_gaps(r, floor, f) for r, f in zip(rs, finals)]
+        go = [x["gap_closed_oracle"] for x in g if x.get("gap_closed_oracle") is not None]
+        gc = [x["gap_closed_control"] for x in g if x.get("gap_closed_control") is not None]
+        perr = [float(np.mean(list(r["param_rel_error"].values()))) for r in rs if r["param_rel_error"]]
+        out[eff] = {"runs": len(rs), "named_correctly": int(sum(right)), "rate": float(np.mean(right)),
+                    "selected": [s or ["none"] for s in sel],
                     "nominal_check_cm": float(np.mean([r["nominal_check_l1_m"] for r in rs]) * 100),
-                    "final_check_cm": float(np.mean([r["final_check_l1_m"] for r in rs]) * 100),
-                    "gap_closed_median": float(np.median(gaps)) if gaps else None,
+                    "final_check_cm": float(np.mean(finals) * 100),
+                    "oracle_check_cm": (float(np.mean([r["oracle_check_l1_m"] for r in rs]) * 100)
+                                        if all(r.get("oracle_check_l1_m") is not None for r in rs) else None),
+                    "gap_closed_oracle_median": float(np.median(go)) if go else None,
+                    "gap_closed_control_median": float(np.median(gc)) if gc else None,
                     "param_rel_error_median": float(np.median(perr)) if perr else None}
     return out
+
+
+def _fmt(x, pct=True):
+    return "-" if x is None else (f"{x * 100:.0f} %" if pct else f"{x:.3f}")
 
 
 def write(result: dict) -> None:
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "diagnose.json").write_text(json.dumps(result, indent=2))
-    lines = ["# deform diagnose: planted-effect benchmark", "", f"Run: `{result['command']}` on {result['machine']}; "
-             f"{result['seconds']:.0f} s total.", "",
-             "| planted effect | runs | named first | check before [cm] | after [cm] | gap closed (median) | param rel. error (median) |",
-             "|---|---|---|---|---|---|---|"]
-    for eff, s in result["summary"].items():
-        gap = "-" if s["gap_closed_median"] is None else f"{s['gap_closed_median'] * 100:.0f} %"
-        pe = "-" if s["param_rel_error_median"] is None else f"{s['param_rel_error_median'] * 100:.0f} %"
-        lines.append(f"| {eff} | {s['runs']} | {s['detection_rate'] * 100:.0f} % | {s['nominal_check_cm']:.3f} | "
-                     f"{s['final_check_cm']:.3f} | {gap} | {pe} |")
-    lines += ["", "Per run (selected terms):", ""]
+    lines = ["# deform diagnose: planted-effect benchmark", "",
+             f"Run: `{result['command']}` on {result['machine']}; {result['seconds_total_runs']:.0f} s of "
+             f"dataset runs (sum over the rows in `diagnose.runs.jsonl`).", "", f"Budget: {result['budget']}", ""]
+    cal = result["rules"]["calibration"]
+    if cal:
+        lines += [f"Calibrated rule (from {cal['n_null']} round-1 control improvements, parameter penalty "
+                  f"{cal['per_param'] * 100:.0f} %/param removed): mean {cal['mu'] * 100:.2f} %, sd {cal['sd'] * 100:.2f} %, "
+                  f"z = {cal['z']:.2f} (alpha {cal['alpha']} over {len(LIBRARY)} candidates) -> "
+                  f"min gain {cal['min_gain'] * 100:.2f} % + {cal['per_param'] * 100:.0f} %/param, and the 90 % "
+                  f"bootstrap interval above 0. Controls are judged leave-one-control-out.", ""]
+    for rule, title in (("calibrated", "Calibrated rule"), ("as_run", "Rule the tool ran with "
+                        f"({result['rules']['tool_rule']['min_gain'] * 100:.0f} % + "
+                        f"{result['rules']['tool_rule']['per_param'] * 100:.0f} %/param)")):
+        summ = result["summary"].get(rule)
+        if not summ:
+            continue
+        tot = sum(s["runs"] for k, s in summ.items() if k != "none")
+        ok = sum(s["named_correctly"] for k, s in summ.items() if k != "none")
+        lines += [f"## {title}", "", f"Planted effects named first: {ok}/{tot}; controls `none`: "
+                  f"{summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}.", "",
+                  "| planted effect | runs | named correctly | check nominal [cm] | after [cm] | oracle [cm] | gap closed vs oracle (median) | vs control (median) | param rel. error (median) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for eff, s in summ.items():
+            lines.append(f"| {eff} | {s['runs']} | {s['named_correctly']}/{s['runs']} | {s['nominal_check_cm']:.3f} | "
+                         f"{s['final_check_cm']:.3f} | {_fmt(s['oracle_check_cm'] and s['oracle_check_cm'] / 100 * 100, False) if s['oracle_check_cm'] is not None else '-'} | "
+                         f"{_fmt(s['gap_closed_oracle_median'])} | {_fmt(s['gap_closed_control_median'])} | "
+                         f"{_fmt(s['param_rel_error_median'])} |")
+        lines.append("")
+    lines += ["## Per run", ""]
     for r in result["planted"]:
-        lines.append(f"- {r['effect']} seed {r['seed']}: selected {r['selected'] or ['none']}, "
-                     f"{r['nominal_check_l1_m'] * 100:.3f} -> {r['final_check_l1_m'] * 100:.3f} cm, {r['seconds']:.0f} s")
+        cal_sel = r.get("calibrated", {}).get("selected")
+        lines.append(f"- {r['effect']} seed {r['seed']}: as run {r['selected'] or ['none']}, calibrated "
+                     f"{(cal_sel or ['none']) if cal_sel is not None else '-'}; {r['nominal_check_l1_m'] * 100:.3f} -> "
+                     f"{r['final_check_l1_m'] * 100:.3f} cm (oracle {_fmt(r.get('oracle_check_l1_m') and r['oracle_check_l1_m'] * 100, False)}); "
+                     f"params {json.dumps({k: round(v, 4) for k, v in (r['found_selected'] or r['found_round1']).items()})} "
+                     f"truth {json.dumps(r['truth'])}; {r['seconds']:.0f} s")
     if result["real"]:
-        lines += ["", "## Real recordings against plain DER", "", "| rod | selected | check before [cm] | after [cm] | s |", "|---|---|---|---|---|"]
+        lines += ["", "## Real recordings against plain DER", "",
+                  "| rod | selected (as run) | selected (calibrated) | check before [cm] | after (as run) [cm] | best round-1 candidates (improvement) | s |",
+                  "|---|---|---|---|---|---|---|"]
         for r in result["real"]:
-            lines.append(f"| {r['rod']} | {', '.join(r['selected']) or 'none'} | {r['nominal_check_l1_m'] * 100:.3f} | "
-                         f"{r['final_check_l1_m'] * 100:.3f} | {r['seconds']:.0f} |")
+            top = sorted((c for c in r["candidates"] if c["round"] == 1), key=lambda c: -c["improvement"])[:3]
+            cs = r.get("calibrated", {}).get("selected")
+            lines.append(f"| {r['rod']} | {', '.join(r['selected']) or 'none'} | "
+                         f"{(', '.join(cs) or 'none') if cs is not None else '-'} | {r['nominal_check_l1_m'] * 100:.3f} | "
+                         f"{r['final_check_l1_m'] * 100:.3f} | "
+                         + ", ".join(f"{c['name']} {c['improvement'] * 100:+.1f} %" for c in top)
+                         + f" | {r['seconds']:.0f} |")
     (RESULTS / "diagnose.md").write_text("\n".join(lines) + "\n")
 
 
@@ -144,23 +302,45 @@ def main() -> None:
 
     p = argparse.ArgumentParser()
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--smoke", action="store_true", help="tiny budget: checks the pipeline, numbers meaningless")
+    p.add_argument("--seeds", type=int, default=3, help="seeds per planted effect")
+    p.add_argument("--control-seeds", type=int, default=5, help="control datasets (no effect)")
     p.add_argument("--effects", nargs="*", default=None)
     p.add_argument("--real", nargs="*", default=list(RODS))
     p.add_argument("--fit", type=int, default=8)
     p.add_argument("--check", type=int, default=4)
     p.add_argument("--frames", type=int, default=500)
+    p.add_argument("--alpha", type=float, default=0.05, help="family-wise false-positive rate of the calibrated rule")
+    p.add_argument("--runs", default=str(RESULTS / "diagnose.runs.jsonl"), help="incremental results (resumed)")
+    p.add_argument("--summary-only", action="store_true", help="only rebuild diagnose.{json,md} from the runs file")
     args = p.parse_args()
+    if args.smoke:
+        args.quick = "smoke"
     torch.set_num_threads(1)
-    t0 = time.perf_counter()
-    effects = [None] + [e for e in (args.effects or EFFECTS) if e != "none"]
-    planted = run_planted(effects, list(range(args.seeds)), args.quick, args.fit, args.check, args.frames) if args.seeds else []
-    result = {"command": "python benchmarks/diagnose_planted.py " + " ".join(sys.argv[1:]),
-              "machine": "2 CPU cores shared with other jobs, torch 1 thread", "seconds": time.perf_counter() - t0,
-              "summary": summarise(planted), "planted": planted, "real": []}
-    write(result)  # the planted part survives an interrupted real part
-    result["real"] = run_real(args.real, args.quick, args.fit, args.check)
-    result["seconds"] = time.perf_counter() - t0
+    runs_path = Path(args.runs)
+    runs_path.parent.mkdir(exist_ok=True)
+    done = load_runs(runs_path, _config(args))
+    effects = [e for e in (args.effects or EFFECTS) if e != "none"]
+    # controls first (they calibrate the rule), then each seed through all effects, then the real rods
+    jobs = [(None, s) for s in range(args.control_seeds)] + [(e, s) for s in range(args.seeds) for e in effects]
+    if not args.summary_only:
+        run_planted(jobs, args, runs_path, done)
+        run_real(args.real, args, runs_path, done)
+    planted = [r for r in done.values() if r["kind"] == "planted"]
+    planted.sort(key=lambda r: (r["effect"] != "none", r["effect"], r["seed"]))
+    real = sorted((r for r in done.values() if r["kind"] == "real"), key=lambda r: r["rod"])
+    rules = apply_rules(planted, real, args.alpha)
+    b = budget(args.quick)
+    result = {"command": "python benchmarks/diagnose_planted.py " + " ".join(a for a in sys.argv[1:] if a != "--summary-only"),
+              "machine": "2 CPU cores shared with other jobs (a training run, service benchmarks), torch 1 thread",
+              "budget": (f"nominal {b.nominal_iterations} Adam iterations, candidates {b.candidate.iterations} iterations "
+                         f"of {b.candidate.batch} windows x {b.candidate.horizon} steps, {b.max_rounds} rounds; "
+                         f"{args.fit} fit + {args.check} check recordings of {args.frames} frames per planted dataset "
+                         f"(real rods: the first {args.fit} + next {args.check} train recordings, full length)"),
+              "seconds_total_runs": float(sum(r["seconds"] for r in done.values())),
+              "rules": rules,
+              "summary": {"as_run": summarise(planted, "as_run"), "calibrated": summarise(planted, "calibrated")},
+              "planted": planted, "real": real}
     write(result)
 
 

@@ -28,6 +28,8 @@ class FitBudget:
     margin: int = 3  # frames kept around a window for the delay term
     seed: int = 0
     progress: bool = True
+    anneal: bool = True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
+    # jittering by one Adam step, which would make two fits of the same model differ by noise
 
 
 def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: int, rng: random.Random) -> torch.Tensor:
@@ -46,9 +48,47 @@ def window_loss(sim: Simulator, windows: torch.Tensor, horizon: int, margin: int
     return (pred - windows[:, margin + 2:margin + 2 + horizon]).abs().mean()
 
 
+@torch.no_grad()
+def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitBudget) -> dict | None:
+    """Try the term's current raw values and each point of ``term.grid()`` on one fixed batch of
+    windows (forward rollouts only); keep the best. A grid key ``"nominal:NAME"`` adds its value to
+    the nominal parameter NAME (a log): a term that takes over part of what the nominal model did
+    (drag vs linear damping) is tried together with the nominal share it replaces.
+    -> {"grid_loss_m": ..., "chosen": ...} or None."""
+    points = term.grid()
+    if not points:
+        return None
+    windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, random.Random(budget.seed + 1))
+    named = {k: p for k, p in term.named_parameters()}
+    named.update({f"nominal:{k}": p for k, p in sim.nominal.named_parameters()})
+    current = {k: named[k].detach().clone() for k in {k for p in points for k in p}}
+
+    def apply(point):
+        for k, v in current.items():
+            named[k].copy_(v)
+        for k, v in (point or {}).items():
+            if k.startswith("nominal:"):
+                named[k].add_(v)
+            else:
+                named[k].fill_(v)
+        sim.sync()
+
+    best = (math.inf, None)
+    for point in [None] + points:
+        apply(point)
+        loss = float(torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf))
+        if loss < best[0]:
+            best = (loss, point)
+    apply(best[1])
+    return {"grid_loss_m": best[0], "chosen": best[1]}
+
+
 def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: str = "fit",
-        fit_nominal: bool = True) -> dict:
-    """Fit the simulator's term parameters (and the nominal ones, more slowly) in place."""
+        fit_nominal: bool = True, new_term=None) -> dict:
+    """Fit the simulator's term parameters (and the nominal ones, more slowly) in place.
+    ``new_term`` (a term just added) is first started from the best point of its coarse grid."""
+    if new_term is not None:
+        coarse_start(sim, new_term, recordings, budget)
     rng = random.Random(budget.seed)
     groups = []
     if sim.term_parameters():
@@ -56,6 +96,9 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
     if fit_nominal:
         groups.append({"params": list(sim.nominal.parameters()), "lr": budget.lr_nominal})
     opt = torch.optim.Adam(groups)
+    half = budget.iterations / 2  # full rate for the first half, then cosine decay to 0
+    sched = (torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))) if budget.anneal else None)
     history, skipped = [], 0
     bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
     best = (math.inf, None)
@@ -73,6 +116,8 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
             sim.nominal.clamp_()
         else:
             skipped += 1
+        if sched is not None:
+            sched.step()
         history.append(float(loss.detach()))
         bar.set_postfix(loss=f"{float(loss.detach()) * 100:.3f}cm")
     return {"loss_history_m": history, "skipped": skipped}

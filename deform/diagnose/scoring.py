@@ -42,3 +42,56 @@ def score(reference: np.ndarray, candidate: np.ndarray, n_params: int, min_gain:
     thr = min_gain + per_param * n_params
     mean = float(d.mean())
     return Score(mean, lo, hi, thr, bool(lo > 0 and mean > thr))
+
+
+# --- calibration of the significance rule over control datasets (no effect planted) -----------------
+
+def calibrate_min_gain(null_improvements, n_candidates: int, alpha: float = 0.05, per_param: float = PER_PARAM,
+                       n_params=None) -> dict:
+    """Intercept of the threshold from the controls' distribution of candidate improvements.
+
+    On a control every candidate's improvement is noise (optimisation and recording noise). Pooling
+    them (after removing the parameter penalty ``per_param * k``) gives a mean ``mu`` and spread
+    ``sd``; the intercept is ``mu + z sd`` with ``z`` the one-sided normal quantile at ``alpha /
+    n_candidates`` (Bonferroni over the candidates of a round), so that a control names a term with
+    probability about ``alpha`` if the noise is normal. Never below 0.
+    """
+    from statistics import NormalDist
+
+    x = np.asarray(null_improvements, dtype=float)
+    if n_params is not None:
+        x = x - per_param * np.asarray(n_params, dtype=float)
+    if len(x) < 2:
+        raise ValueError("calibration needs at least 2 null improvements")
+    z = NormalDist().inv_cdf(1 - alpha / n_candidates)
+    mu, sd = float(x.mean()), float(x.std(ddof=1))
+    return {"min_gain": max(0.0, mu + z * sd), "mu": mu, "sd": sd, "z": z, "n_null": int(len(x)),
+            "alpha": alpha, "per_param": per_param}
+
+
+def reselect(candidates: list[dict], nominal_check: float, min_gain: float, per_param: float = PER_PARAM) -> dict:
+    """Re-derive forward selection from a report's stored candidate scores under another threshold.
+
+    Exact for every round that was run: a round's pick is the significant candidate with the largest
+    mean improvement, and the bootstrap interval does not depend on the threshold. If the new rule
+    picks a term in the last round that was run (the original run stopped there, or hit its round
+    limit), there is nothing to continue with: ``no_further_round`` is True.
+    """
+    selected: list[str] = []
+    final = nominal_check
+    no_further = False
+    rnd = 1
+    while True:
+        rows = [c for c in candidates if c["round"] == rnd and c["on_top_of"] == selected]
+        if not rows:
+            no_further = bool(selected)
+            break
+        sig = [c for c in rows if c["improvement_ci90"][0] > 0 and
+               c["improvement"] > min_gain + per_param * c["n_params"]]
+        if not sig:
+            break
+        best = max(sig, key=lambda c: c["improvement"])
+        selected.append(best["name"])
+        final = best["check_l1_m"]
+        rnd += 1
+    return {"selected": selected, "final_check_l1_m": final, "no_further_round": no_further}

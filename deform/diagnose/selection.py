@@ -50,9 +50,9 @@ def _nominal_from_model(path: str) -> Nominal:
     return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()), float(m.damping))
 
 
-def _fit_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str):
+def _fit_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None):
     sim = Simulator(spec, copy.deepcopy(nominal), terms)
-    fit(sim, inputs.fit, budget, desc=desc)
+    fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
     err = per_recording_l1(sim.predict(inputs.check), inputs.check)
     return sim, err
 
@@ -89,7 +89,7 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context)
             csim, e = _fit_check(spec, base_nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, cb,
-                                 f"round {rnd + 1}: {name}")
+                                 f"round {rnd + 1}: {name}", new_term=term)
             sc = score(e_ref, e, term.n_params)
             results.append((name, term, csim, e, sc))
             candidates_out.append({

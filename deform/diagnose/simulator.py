@@ -126,18 +126,25 @@ class Simulator:
         grips = frames[:, :, idx]
         tau = self.delay()
         T = frames.shape[1]
-        state = self.model.initial_state(frames[:, margin], frames[:, margin + 1])
+
+        def grip_at(frame: int) -> Tensor:
+            if tau is None:
+                return grips[:, frame]
+            pos = (frame - tau).clamp(0, T - 1)
+            lo = pos.detach().floor().clamp(max=T - 2)
+            i = int(lo)
+            a = pos - lo
+            return (1 - a) * grips[:, i] + a * grips[:, i + 1]
+
+        x0, x1 = frames[:, margin], frames[:, margin + 1]
+        if tau is not None:  # the rod's gripped ends lag the recorded grips from the first frame on
+            x0, x1 = x0.clone(), x1.clone()
+            x0[:, idx] = grip_at(margin).to(x0.dtype)
+            x1[:, idx] = grip_at(margin + 1).to(x1.dtype)
+        state = self.model.initial_state(x0, x1)
         out = []
         for k in range(steps):
-            frame = margin + 2 + k
-            if tau is None:
-                g = grips[:, frame]
-            else:
-                pos = (frame - tau).clamp(0, T - 1)
-                lo = pos.detach().floor().clamp(max=T - 2)
-                i = int(lo)
-                a = pos - lo
-                g = (1 - a) * grips[:, i] + a * grips[:, i + 1]
+            g = grip_at(margin + 2 + k)
             state = self.model.step(state, g, create_graph=create_graph)
             out.append(state.x)
         return torch.stack(out, 1)

@@ -8,7 +8,10 @@ Adam learning rate suits all). A term acts on the simulator in one or more of th
   differentiable expressions of the term's parameters (see :mod:`deform.diagnose.simulator`);
 * ``delay_frames``: a fractional shift of the gripper input sequence.
 
-``params()`` gives the physical values for the report; ``init_from_data`` sets data-driven starts.
+``params()`` gives the physical values for the report; ``init_from_data`` sets data-driven starts;
+``grid()`` lists coarse starting values (raw parameter values, log-spaced over decades) that the fit
+tries before gradient descent, so that a term whose effect is orders of magnitude away from its
+default start (drag, damping, a delay of frames) is not limited by Adam's step size x iterations.
 """
 from __future__ import annotations
 
@@ -56,6 +59,10 @@ class Term(nn.Module):
     def bind(self, exprs: dict[str, Tensor]) -> dict[str, Tensor]:
         return exprs
 
+    def grid(self) -> list[dict[str, float]]:
+        """Coarse starting points ``{raw parameter name: value}`` tried before Adam (default: none)."""
+        return []
+
     def params(self) -> dict[str, float]:
         raise NotImplementedError
 
@@ -72,6 +79,13 @@ class AerodynamicDrag(Term):
     def acceleration(self, x, v, mass, rest):
         vn = _normal_velocity(x, v)
         return -(self.log_lin.exp() + self.log_quad.exp() * vn.norm(dim=-1, keepdim=True)) * vn
+
+    def grid(self):
+        # quadratic coefficient over 3 decades, each with the nominal linear damping kept, halved or
+        # quartered: drag and damping are the same dissipation, so a drag term is only seen as better
+        # if it may take over part of the damping the nominal fit gave to the linear term
+        return [{"log_quad": math.log(q), "nominal:log_damping": math.log(f)}
+                for q in (0.03, 0.3, 1.0, 3.0, 10.0) for f in (1.0, 0.5, 0.25)]
 
     @torch.no_grad()
     def params(self):
@@ -95,6 +109,10 @@ class InternalDamping(Term):
         f[..., 1:-1, :] -= 2 * d2
         f[..., 2:, :] += d2
         return -self.log_eta.exp() * f
+
+    def grid(self):  # with the nominal damping kept or halved (both are dissipation)
+        return [{"log_eta": math.log(e), "nominal:log_damping": math.log(f)}
+                for e in (0.01, 0.1, 0.3, 1.0, 3.0) for f in (1.0, 0.5)]
 
     @torch.no_grad()
     def params(self):
@@ -146,6 +164,9 @@ class PointMass(Term):
 
     def init_from_data(self, context):
         self.raw_pos.fill_(_logit(min(max(context.get("peak_s", 0.5), 0.1), 0.9)))
+
+    def grid(self):  # five positions along the rod, 5 g
+        return [{"raw_pos": _logit(p), "raw_g": _inv_softplus(1.0)} for p in (0.2, 0.35, 0.5, 0.65, 0.8)]
 
     def mass(self, mass):
         pos = torch.sigmoid(self.raw_pos)
@@ -207,34 +228,45 @@ class ExternalForce(Term):
 
 
 class MassScale(Term):
+    """Mass error, observable part only. A uniform mass factor s is *exactly* equivalent to dividing
+    the (fitted) bending and twisting stiffness by s: gravity and damping act per unit mass. So the
+    term has one parameter, the mass of each marker (a point mass at every marker), which differs from
+    a uniform factor only through the rod's mass distribution; the report says so."""
+
     name = "mass_scale"
-    description = "wrong rod mass and mass of the markers (a point mass at every marker)"
+    description = "mass of the markers (a point mass at every marker); a uniform mass factor is not observable"
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
-        self.log_scale = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
         self.raw_g = nn.Parameter(torch.tensor(_inv_softplus(0.2), dtype=torch.float64))
 
     def mass(self, mass):
-        return mass * self.log_scale.exp() + 1e-3 * softplus(self.raw_g)
+        return mass + 1e-3 * softplus(self.raw_g)
+
+    def grid(self):
+        return [{"raw_g": _inv_softplus(g)} for g in (0.2, 1.0, 3.0, 10.0)]
 
     @torch.no_grad()
     def params(self):
-        return {"rod_mass_scale": float(self.log_scale.exp()), "marker_mass_kg": float(1e-3 * softplus(self.raw_g))}
+        return {"marker_mass_kg": float(1e-3 * softplus(self.raw_g))}
 
 
 class ActuationDelay(Term):
     name = "actuation_delay"
     description = "gripper inputs lagging (or leading) the rod's motion by a fraction of frames"
+    scale = 2.0  # frames per raw unit near zero: one Adam step moves the delay by ~0.16 frames
 
-    def __init__(self, n, arclength, max_frames: float = 3.0):
+    def __init__(self, n, arclength, max_frames: float = 5.0):
         super().__init__(n, arclength)
         self.raw = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
         self.max_frames = max_frames
 
     @property
     def delay_frames(self) -> Tensor:
-        return self.max_frames * torch.tanh(self.raw / self.max_frames)
+        return self.max_frames * torch.tanh(self.scale * self.raw / self.max_frames)
+
+    def grid(self):  # whole frames from -2 to +4 (raw values of those delays)
+        return [{"raw": self.max_frames / self.scale * math.atanh(d / self.max_frames)} for d in (-2, -1, 0, 1, 2, 3, 4)]
 
     @torch.no_grad()
     def params(self):

@@ -1,0 +1,37 @@
+"""The significance rule calibrated on controls, and re-selection from stored candidate scores."""
+import numpy as np
+import pytest
+
+from deform.diagnose.scoring import calibrate_min_gain, reselect
+
+
+def test_calibrated_intercept_is_mean_plus_bonferroni_quantile_of_the_nulls():
+    rng = np.random.default_rng(0)
+    null = rng.normal(-0.01, 0.02, 2000)
+    cal = calibrate_min_gain(null, n_candidates=9, alpha=0.05, per_param=0.0)
+    assert cal["z"] == pytest.approx(2.54, abs=0.01)
+    assert cal["min_gain"] == pytest.approx(-0.01 + 2.54 * 0.02, abs=0.003)
+    # a null improvement then passes in about alpha / n_candidates of the cases
+    assert np.mean(null > cal["min_gain"]) < 0.02
+
+
+def test_parameter_penalty_is_removed_before_pooling_and_intercept_never_negative():
+    cal = calibrate_min_gain([0.03, 0.05], n_candidates=2, per_param=0.01, n_params=[3, 5])
+    assert cal["mu"] == pytest.approx(0.0)
+    assert calibrate_min_gain([-0.2, -0.21], n_candidates=9)["min_gain"] == 0.0
+
+
+def _cand(name, rnd, on_top, imp, lo, check, k=1):
+    return {"name": name, "round": rnd, "on_top_of": on_top, "improvement": imp, "improvement_ci90": [lo, imp + 0.05],
+            "n_params": k, "check_l1_m": check}
+
+
+def test_reselect_follows_rounds_and_threshold():
+    cands = [_cand("a", 1, [], 0.30, 0.2, 0.7), _cand("b", 1, [], 0.08, 0.01, 0.92), _cand("c", 1, [], 0.5, -0.1, 0.5),
+             _cand("b", 2, ["a"], 0.06, 0.02, 0.65)]
+    low = reselect(cands, 1.0, min_gain=0.03, per_param=0.01)
+    assert low["selected"] == ["a", "b"] and low["final_check_l1_m"] == 0.65
+    mid = reselect(cands, 1.0, min_gain=0.06, per_param=0.01)
+    assert mid["selected"] == ["a"] and mid["final_check_l1_m"] == 0.7  # c: interval includes 0
+    assert reselect(cands, 1.0, min_gain=0.5)["selected"] == []
+    assert reselect(cands, 1.0, min_gain=0.5)["final_check_l1_m"] == 1.0
