@@ -31,8 +31,10 @@ def _percentiles(seconds: list[float]) -> dict:
     return {"p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "steps": len(ms)}
 
 
-def step_latency(model: DeformModel, positions: np.ndarray, steps: int) -> dict:
-    """Single rollout (B = 1): the whole step, replaying the recording's grippers in a loop."""
+def step_latency(model: DeformModel, positions: np.ndarray, steps: int, step_fn=None) -> dict:
+    """Single rollout (B = 1): the whole step, replaying the recording's grippers in a loop.
+    ``step_fn``: the step to time (default ``model.step``; e.g. a :class:`~deform.compiled.CompiledStep`)."""
+    step_fn = step_fn or model.step
     X = torch.tensor(positions, dtype=torch.float64).unsqueeze(0)
     idx = gripped_indices(model.n)
     times = []
@@ -43,21 +45,22 @@ def step_latency(model: DeformModel, positions: np.ndarray, steps: int) -> dict:
             if f == 2:
                 state = model.initial_state(X[:, 0], X[:, 1])
             t0 = time.perf_counter()
-            state = model.step(state, X[:, f, idx])
+            state = step_fn(state, X[:, f, idx])
             times.append(time.perf_counter() - t0)
     return _percentiles(times[20:])
 
 
-def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int) -> float:
+def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int, step_fn=None) -> float:
+    step_fn = step_fn or model.step
     X = torch.tensor(positions[: steps + 2], dtype=torch.float64).unsqueeze(0).expand(batch, -1, -1, -1)
     X = X + 1e-4 * torch.randn_like(X)
     idx = gripped_indices(model.n)
     with torch.no_grad():
         state = model.initial_state(X[:, 0], X[:, 1])
-        state = model.step(state, X[:, 2, idx])
+        state = step_fn(state, X[:, 2, idx])
         t0 = time.perf_counter()
         for k in range(steps):
-            state = model.step(state, X[:, 2 + k, idx])
+            state = step_fn(state, X[:, 2 + k, idx])
         dt = time.perf_counter() - t0
     return batch * steps / dt
 
@@ -121,6 +124,20 @@ def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
     result["throughput_rod_steps_per_s_2_threads"] = {
         str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50))
         for b in ((1, 32, 256) if quick else (1, 32, 256, 1024))
+    }
+    # the compiled inference step (deform.compiled; the service's predict path), same data and threads
+    from deform.compiled import CompiledStep
+
+    compiled = CompiledStep(model)
+    torch.set_num_threads(1)
+    compiled.warmup((1,))
+    result["compiled_active"] = compiled.active
+    result["single_rollout_compiled_1_thread"] = step_latency(model, positions, steps, compiled)
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    sizes = (1, 32, 256) if quick else (1, 32, 256, 1024)
+    compiled.warmup(sizes)
+    result["throughput_compiled_rod_steps_per_s_2_threads"] = {
+        str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50), compiled) for b in sizes
     }
     torch.set_num_threads(1)
     result["vertex_scaling_1_thread"] = vertex_scaling(steps=100 if quick else 300)

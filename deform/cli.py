@@ -47,7 +47,8 @@ def cmd_train(args) -> int:
                        residual=not args.no_residual, sysid=not args.no_sysid, seed=args.seed,
                        time_limit_s=args.time_limit, curriculum=tuple(args.curriculum) if args.horizon > 1 else (),
                        lr_physics=args.lr_physics, lr_network=args.lr_network,
-                       coarse_sysid=not args.init)  # a given starting model is already identified
+                       coarse_sysid=not args.init,  # a given starting model is already identified
+                       drag=not args.no_drag)
     out = Path(args.out or f"runs/{args.rod}")
     result = train(model, train_recs, val_recs, tcfg, out, resume=not args.fresh)
     best = DeformModel.load(out / "best.pt")
@@ -129,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-sysid", action="store_true")
     t.add_argument("--original-inextensibility", action="store_true")
     t.add_argument("--theta-solver", choices=["newton", "theseus"], default="newton")
+    t.add_argument("--no-drag", action="store_true", help="no quadratic air drag (linear damping only)")
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
     t.add_argument("--lr-physics", type=float, default=2e-2)
     t.add_argument("--lr-network", type=float, default=1e-3)

@@ -106,6 +106,9 @@ class DeformModel(nn.Module):
         """
         if create_graph:
             return self.elastic_params(rest), self.vertex_mass(rest)
+        if torch.compiler.is_compiling():  # compiled code fuses these; a cache keyed on ids would recompile
+            with torch.no_grad():
+                return self.elastic_params(rest), self.vertex_mass(rest)
         key = (id(rest), rest._version, rest.dtype, tuple(p._version for p in self.parameters()),
                len(self.extensions))
         cached = getattr(self, "_physical_cache", None)

@@ -41,6 +41,7 @@ class TrainConfig:
     lr_final_fraction: float = 0.1  # cosine decay of the learning rates
     rest_curvature_lr_scale: float = 0.05
     coarse_sysid: bool = True
+    drag: bool = True  # False: no quadratic air drag (fixed at its floor), linear damping only
     extra: dict = field(default_factory=dict)
 
 
@@ -107,7 +108,13 @@ def coarse_identification(model: DeformModel, recordings: list[Recording], steps
 
 
 def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
-    physics = [model.log_beta, model.log_gamma, model.extra_mass_raw, model.log_damping, model.log_drag]
+    physics = [model.log_beta, model.log_gamma, model.extra_mass_raw, model.log_damping]
+    if cfg.drag:
+        physics.append(model.log_drag)
+    else:
+        with torch.no_grad():
+            model.log_drag.fill_(math.log(1e-4))
+        model.log_drag.requires_grad_(False)
     groups = []
     if cfg.sysid:
         groups.append({"params": physics, "lr": cfg.lr_physics})

@@ -58,6 +58,14 @@ class Limits(_Strict):
     max_cloud_rate_hz: float = Field(default=60.0, gt=0)
 
 
+class Workers(_Strict):
+    processes: bool = True        # fusion (wall clock) and predict run in child processes, off the loop's GIL
+    compile_predict: bool = True  # torch.compile the predict rollout (eager fallback if it cannot compile)
+    predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
+    fusion_timeout_s: float = Field(default=5.0, gt=0)
+    predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile
+
+
 class ZenohSettings(_Strict):
     mode: Literal["peer", "client"] = "peer"
     connect: list[str] = []
@@ -86,6 +94,7 @@ class ServiceConfig(_Strict):
     camera: Camera = Camera()
     timeouts: Timeouts = Timeouts()
     limits: Limits = Limits()
+    workers: Workers = Workers()
     zenoh: ZenohSettings = ZenohSettings()
     rerun: RerunSettings = RerunSettings()
 

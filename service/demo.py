@@ -28,13 +28,15 @@ def free_port() -> int:
 
 
 def run(positions: np.ndarray, rrd: str | None = "demo.rrd", rod: str = "DLO1", fps: float = 30.0,
-        namespace: str = "deform/rod1", tracker=None, stream=None, predict_plans: int = 64, predict_steps: int = 100):
+        namespace: str = "deform/rod1", tracker=None, stream=None, predict_plans: int = 64, predict_steps: int = 100,
+        workers: dict | None = None):
     """Replay ``positions`` through a running service; returns a dict of results (and the estimates)."""
     grippers = scenario.offsets_for(positions)
     ep = f"tcp/127.0.0.1:{free_port()}"
     cfg = load_config(namespace=namespace, rod=rod, clock="message", grippers=grippers.model_dump(),
                       zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False},
-                      rerun={"mode": "file" if rrd else "off", "path": rrd or "demo.rrd", "cloud_every": 3})
+                      rerun={"mode": "file" if rrd else "off", "path": rrd or "demo.rrd", "cloud_every": 3},
+                      workers=workers)
     t0 = time.perf_counter()
     stream = scenario.build_stream(positions, grippers, fps=fps) if stream is None else stream
     t_render = time.perf_counter() - t0

@@ -2,7 +2,9 @@
 
 A cloud is fused into a private copy of the tracker taken at tick k; the copy is then brought
 forward through the grips of the ticks that ran meanwhile and swapped in. The result equals fusing
-at tick k in the loop (same operations, same order), without the loop paying for it.
+at tick k in the loop (same operations, same order), without the loop paying for it. The fusion
+itself runs in a worker (:mod:`service.workers`: a child process by default, so perception's
+Python-level work never holds the loop's interpreter); only the catch-up steps run here.
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import time
 
 from service import messages as M
 from service.estimator import Estimator
-from service.tracking import clone_tracker
+from service.workers import InlineWorker, WorkerError, pack_tracker, unpack_tracker
 
 log = logging.getLogger("deform.service")
 
@@ -40,9 +42,10 @@ class LatestSlot:
 
 
 class FusionWorker(threading.Thread):
-    def __init__(self, est: Estimator, max_lag_ticks: int = 200):
+    def __init__(self, est: Estimator, worker=None, max_lag_ticks: int = 200):
         super().__init__(name=f"fusion[{est.cfg.namespace}]", daemon=True)
         self.est = est
+        self.worker = worker if worker is not None else InlineWorker(est.model, est.cfg)
         self.slot = LatestSlot()
         self.max_lag = max_lag_ticks
         self._stop_event = threading.Event()
@@ -84,7 +87,7 @@ class FusionWorker(threading.Thread):
                 return
             if self._can_clone:
                 try:
-                    copy, k = clone_tracker(est.tracker, est.model), est.tick_index
+                    blob, k = pack_tracker(est.tracker, est.model), est.tick_index
                 except Exception as exc:
                     log.warning("tracker cannot be copied (%s): fusing in the loop thread", exc)
                     self._can_clone = False
@@ -92,7 +95,16 @@ class FusionWorker(threading.Thread):
                 est._correct(est.tracker, cloud)
                 est.fused_at = est.now()
                 return
-        est._correct(copy, cloud)
+        try:
+            fused, seconds = self.worker.call("fuse", blob, cloud, timeout=est.cfg.workers.fusion_timeout_s)
+        except WorkerError as exc:
+            log.warning("cloud fusion failed in the worker: %s", exc)
+            est.stats.count("fusion_errors")
+            return
+        copy = unpack_tracker(fused, est.model)
+        est.stats.fusion_s.add(seconds)
+        est.last_cloud = cloud
+        est.stats.count("clouds_fused")
         while True:
             with est.lock:
                 todo = [(i, g) for i, g in est.history if i > k]

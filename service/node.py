@@ -22,6 +22,7 @@ from service.config import ServiceConfig, ZenohSettings
 from service.estimator import Estimator
 from service.fusion import FusionWorker
 from service.stats import Stats
+from service.workers import make_worker
 
 log = logging.getLogger("deform.service")
 INPUTS = ("ee_poses", "points", "camera_info", "camera_pose")
@@ -65,7 +66,11 @@ class Service:
         if self.rerun is None and cfg.rerun.mode != "off":
             from service.rerun_log import RerunLogger
             self.rerun = RerunLogger(cfg.rerun, cfg.namespace, self.stats)
-        self.fusion = None if self.est.message_clock else FusionWorker(self.est)
+        # child processes (or inline workers) for cloud fusion (wall clock only: the message clock
+        # fuses in order, in the loop, for bit-exact replays) and for predict
+        self.fusion_worker = None if self.est.message_clock else make_worker(model, cfg, f"fusion[{cfg.namespace}]")
+        self.fusion = None if self.est.message_clock else FusionWorker(self.est, self.fusion_worker)
+        self.predict_worker = make_worker(model, cfg, f"predict[{cfg.namespace}]")
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
         self.latest_payload: bytes | None = None
@@ -75,6 +80,7 @@ class Service:
         self._decl: list = []
         self._last_logged_cloud = None
         self._idle = True
+        self.predict_ready = False
 
     # ----- lifecycle ---------------------------------------------------------------------------
     def start(self) -> "Service":
@@ -92,6 +98,8 @@ class Service:
             self.rerun.start()
         if self.fusion is not None:
             self.fusion.start()
+        self._warm = threading.Thread(target=self._warmup, name=f"warmup[{self.cfg.namespace}]", daemon=True)
+        self._warm.start()
         loop = self._message_loop if self.est.message_clock else self._wall_loop
         for target, name in ((loop, "loop"), (self._predict_loop, "predict")):
             t = threading.Thread(target=target, name=f"{name}[{self.cfg.namespace}]", daemon=True)
@@ -113,6 +121,9 @@ class Service:
                 d.undeclare()
             except Exception:
                 pass
+        for w in (self.fusion_worker, self.predict_worker):
+            if w is not None:
+                w.close()
         if self.rerun is not None:
             self.rerun.close()
         if self._own_session and self.session is not None:
@@ -132,6 +143,18 @@ class Service:
                 return True
             time.sleep(0.005)
         return False
+
+    def _warmup(self) -> None:
+        """Compile the predict rollout for the configured plan counts (in the worker; queries wait)."""
+        sizes = self.cfg.workers.predict_warmup if self.cfg.workers.compile_predict else []
+        try:
+            t0 = time.perf_counter()
+            active = self.predict_worker.call("warmup", list(sizes))
+            self.predict_ready = True
+            log.info("[%s] predict ready in %.1f s (%s)", self.cfg.namespace, time.perf_counter() - t0,
+                     "compiled" if active and sizes else "eager" if not active else "compiles on first use")
+        except Exception as exc:  # noqa: BLE001 - predict still answers, eagerly or compiled on first use
+            log.warning("[%s] predict warm-up failed: %s", self.cfg.namespace, exc)
 
     # ----- inputs ------------------------------------------------------------------------------
     def _on_input(self, name: str):
@@ -260,7 +283,9 @@ class Service:
             query.reply(self.cfg.key("vertices"), payload)
 
     def _on_status_query(self, query) -> None:
-        query.reply(self.cfg.key("status"), json.dumps(self.est.status()).encode())
+        status = self.est.status()
+        status["predict_ready"] = self.predict_ready
+        query.reply(self.cfg.key("status"), json.dumps(status).encode())
 
     def _on_predict_query(self, query) -> None:
         try:
@@ -278,7 +303,7 @@ class Service:
                 continue
             try:
                 body = query.payload.to_bytes() if query.payload is not None else b""
-                ok, reply = predict.handle(self.est, body)
+                ok, reply = predict.handle(self.est, body, self.predict_worker)
                 if ok:
                     query.reply(self.cfg.key("predict"), reply)
                 else:

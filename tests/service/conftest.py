@@ -35,4 +35,6 @@ def make_config(endpoint=None, connect=None, **over):
     from service.config import load_config
     z = {"mode": "peer", "multicast_scouting": False, "listen": [endpoint] if endpoint else [],
          "connect": [connect] if connect else []}
+    # compiling the predict rollout costs ~30 s per batch size: tests/deform/test_compiled.py covers it
+    over.setdefault("workers", {"compile_predict": False})
     return load_config(zenoh=z, **over)

@@ -32,9 +32,13 @@ def query_json(session, key):
         return json.loads(r.ok.payload.to_bytes() if r.ok is not None else r.err.payload.to_bytes())
 
 
+NO_COMPILE = {"compile_predict": False}  # compiling is tested in tests/deform/test_compiled.py
+
+
 def test_replay_is_deterministic_and_tracks(sim_positions, sim_stream):
     _, stream = sim_stream
-    runs = [demo.run(sim_positions, rrd=None, stream=stream, predict_plans=4, predict_steps=10) for _ in range(2)]
+    runs = [demo.run(sim_positions, rrd=None, stream=stream, predict_plans=4, predict_steps=10,
+                     workers=NO_COMPILE) for _ in range(2)]
     a, b = runs
     assert a["frames"] == len(sim_positions)
     assert np.array_equal(a["estimates"], b["estimates"])        # bit for bit
@@ -47,7 +51,8 @@ def test_replay_is_deterministic_and_tracks(sim_positions, sim_stream):
 def test_real_recording_end_to_end(data_root, tmp_path):
     from deform import load_recording
     rec = load_recording(sorted((data_root / "DLO1" / "eval").glob("*.pkl"))[0])
-    res = demo.run(rec.positions[:150], rrd=str(tmp_path / "t.rrd"), predict_plans=2, predict_steps=5)
+    res = demo.run(rec.positions[:150], rrd=str(tmp_path / "t.rrd"), predict_plans=2, predict_steps=5,
+                   workers=NO_COMPILE)
     assert res["frames"] == 150
     assert res["mae_cm"] < 3.5, res["mae_cm"]      # holding the first frame scores about 5 cm
     assert (tmp_path / "t.rrd").stat().st_size > 0

@@ -1,0 +1,207 @@
+"""Heavy work off the loop's interpreter: cloud fusion and batched prediction in child processes.
+
+Why processes: the loop, the Zenoh callbacks and the Rerun logger share one GIL. Perception's
+fusion (segmentation, DBSCAN, GMM) and a 64-plan rollout are mostly Python-level work, and run in
+threads they made a 1 ms model step take 3 ms inside the service. A child process per job kind has
+its own interpreter and its own copy of the model; only small things cross the pipe (the tracker's
+state, a decoded cloud, a request body and its reply bytes).
+
+:class:`WorkerProcess` and :class:`InlineWorker` have the same ``call(op, *args)``; the inline one
+runs the job in the caller's thread (tests, or ``workers.processes: false``).
+"""
+from __future__ import annotations
+
+import io
+import logging
+import multiprocessing as mp
+import pickle
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+log = logging.getLogger("deform.service")
+
+
+class WorkerError(RuntimeError):
+    """The job raised in the worker (the message names the exception)."""
+
+
+# ----- tracker state across processes ------------------------------------------------------------
+class _TrackerPickler(pickle.Pickler):
+    def __init__(self, file, model):
+        super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
+        self._model = model
+
+    def persistent_id(self, obj):
+        return "model" if obj is self._model else None
+
+
+class _TrackerUnpickler(pickle.Unpickler):
+    def __init__(self, file, model):
+        super().__init__(file)
+        self._model = model
+
+    def persistent_load(self, pid):
+        if pid != "model":
+            raise pickle.UnpicklingError(f"unknown persistent id {pid!r}")
+        return self._model
+
+
+def pack_tracker(tracker, model) -> bytes:
+    """The tracker's state without its model (each process has its own copy of the model).
+    Only ever exchanged between this service's own processes: never used on network input."""
+    buf = io.BytesIO()
+    _TrackerPickler(buf, model).dump(tracker)
+    return buf.getvalue()
+
+
+def unpack_tracker(blob: bytes, model):
+    return _TrackerUnpickler(io.BytesIO(blob), model).load()
+
+
+# ----- jobs --------------------------------------------------------------------------------------
+class JobContext:
+    """What a worker holds: the model, the service config and the (lazily) compiled step."""
+
+    def __init__(self, model, cfg):
+        self.model, self.cfg = model, cfg
+        self._step = None
+
+    @property
+    def step(self):
+        if self._step is None:
+            from deform.compiled import CompiledStep
+            self._step = CompiledStep(self.model, enabled=self.cfg.workers.compile_predict)
+        return self._step
+
+
+def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]:
+    """Correct a tracker copy with one cloud. -> (corrected tracker, seconds spent correcting)."""
+    import torch
+
+    tracker = unpack_tracker(tracker_blob, ctx.model)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        tracker.correct(cloud.xyz, cloud.rgb, cloud.camera)
+    return pack_tracker(tracker, ctx.model), time.perf_counter() - t0
+
+
+def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
+    from service import predict
+    return predict.answer(ctx, body, base, stamp_ns)
+
+
+def job_warmup(ctx: JobContext, batch_sizes) -> bool:
+    return ctx.step.warmup(tuple(batch_sizes)) if batch_sizes else ctx.step.active
+
+
+def job_ping(ctx: JobContext, delay_s: float = 0.0) -> bool:
+    """Health check (the delay stands in for a hung job in tests)."""
+    time.sleep(delay_s)
+    return True
+
+
+JOBS = {"fuse": job_fuse, "predict": job_predict, "warmup": job_warmup, "ping": job_ping}
+
+
+def _serve(conn, model_path: str, cfg) -> None:
+    """Child process main: load the model, then answer jobs in order until the pipe closes."""
+    import torch
+
+    torch.set_num_threads(cfg.torch_threads)
+    from deform import DeformModel
+
+    ctx = JobContext(DeformModel.load(model_path), cfg)
+    while True:
+        try:
+            op, args = conn.recv()
+        except (EOFError, OSError, KeyboardInterrupt):
+            return
+        if op == "stop":
+            return
+        try:
+            reply = ("ok", JOBS[op](ctx, *args))
+        except Exception as exc:  # noqa: BLE001 - reported to the caller, the worker keeps serving
+            reply = ("error", f"{type(exc).__name__}: {exc}")
+        try:
+            conn.send(reply)
+        except (BrokenPipeError, OSError):
+            return
+
+
+class InlineWorker:
+    """Same interface, in the caller's process and thread."""
+
+    def __init__(self, model, cfg):
+        self.ctx = JobContext(model, cfg)
+        self._lock = threading.Lock()
+
+    def call(self, op: str, *args, timeout: float | None = None):
+        with self._lock:
+            try:
+                return JOBS[op](self.ctx, *args)
+            except Exception as exc:  # noqa: BLE001 - same contract as the process worker
+                raise WorkerError(f"{type(exc).__name__}: {exc}") from exc
+
+    def close(self) -> None:
+        pass
+
+
+class WorkerProcess:
+    """A spawned child holding its own model; ``call`` sends one job and waits for its reply.
+    Calls from several threads are serialised. A call that times out restarts the child (the
+    reply would otherwise arrive to the next caller)."""
+
+    def __init__(self, model, cfg, name: str):
+        self.cfg, self.name = cfg, name
+        self._dir = tempfile.TemporaryDirectory(prefix="deform-worker-")
+        self._model_path = str(Path(self._dir.name) / "model.pt")
+        model.save(self._model_path)
+        self._lock = threading.Lock()
+        self._start()
+
+    def _start(self) -> None:
+        ctx = mp.get_context("spawn")  # fork would copy the parent's threads' locks mid-use
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, self._model_path, self.cfg), name=self.name, daemon=True)
+        self._proc.start()
+        child.close()
+
+    def call(self, op: str, *args, timeout: float | None = None):
+        with self._lock:
+            try:
+                self._conn.send((op, args))
+                if timeout is not None and not self._conn.poll(timeout):
+                    raise TimeoutError(f"{self.name}: {op} took longer than {timeout} s")
+                status, value = self._conn.recv()
+            except (TimeoutError, EOFError, OSError) as exc:
+                log.warning("%s: %s; restarting the worker", self.name, exc)
+                self._restart()
+                raise WorkerError(str(exc)) from exc
+        if status == "error":
+            raise WorkerError(value)
+        return value
+
+    def _restart(self) -> None:
+        self._proc.kill()
+        self._proc.join(timeout=5)
+        self._conn.close()
+        self._start()
+
+    def close(self) -> None:
+        with self._lock:
+            try:
+                self._conn.send(("stop", ()))
+            except (BrokenPipeError, OSError):
+                pass
+            self._proc.join(timeout=5)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join(timeout=5)
+            self._conn.close()
+        self._dir.cleanup()
+
+
+def make_worker(model, cfg, name: str):
+    return WorkerProcess(model, cfg, name) if cfg.workers.processes else InlineWorker(model, cfg)
