@@ -69,6 +69,8 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
         for k, v in (point or {}).items():
             if k.startswith("nominal:"):
                 named[k].add_(v)
+            elif isinstance(v, (list, tuple)):
+                named[k].copy_(torch.tensor(v, dtype=named[k].dtype))
             else:
                 named[k].fill_(v)
         sim.sync()

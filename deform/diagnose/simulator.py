@@ -61,6 +61,8 @@ class Simulator:
         self.nominal = nominal
         self.terms = list(terms or [])
         for t in self.terms:
+            if hasattr(t, "set_dt"):
+                t.set_dt(spec.dt)
             if hasattr(t, "acceleration") or hasattr(t, "mass"):
                 self.model.extensions.append(t)
 
