@@ -48,3 +48,24 @@ def test_drag_grid_trades_nominal_damping_for_drag(sources):
     assert out["chosen"] is not None
     # the chosen quadratic coefficient is within a factor ~3.5 of the planted 3 /m
     assert abs(math.log(term.params()["quadratic_1_per_m"] / truth["quadratic_1_per_m"])) < math.log(3.5)
+
+
+def test_internal_damping_is_rayleigh_for_slow_modes_and_never_overshoots():
+    n = 10
+    term = make_term("internal_damping", n, np.linspace(0, 1, n))
+    v = torch.randn(2, n, 3, dtype=torch.float64)
+    d2 = v[:, :-2] - 2 * v[:, 1:-1] + v[:, 2:]
+    explicit = torch.zeros_like(v)
+    explicit[:, :-2] += d2
+    explicit[:, 1:-1] -= 2 * d2
+    explicit[:, 2:] += d2
+    with torch.no_grad():
+        term.log_eta.fill_(math.log(1e-3))
+        a = term.acceleration(None, v, None, None)
+        assert torch.allclose(a, -1e-3 * explicit, rtol=1e-3, atol=1e-6)
+        term.log_eta.fill_(math.log(1e3))  # dt eta lambda >> 1: an explicit step would reverse the modes
+        v_next = v + term.dt * term.acceleration(None, v, None, None)
+        # damping only removes energy of relative motion: no mode grows or flips sign
+        modal0 = torch.einsum("ij,bjk->bik", term.Q.T, v)
+        modal1 = torch.einsum("ij,bjk->bik", term.Q.T, v_next)
+        assert torch.all(modal1 * modal0 >= -1e-12) and torch.all(modal1.abs() <= modal0.abs() + 1e-12)
