@@ -90,6 +90,7 @@ class ServiceConfig(_Strict):
     rate_hz: float = Field(default=100.0, gt=0, le=1000)
     clock: Literal["wall", "message"] = "wall"
     torch_threads: int = Field(default=1, ge=1)
+    realtime_priority: int | None = Field(default=10, ge=1, le=99)  # SCHED_FIFO for the loop thread; null: off
     grippers: Grippers = Grippers()
     camera: Camera = Camera()
     timeouts: Timeouts = Timeouts()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import queue
 import sys
 import threading
@@ -43,6 +44,20 @@ def zenoh_config(z: ZenohSettings) -> zenoh.Config:
 
 def open_session(z: ZenohSettings) -> zenoh.Session:
     return zenoh.open(zenoh_config(z))
+
+
+def set_realtime_priority(priority: int | None) -> bool:
+    """Run the calling thread under SCHED_FIFO at ``priority`` (Linux) so that worker processes and
+    other programs cannot preempt a tick; usual practice for robot control loops. Needs root or
+    CAP_SYS_NICE (or an rtprio limit): without it the loop runs at normal priority, with a warning."""
+    if not priority:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (AttributeError, PermissionError, OSError) as exc:
+        log.warning("real-time priority %s not available (%s): the loop runs at normal priority", priority, exc)
+        return False
 
 
 class Service:
@@ -203,6 +218,7 @@ class Service:
 
     def _wall_loop(self) -> None:
         torch.set_num_threads(self.cfg.torch_threads)
+        set_realtime_priority(self.cfg.realtime_priority)
         period = self.cfg.dt
         next_t = time.perf_counter()
         while not self._stop.is_set():

@@ -13,14 +13,28 @@ from __future__ import annotations
 
 import io
 import logging
-import multiprocessing as mp
+import os
 import pickle
+import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 log = logging.getLogger("deform.service")
+
+
+_PROJECT_ROOT = str(Path(__file__).resolve().parent.parent)
+
+
+def _child_env() -> dict:
+    """The parent's environment, with this checkout importable even when not installed."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (_PROJECT_ROOT, env.get("PYTHONPATH")) if p)
+    return env
 
 
 class WorkerError(RuntimeError):
@@ -130,6 +144,14 @@ def _serve(conn, model_path: str, cfg) -> None:
             return
 
 
+def main(argv: list[str] | None = None) -> None:
+    """``python -m service.workers FD MODEL CONFIG_JSON``: a worker on an inherited socket."""
+    from service.config import ServiceConfig
+
+    fd, model_path, cfg_json = (argv or sys.argv[1:])[:3]
+    _serve(Connection(int(fd)), model_path, ServiceConfig.model_validate_json(cfg_json))
+
+
 class InlineWorker:
     """Same interface, in the caller's process and thread."""
 
@@ -162,11 +184,19 @@ class WorkerProcess:
         self._start()
 
     def _start(self) -> None:
-        ctx = mp.get_context("spawn")  # fork would copy the parent's threads' locks mid-use
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, self._model_path, self.cfg), name=self.name, daemon=True)
-        self._proc.start()
-        child.close()
+        # a fresh interpreter (`python -m service.workers`) on one end of a socket pair: fork would
+        # copy the parent's threads' locks mid-use, and multiprocessing's spawn re-runs the parent's
+        # main script (which then needs an `if __name__ == "__main__"` guard)
+        ours, theirs = socket.socketpair()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "service.workers", str(theirs.fileno()), self._model_path, self.cfg.model_dump_json()],
+            pass_fds=[theirs.fileno()], cwd=_PROJECT_ROOT, env=_child_env())
+        theirs.close()
+        self._conn = Connection(ours.detach())
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
 
     def call(self, op: str, *args, timeout: float | None = None):
         with self._lock:
@@ -185,7 +215,7 @@ class WorkerProcess:
 
     def _restart(self) -> None:
         self._proc.kill()
-        self._proc.join(timeout=5)
+        self._proc.wait(timeout=5)
         self._conn.close()
         self._start()
 
@@ -195,13 +225,18 @@ class WorkerProcess:
                 self._conn.send(("stop", ()))
             except (BrokenPipeError, OSError):
                 pass
-            self._proc.join(timeout=5)
-            if self._proc.is_alive():
+            try:
+                self._proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
                 self._proc.kill()
-                self._proc.join(timeout=5)
+                self._proc.wait(timeout=5)
             self._conn.close()
         self._dir.cleanup()
 
 
 def make_worker(model, cfg, name: str):
     return WorkerProcess(model, cfg, name) if cfg.workers.processes else InlineWorker(model, cfg)
+
+
+if __name__ == "__main__":
+    main()
