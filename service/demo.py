@@ -108,6 +108,9 @@ def _predict(client, cfg, x_last, grippers, plans: int, steps: int):
     shift = np.zeros((plans, 1, 2, 7))
     shift[..., :3] = rng.uniform(-0.1, 0.1, (plans, 1, 2, 3))
     req = json.dumps({"plans": (base[None, None] + ramp * shift).tolist(), "dt": 0.01}).encode()
+    # the predict worker compiles its rollout at start-up (about 30 s the first time on a machine):
+    # time the query, not the compilation
+    _wait_for(lambda: (_status(client, cfg) or {}).get("predict_ready"), 300)
     t = time.perf_counter()
     for r in client.get(cfg.key("predict"), payload=req, timeout=60.0):
         if r.ok is not None:
