@@ -85,22 +85,28 @@ def newton_theta(
         else:
             free = theta_init.detach()[..., 1:-1].clone()
         for _ in range(max_iter):
-            theta = _with_free(theta_ends, free)
-            grad, diag, off = gradient_and_hessian(theta, a, b, m_ref, beta, gamma, rest_vor, wbar)
-            step, ok = solve_tridiagonal_pd(diag, off, grad)
-            exact = bool(ok.all())
-            if not exact:
-                c = 2.0 * gamma / rest_vor
-                twist_diag = c[..., :-1] + c[..., 1:]
-                safe = twist_diag + (diag - twist_diag).abs()
-                step = torch.where(ok.unsqueeze(-1), step, solve_tridiagonal(safe, off, grad))
-            step = step.clamp(-max_step, max_step)
-            free = free - step
-            size = float(step.abs().max())
+            free, size, exact = _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step)
+            size, exact = float(size), bool(exact)
             # exact Newton converges quadratically: the error left after a step of size s is ~s^2
             if size < tol or (exact and size * size < tol):
                 break
         return _with_free(theta_ends, free)
+
+
+def _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step: float):
+    """One damped Newton update -> (free angles, largest step, whether the exact Hessian was used
+    everywhere). One function, so that compiled code fuses the whole iteration."""
+    theta = _with_free(theta_ends, free)
+    grad, diag, off = gradient_and_hessian(theta, a, b, m_ref, beta, gamma, rest_vor, wbar)
+    step, ok = solve_tridiagonal_pd(diag, off, grad)
+    exact = ok.all()
+    if not bool(exact):
+        c = 2.0 * gamma / rest_vor
+        twist_diag = c[..., :-1] + c[..., 1:]
+        safe = twist_diag + (diag - twist_diag).abs()
+        step = torch.where(ok.unsqueeze(-1), step, solve_tridiagonal(safe, off, grad))
+    step = step.clamp(-max_step, max_step)
+    return free - step, step.abs().max(), exact
 
 
 def attach_implicit_gradient(
