@@ -194,7 +194,10 @@ def apply_rules(planted: list[dict], real: list[dict], alpha: float) -> dict:
         else:
             mg = cal["min_gain"]
         r["calibrated"] = {"min_gain": mg, **reselect(r["candidates"], r["nominal_check_l1_m"], mg, PER_PARAM)}
-    return {"calibration": cal, "tool_rule": {"min_gain": MIN_GAIN, "per_param": PER_PARAM}}
+    # the rule the rows were run with, read back from the stored thresholds (not today's default)
+    ran = sorted({round(c["threshold"] - PER_PARAM * c["n_params"], 6) for r in planted + real for c in r["candidates"]})
+    return {"calibration": cal, "tool_rule": {"min_gain": ran[0] if len(ran) == 1 else MIN_GAIN, "per_param": PER_PARAM,
+                                              "min_gain_values_in_rows": ran}}
 
 
 def _gaps(r: dict, floor: dict, final: float) -> dict:
