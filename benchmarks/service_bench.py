@@ -145,6 +145,7 @@ def main() -> int:
     ap.add_argument("--predict-n", type=int, default=20, help="predict queries per condition")
     ap.add_argument("--json")
     ap.add_argument("--feeder")
+    ap.add_argument("--config", help="service YAML (default: config/service.yaml)")
     ap.add_argument("--predict-client")
     ap.add_argument("--feeder-s", type=float)
     args = ap.parse_args()
@@ -162,7 +163,7 @@ def main() -> int:
     from service.node import Service, open_session
 
     ep = f"tcp/127.0.0.1:{free_port()}"
-    cfg = load_config(zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
+    cfg = load_config(args.config, zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
     svc = Service(cfg).start()
     client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
     out: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
