@@ -5,7 +5,6 @@ Everything here goes through perception's public names only (``Tracker``, ``Came
 """
 from __future__ import annotations
 
-import copy
 import logging
 
 import numpy as np
@@ -96,11 +95,6 @@ def make_tracker(model, **kwargs):
         log.warning("perception.Tracker not available: running open-loop (clouds are counted, not fused)")
         return OpenLoopTracker(model)
     return Tracker(model, **kwargs)
-
-
-def clone_tracker(tracker, model):
-    """A private copy to fuse a cloud into off the loop thread; the model (read-only) is shared."""
-    return copy.deepcopy(tracker, memo={id(model): model})
 
 
 def rod_state(tracker, model, x_prev: np.ndarray | None, x: np.ndarray):
