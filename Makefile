@@ -7,7 +7,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.installed
-APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1
+# g++: scikit-sparse is built from source, and torch.compile (deform/compiled.py) compiles C++
+APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1 g++
 
 .PHONY: install demo test bench clean sysdeps
 
