@@ -43,8 +43,7 @@ def budget(quick) -> DiagnoseBudget:
         return DiagnoseBudget(nominal_iterations=3, candidate=FitBudget(iterations=2, batch=4, horizon=10),
                               max_rounds=2, later_round_candidates=2, progress=False)
     if quick:
-        return DiagnoseBudget(nominal_iterations=40, candidate=FitBudget(iterations=25, batch=12, horizon=25),
-                              max_rounds=2, later_round_candidates=3, progress=False)
+        return DiagnoseBudget.quick(progress=False)
     return DiagnoseBudget(progress=False)
 
 

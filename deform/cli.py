@@ -161,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--check", required=True, help="directory of held-out recordings")
     g.add_argument("--out", required=True, help="output directory (report.json, report.md, plots)")
     g.add_argument("--model", help="starting model (.pt)")
+    g.add_argument("--budget", choices=("full", "quick"), default="full",
+                   help="fitting effort: full (default) or quick (about a third; the planted benchmark's)")
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 

@@ -31,7 +31,8 @@ def run_cli(args) -> int:
     if getattr(args, "model", None) and not Path(args.model).is_file():
         raise UsageError(f"{args.model}: --model: no such file")
     inputs = load_inputs(args.rod, args.fit, args.check)
-    diag = diagnose(inputs, DiagnoseBudget(), start_model=getattr(args, "model", None))
+    budget = DiagnoseBudget.quick() if getattr(args, "budget", "full") == "quick" else DiagnoseBudget()
+    diag = diagnose(inputs, budget, start_model=getattr(args, "model", None))
     tmp = Path(tempfile.mkdtemp(prefix=".diagnose-", dir=out.parent if out.parent.exists() else None))
     try:
         write_report(diag, inputs.check, tmp)

@@ -34,6 +34,13 @@ class DiagnoseBudget:
     candidates: tuple[str, ...] = tuple(LIBRARY)
     progress: bool = True
 
+    @classmethod
+    def quick(cls, progress: bool = True) -> "DiagnoseBudget":
+        """About a third of the default's work: the budget of the planted benchmark, on which the
+        significance threshold was calibrated (docs/diagnose.md)."""
+        return cls(nominal_iterations=40, candidate=FitBudget(iterations=25, batch=12, horizon=25),
+                   max_rounds=2, later_round_candidates=3, progress=progress)
+
 
 @dataclass
 class Diagnosis:

@@ -69,3 +69,27 @@ def test_length_off_by_a_little_is_a_warning(tmp_path):
 def test_two_check_recordings_warn_about_the_interval(tmp_path):
     rod, fit, check = _write(tmp_path)
     assert any("bootstrap" in w for w in load_inputs(rod, fit, check).warnings)
+
+
+def test_budget_option_picks_the_budget(tmp_path, monkeypatch):
+    import deform.diagnose.selection as selection
+    from deform.diagnose.selection import DiagnoseBudget
+
+    rod, fit, check = _write(tmp_path)
+    used = []
+
+    def fake_diagnose(inputs, budget, start_model=None):
+        used.append(budget)
+        raise SystemExit(0)  # stop before any fitting
+
+    monkeypatch.setattr(selection, "diagnose", fake_diagnose)
+    for choice in ("quick", "full"):
+        with pytest.raises(SystemExit):
+            main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check),
+                  "--out", str(tmp_path / "out"), "--budget", choice])
+    assert used[0] == DiagnoseBudget.quick() and used[1] == DiagnoseBudget()
+    assert used[0].candidate.iterations < used[1].candidate.iterations
+    with pytest.raises(SystemExit) as bad:
+        main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check),
+              "--out", str(tmp_path / "out"), "--budget", "huge"])
+    assert bad.value.code == 2
