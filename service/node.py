@@ -267,7 +267,7 @@ class Service:
                 if name == "ee_poses":
                     parsed = est.parse_poses(raw, last_pose)
                     if parsed is not None:
-                        poses.append(parsed)
+                        poses.append((parsed, time.perf_counter()))
                         last_pose = parsed[0]
                 else:
                     handlers[name](raw)
@@ -279,13 +279,21 @@ class Service:
                 self.inbox.task_done()
 
     def _advance(self, poses: list, window: int = 0, flush: bool = False) -> None:
+        """Tick through the queued poses ``(parsed, arrival)`` whose clouds are settled. Without a
+        cloud stamped at or after t, the pose at t waits until later poses are ``window`` ahead in
+        message time *and* it has itself waited ``reorder_s`` of wall time: a fast replay sends a
+        second of poses in milliseconds, so message time alone made the result depend on how long
+        a cloud took in transit (runs of the demo differed)."""
         est = self.est
+        patience = self.cfg.timeouts.reorder_s
+        now = time.perf_counter()
         while poses:
-            t = poses[0][0]
+            (t, *_), arrived = poses[0]
             cloud_seen = est.last_cloud_ns is not None and est.last_cloud_ns >= t
-            if not (flush or cloud_seen or poses[-1][0] - t >= window):
+            ahead = poses[-1][0][0] - t >= window and now - arrived >= patience
+            if not (flush or cloud_seen or ahead):
                 return
-            est.set_poses(poses.pop(0))
+            est.set_poses(poses.pop(0)[0])
             self.stats.count("ticks")
             self._tick(t)
         self._idle = True

@@ -168,3 +168,20 @@ def test_mcap_record_then_replay(tmp_path, endpoint, sim_stream):
     assert "/deform/rod1/ee_poses" in {c.topic for c in summary.channels.values()}
     a.close()
     b.close()
+
+
+def test_message_clock_waits_wall_time_for_a_cloud_in_transit(model):
+    """A fast replay puts a second of poses ahead in milliseconds: the tick at t must still wait for
+    a cloud stamped >= t (or for `reorder_s` of wall time), or the result depends on transit time."""
+    from service import messages as M2
+    cfg = make_config(clock="message", timeouts={"reorder_s": 1.0}, workers={"processes": False, "compile_predict": False})
+    svc = Service(cfg, model=model)   # not started: ticks run here, published into a stub
+    svc.pub = type("Pub", (), {"put": lambda self, payload: None})()
+    t0 = 1_700_000_000 * 10**9
+    queue = [(svc.est.parse_poses(M2.pose_array(t0 + k * 10**7, GOOD), None), time.perf_counter()) for k in range(150)]
+    svc._advance(queue, window=int(1e9))
+    assert svc.est.tick_index == 0 and len(queue) == 150   # 1.5 s of poses ahead, but no wall time waited
+    queue = [(p, arrived - 2.0) for p, arrived in queue]    # the same poses, received two seconds ago
+    svc._advance(queue, window=int(1e9))
+    assert svc.est.tick_index == 50 and len(queue) == 100   # gave up on clouds up to 1 s behind the newest
+    svc.stop()
