@@ -29,7 +29,7 @@ from deform.diagnose.planted import EFFECTS, generate_planted, oracle_term
 from deform.diagnose.scoring import MIN_GAIN, PER_PARAM, calibrate_min_gain, reselect
 from deform.diagnose.terms import LIBRARY
 from deform.diagnose.selection import DiagnoseBudget, diagnose
-from deform.diagnose.spec import Inputs, RodSpec, load_inputs
+from deform.diagnose.spec import Inputs, RodSpec
 from deform.io.recordings import find_data_root, load_recordings
 
 ROOT = Path(__file__).resolve().parent

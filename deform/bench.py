@@ -15,7 +15,7 @@ import torch
 
 from deform.config import load_rod_config
 from deform.io.recordings import find_data_root, load_recordings
-from deform.model import DeformModel, ModelOptions, gripped_indices, load_model
+from deform.model import DeformModel, gripped_indices, load_model
 from deform.synthetic import generate_recording
 
 

@@ -63,7 +63,7 @@ def cmd_eval(args) -> int:
 
     from deform.evaluate import evaluate
     from deform.io.recordings import load_recordings
-    from deform.model import ModelOptions, load_model
+    from deform.model import load_model
 
     torch.set_num_threads(args.threads)
     if args.method == "deform":

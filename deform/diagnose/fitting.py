@@ -103,7 +103,6 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
         opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))) if budget.anneal else None)
     history, skipped = [], 0
     bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
-    best = (math.inf, None)
     for it in bar:
         windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, rng)
         opt.zero_grad(set_to_none=True)

@@ -145,7 +145,6 @@ def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec
     s_sim = np.concatenate([[0.0], np.cumsum(rest.mean(0))])
     s_sim /= s_sim[-1]
     sim_spec = RodSpec(length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=n_sim, dt=spec.dt / substeps)
-    mean_edge = float(rest.sum(1).mean() / (n - 3 + 2))
     terms = _truth_terms(effect, truth, n_sim, s_sim, list(ids[0]), refine, float(rest[:, 1:-1].mean() * refine))
     sim = Simulator(sim_spec, Nominal(ei, gj, damping), [t for t in terms if not isinstance(t, MarkerMass)])
     for t in terms:

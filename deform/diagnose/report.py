@@ -103,7 +103,7 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
               "## Result", "",
               f"Selected: **{', '.join(rep['selected']) or 'none'}**", "",
               f"Check error: {nom['check_l1_m'] * 100:.3f} cm (nominal) -> **{rep['final_check_l1_m'] * 100:.3f} cm**", "",
-              f"Final parameters: " + "; ".join(f"{k}: {_fmt(v)}" for k, v in nom["final_params"].items()), "",
+              "Final parameters: " + "; ".join(f"{k}: {_fmt(v)}" for k, v in nom["final_params"].items()), "",
               "![horizon](horizon.png)", "", "![overlay](overlay.png)", "",
               f"Run time: {nom['seconds']:.0f} s"]
     (out / "report.md").write_text("\n".join(lines) + "\n")

@@ -1,7 +1,6 @@
 """Shared fixtures: the model, a free loopback endpoint, a short simulated recording and its stream."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 

@@ -8,9 +8,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
-from service import bag, demo, scenario
+from service import bag, demo
 from service import messages as M
 from service.node import Service, open_session
 from tests.service.conftest import make_config

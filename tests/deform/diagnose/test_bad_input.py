@@ -1,14 +1,11 @@
 """Bad inputs: one clear error naming the file (exit code 2, nothing written) or a report warning."""
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from deform.cli import main
-from deform.diagnose import run_cli
 from deform.diagnose.spec import load_inputs
-from deform.io.recordings import RecordingError
 from deform.io import save_recording
 
 

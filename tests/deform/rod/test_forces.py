@@ -1,6 +1,5 @@
 import torch
 
-from deform.rod import geometry as G
 from deform.rod.energy import curvature_projections, rod_geometry, total_energy
 from deform.rod.forces import rod_forces
 from deform.rod.twist_solver import solve_theta
