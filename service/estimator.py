@@ -209,10 +209,14 @@ class Estimator:
     def _correct(self, tracker, cloud: Cloud):
         t0 = time.perf_counter()
         out = tracker.correct(cloud.xyz, cloud.rgb, cloud.camera)
-        self.stats.fusion_s.add(time.perf_counter() - t0)
+        self.record_fusion(cloud, time.perf_counter() - t0)
+        return out
+
+    def record_fusion(self, cloud: Cloud, seconds: float) -> None:
+        """Account for a fused cloud (here or in a worker process): timing, counter, last cloud."""
+        self.stats.fusion_s.add(seconds)
         self.last_cloud = cloud
         self.stats.count("clouds_fused")
-        return out
 
     # ----- status ------------------------------------------------------------------------------
     def mode(self) -> str:

@@ -102,9 +102,7 @@ class FusionWorker(threading.Thread):
             est.stats.count("fusion_errors")
             return
         copy = unpack_tracker(fused, est.model)
-        est.stats.fusion_s.add(seconds)
-        est.last_cloud = cloud
-        est.stats.count("clouds_fused")
+        est.record_fusion(cloud, seconds)
         while True:
             with est.lock:
                 todo = [(i, g) for i, g in est.history if i > k]
