@@ -170,10 +170,12 @@ def main() -> int:
                              "processor": platform.processor()}, "tracker": type(svc.est.tracker).__name__}
 
     t_ready = time.perf_counter()
-    while not (status(client) or {}).get("predict_ready"):  # the predict worker compiles its rollout first
+    # the predict worker compiles its rollout, and the service its loop step, first
+    while not all((status(client) or {}).get(k) for k in ("predict_ready", "step_ready")):
         time.sleep(0.5)
     out["predict_warmup_s"] = round(time.perf_counter() - t_ready, 1)
     out["workers"] = cfg.workers.model_dump()
+    out["loop_step"] = (status(client) or {}).get("step")
 
     # 1. live loop with clouds at 30 Hz
     feed = start_feeder(ep, args.loop_s + 3, args.fps)

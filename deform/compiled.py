@@ -13,6 +13,7 @@ never uses this path (it needs second-order autograd through the step).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 
@@ -24,6 +25,11 @@ from deform.model import DeformModel, RodState
 log = logging.getLogger("deform.compiled")
 
 BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
+# twist iterations and projection sweeps traced without host synchronisation: a warm-started step
+# usually needs 2 and 1 (measured on the recordings), so the common step is one graph, not twelve
+BRANCH_FREE = 2
+# a C++ wrapper calls the kernels without a Python frame each (a step is ~30 kernels)
+COMPILE_OPTIONS = {"cpp_wrapper": True}
 
 
 def bucket_size(batch: int) -> int:
@@ -53,6 +59,7 @@ class CompiledStep:
         self.enabled = enabled
         self._compiled = None
         self._failed = False
+        self.redone = 0  # rods whose compiled step did not converge and were stepped eagerly
         self._lock = threading.Lock()
         # the bucket sizes times two dtypes, plus the residual network's own graphs
         torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
@@ -62,9 +69,14 @@ class CompiledStep:
         """True while the compiled path is in use (False after a fallback to eager)."""
         return self.enabled and not self._failed
 
+    def _checked_step(self, state: RodState, grip_next: Tensor | None) -> tuple[RodState, Tensor]:
+        """The step with fixed iteration counts, and which rods it left unconverged: one graph."""
+        new = self.model.step(state, grip_next, branch_free=BRANCH_FREE)
+        return new, self.model.unconverged(state, new, held=grip_next is not None)
+
     def _step_fn(self):
         if self._compiled is None:
-            self._compiled = torch.compile(self.model.step, dynamic=False)
+            self._compiled = torch.compile(self._checked_step, dynamic=False, options=COMPILE_OPTIONS)
         return self._compiled
 
     def __call__(self, state: RodState, grip_next: Tensor | None) -> RodState:
@@ -76,15 +88,23 @@ class CompiledStep:
         grip = None if grip_next is None else _pad(grip_next, size)
         try:
             with torch.no_grad(), self._lock:
-                out = self._step_fn()(padded, grip)
+                out, unconverged = self._step_fn()(padded, grip)
         except Exception as exc:  # noqa: BLE001 - any compiler failure: keep running, eagerly
             self._failed = True
             log.warning("compiled step unavailable (%s: %s); using the eager step", type(exc).__name__, exc)
             with torch.no_grad():
                 return self.model.step(state, grip_next)
-        if size == batch:
-            return out
-        return RodState(*(t[:batch] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
+        if size != batch:
+            out = RodState(*(t[:batch] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
+        bad = unconverged[:batch].nonzero().squeeze(-1)
+        if len(bad):  # rare (a sudden large motion): those rods again, with the eager checked loops
+            with torch.no_grad():
+                redo = self.model.step(state.index(bad), None if grip_next is None else grip_next[bad])
+            out = RodState(*(t.clone() for t in (out.x, out.v, out.d1, out.theta, out.rest)))
+            for t, r in zip((out.x, out.v, out.d1, out.theta), (redo.x, redo.v, redo.d1, redo.theta)):
+                t[bad] = r
+            self.redone += len(bad)
+        return out
 
     def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64) -> bool:
         """Compile for these batch sizes now (a rod at rest, held at its ends). -> still active."""

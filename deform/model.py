@@ -26,8 +26,9 @@ from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
 from deform.rod.energy import ElasticParams, curvature_projections, rod_geometry
 from deform.rod.forces import rod_forces
-from deform.rod.inextensibility import enforce_inextensibility, unweighted_inv_mass
-from deform.rod.twist_solver import solve_theta
+from deform.rod.inextensibility import enforce_inextensibility, max_relative_error, unweighted_inv_mass
+from deform.rod.tridiagonal import solve_tridiagonal_pd
+from deform.rod.twist_solver import gradient_and_hessian, solve_theta
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 
@@ -208,32 +209,34 @@ class DeformModel(nn.Module):
         return force, theta
 
     def _forces(self, state: RodState, params: ElasticParams, mass: Tensor, theta_ends: Tensor | None,
-                create_graph: bool):
+                create_graph: bool, branch_free: int = 0):
         x = state.x if create_graph else state.x.detach()
         if theta_ends is None:
             theta_ends = state.theta[..., [0, -1]].detach()
         # the frame is carried along by parallel transport: identity at x, but it moves with x
         geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
         a, b = curvature_projections(geo)
-        theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta)
+        theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta, branch_free)
         return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
 
-    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init):
+    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init, branch_free: int = 0):
         if self.options.theta_solver == "theseus":
             from deform.rod.twist_theseus import theseus_theta
 
             return theseus_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar)
         return solve_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar,
-                           theta_init=theta_init, tol=self.options.theta_tol)
+                           theta_init=theta_init, tol=self.options.theta_tol, branch_free=branch_free)
 
     def step(self, state: RodState, grip_next: Tensor | None, theta_ends: Tensor | None = None,
-             create_graph: bool = False) -> RodState:
+             create_graph: bool = False, branch_free: int = 0) -> RodState:
         """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
-        (``None``: nothing is held, e.g. a dropped rope)."""
+        (``None``: nothing is held, e.g. a dropped rope). ``branch_free``: iterations of the twist
+        solve and sweeps of the projection done without host synchronisation before the checked
+        loops (for compiled code; same result per rod, see :func:`newton_theta`)."""
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
-        force, theta, t_old = self._forces(state, params, mass, theta_ends, create_graph)
+        force, theta, t_old = self._forces(state, params, mass, theta_ends, create_graph, branch_free)
         accel = force / mass.unsqueeze(-1) + self.drag_acceleration(x, v)
         for ext in self.extensions:
             if hasattr(ext, "acceleration"):
@@ -250,13 +253,34 @@ class DeformModel(nn.Module):
         if not self.options.weighted_pbd:
             inv_mass = unweighted_inv_mass(inv_mass)
         x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
-                                        self.options.pbd_method)
+                                        self.options.pbd_method, branch_free)
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))
         d1_new = G.time_transport(state.d1, t_old, t_new)
         if not create_graph:
             return RodState(x_new.detach(), v_new.detach(), d1_new.detach(), theta.detach(), state.rest)
         return RodState(x_new, v_new, d1_new, theta, state.rest)
+
+    def unconverged(self, before: RodState, after: RodState, held: bool = True) -> Tensor:
+        """(B,) bool: rods whose step from ``before`` to ``after`` left the twist angles or the edge
+        lengths outside the solver tolerances: one more Newton step on theta would exceed
+        ``sqrt(theta_tol)`` rad (the solver's own stopping rule), or an edge that can move is off its
+        rest length by more than ``pbd_tol``. Compiled steps, which cannot loop on data, use it to
+        verify their fixed iteration counts (``held``: the grippers held vertices 0, 1, n-2, n-1)."""
+        params, mass = self._physical(before.rest, False)
+        geo = rod_geometry(before.x, before.d1)
+        a, b = curvature_projections(geo)
+        grad, diag, off = gradient_and_hessian(after.theta, a, b, geo.m_ref, params.beta, params.gamma,
+                                               params.rest_vor, params.wbar)
+        step, pd = solve_tridiagonal_pd(diag, off, grad)
+        twist_bad = ~pd | ~(step.abs().amax(-1) < max(self.options.theta_tol, 1e-12) ** 0.5)
+        inv_mass = 1.0 / mass
+        if held:
+            inv_mass = inv_mass * (1.0 - self.gripped.to(inv_mass.dtype))
+        length_bad = ~(max_relative_error(after.x, before.rest, inv_mass, per_rod=True) < self.options.pbd_tol)
+        if self.options.theta_solver == "theseus":
+            twist_bad = torch.zeros_like(twist_bad)
+        return twist_bad | length_bad
 
     def rollout(self, state: RodState, grips: Tensor, create_graph: bool = False) -> tuple[Tensor, RodState]:
         """Open-loop prediction. ``grips`` (B, T, 4, 3) -> positions (B, T, n, 3) and the final state."""

@@ -25,11 +25,15 @@ log = logging.getLogger(__name__)
 
 class Tracker:
     """Rod state estimate for one rod. ``physics=False`` gives the non-physical baseline (free
-    vertices stay where last seen, only the gripped ones follow the grippers)."""
+    vertices stay where last seen, only the gripped ones follow the grippers).
+
+    ``step_fn``: what advances the model, called like ``model.step(state, grip)``; default the
+    model's own step (e.g. a :class:`deform.compiled.CompiledStep` in a real-time loop)."""
 
     def __init__(self, model, camera: Camera | None = None, config=None, physics: bool = True,
-                 rest: np.ndarray | None = None, gmm_backend: str = "numpy"):
+                 rest: np.ndarray | None = None, gmm_backend: str = "numpy", step_fn=None):
         self.model = model
+        self.step_fn = step_fn
         self.n = int(model.n)
         self.dt = float(model.dt)
         self.camera = camera
@@ -113,7 +117,7 @@ class Tracker:
         if self.physics:
             try:
                 with torch.no_grad():
-                    new = self.model.step(self.state, torch.as_tensor(grip).unsqueeze(0))
+                    new = (self.step_fn or self.model.step)(self.state, torch.as_tensor(grip).unsqueeze(0))
                 if bool(torch.isfinite(new.x).all()) and bool(torch.isfinite(new.v).all()):
                     self.state = new
                     self._grip = grip

@@ -91,6 +91,7 @@ class ServiceConfig(_Strict):
     clock: Literal["wall", "message"] = "wall"
     torch_threads: int = Field(default=1, ge=1)
     realtime_priority: int | None = Field(default=10, ge=1, le=99)  # SCHED_FIFO for the loop thread; null: off
+    compile_step: bool = True  # wall clock: the loop's step compiled once ready (eager until then, and if it cannot)
     grippers: Grippers = Grippers()
     camera: Camera = Camera()
     timeouts: Timeouts = Timeouts()

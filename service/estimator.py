@@ -69,6 +69,15 @@ class Estimator:
         self.prev_x: np.ndarray | None = None
         self.clock_s = 0.0  # message time of the last tick (message clock)
         self.last_cloud: Cloud | None = None  # the last fused cloud (for logging)
+        self.step_fn = None  # the compiled step once ready (see use_step); None: the model's own
+
+    def use_step(self, step_fn) -> None:
+        """Advance the tracker with ``step_fn`` from the next tick on (trackers swapped in by cloud
+        fusion get it too)."""
+        with self.lock:
+            self.step_fn = step_fn
+            if hasattr(self.tracker, "step_fn"):
+                self.tracker.step_fn = step_fn
 
     # ----- time --------------------------------------------------------------------------------
     def now(self) -> float:
@@ -248,4 +257,5 @@ class Estimator:
             "dropped": snap["dropped"],
             "counts": snap["counts"],
             "tracker": type(self.tracker).__name__,
+            "step": "compiled" if getattr(self.tracker, "step_fn", None) is not None else "eager",
         }

@@ -101,7 +101,7 @@ class FusionWorker(threading.Thread):
             log.warning("cloud fusion failed in the worker: %s", exc)
             est.stats.count("fusion_errors")
             return
-        copy = unpack_tracker(fused, est.model)
+        copy = unpack_tracker(fused, est.model, est.step_fn)
         est.record_fusion(cloud, seconds)
         while True:
             with est.lock:

@@ -96,6 +96,7 @@ class Service:
         self._last_logged_cloud = None
         self._idle = True
         self.predict_ready = False
+        self.step_ready = not cfg.compile_step or self.est.message_clock  # the loop's step compiled (or not wanted)
 
     # ----- lifecycle ---------------------------------------------------------------------------
     def start(self) -> "Service":
@@ -115,6 +116,9 @@ class Service:
             self.fusion.start()
         self._warm = threading.Thread(target=self._warmup, name=f"warmup[{self.cfg.namespace}]", daemon=True)
         self._warm.start()
+        if self.cfg.compile_step and not self.est.message_clock:
+            # not on the message clock: a replay must not depend on when compilation finished
+            threading.Thread(target=self._compile_step, name=f"compile[{self.cfg.namespace}]", daemon=True).start()
         loop = self._message_loop if self.est.message_clock else self._wall_loop
         for target, name in ((loop, "loop"), (self._predict_loop, "predict")):
             t = threading.Thread(target=target, name=f"{name}[{self.cfg.namespace}]", daemon=True)
@@ -170,6 +174,20 @@ class Service:
                      "compiled" if active and sizes else "eager" if not active else "compiles on first use")
         except Exception as exc:  # noqa: BLE001 - predict still answers, eagerly or compiled on first use
             log.warning("[%s] predict warm-up failed: %s", self.cfg.namespace, exc)
+
+    def _compile_step(self) -> None:
+        """Compile the loop's step (B = 1) off the loop thread, then switch the tracker to it."""
+        from deform.compiled import CompiledStep
+
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            step = CompiledStep(self.est.model)
+            if step.warmup((1,)) and not self._stop.is_set():
+                self.est.use_step(step)
+                log.info("[%s] loop step compiled in %.1f s", self.cfg.namespace, time.perf_counter() - t0)
+            else:
+                log.warning("[%s] loop step not compiled: running eagerly", self.cfg.namespace)
+        self.step_ready = True
 
     # ----- inputs ------------------------------------------------------------------------------
     def _on_input(self, name: str):
@@ -309,6 +327,7 @@ class Service:
     def _on_status_query(self, query) -> None:
         status = self.est.status()
         status["predict_ready"] = self.predict_ready
+        status["step_ready"] = self.step_ready
         query.reply(self.cfg.key("status"), json.dumps(status).encode())
 
     def _on_predict_query(self, query) -> None:

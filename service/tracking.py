@@ -61,6 +61,7 @@ class OpenLoopTracker:
         self.model = model
         self.settle_steps = settle_steps
         self.state = None
+        self.step_fn = None  # as perception's Tracker: None = model.step
 
     def _out(self):
         return self.state.x[0].numpy().copy(), np.zeros(self.model.n, dtype=bool)
@@ -81,7 +82,8 @@ class OpenLoopTracker:
 
     def step(self, grip_next):
         with torch.no_grad():
-            self.state = self.model.step(self.state, torch.as_tensor(np.asarray(grip_next), dtype=torch.float64)[None])
+            self.state = (self.step_fn or self.model.step)(self.state,
+                                                            torch.as_tensor(np.asarray(grip_next), dtype=torch.float64)[None])
         return self._out()
 
     def correct(self, points_xyz, rgb, camera):

@@ -24,6 +24,8 @@ import time
 from multiprocessing.connection import Connection
 from pathlib import Path
 
+from deform.compiled import CompiledStep
+
 log = logging.getLogger("deform.service")
 
 
@@ -48,30 +50,36 @@ class _TrackerPickler(pickle.Pickler):
         self._model = model
 
     def persistent_id(self, obj):
-        return "model" if obj is self._model else None
+        if obj is self._model:
+            return "model"
+        return "step" if isinstance(obj, CompiledStep) else None
 
 
 class _TrackerUnpickler(pickle.Unpickler):
-    def __init__(self, file, model):
+    def __init__(self, file, model, step):
         super().__init__(file)
-        self._model = model
+        self._model, self._step = model, step
 
     def persistent_load(self, pid):
-        if pid != "model":
-            raise pickle.UnpicklingError(f"unknown persistent id {pid!r}")
-        return self._model
+        if pid == "model":
+            return self._model
+        if pid == "step":
+            return self._step
+        raise pickle.UnpicklingError(f"unknown persistent id {pid!r}")
 
 
 def pack_tracker(tracker, model) -> bytes:
-    """The tracker's state without its model (each process has its own copy of the model).
+    """The tracker's state without its model or compiled step (each process has its own).
     Only ever exchanged between this service's own processes: never used on network input."""
     buf = io.BytesIO()
     _TrackerPickler(buf, model).dump(tracker)
     return buf.getvalue()
 
 
-def unpack_tracker(blob: bytes, model):
-    return _TrackerUnpickler(io.BytesIO(blob), model).load()
+def unpack_tracker(blob: bytes, model, step=None):
+    """The tracker on this side, with this process's ``model`` and compiled ``step`` (None: the
+    model's own step)."""
+    return _TrackerUnpickler(io.BytesIO(blob), model, step).load()
 
 
 # ----- jobs --------------------------------------------------------------------------------------

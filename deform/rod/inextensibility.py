@@ -24,13 +24,14 @@ from deform.rod.geometry import dot
 from deform.rod.tridiagonal import solve_tridiagonal
 
 
-def max_relative_error(x: Tensor, rest: Tensor, inv_mass: Tensor | None = None) -> Tensor:
+def max_relative_error(x: Tensor, rest: Tensor, inv_mass: Tensor | None = None, per_rod: bool = False) -> Tensor:
     """Largest ``| |e_j| / L_j - 1 |`` over edges that can move (an edge between two fixed vertices,
-    such as the one between the two markers of a gripper, is whatever the inputs make it)."""
+    such as the one between the two markers of a gripper, is whatever the inputs make it); over
+    everything, or per rod (shape ``x.shape[:-2]``)."""
     err = ((x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1) / rest - 1.0).abs()
     if inv_mass is not None:
         err = err * ((inv_mass[..., 1:] + inv_mass[..., :-1]) > 0)
-    return err.amax()
+    return err.amax(-1) if per_rod else err.amax()
 
 
 def apply_pair_corrections(x: Tensor, inv_mass: Tensor, lam: Tensor, unit: Tensor) -> Tensor:
@@ -68,14 +69,30 @@ SWEEPS = {"projection": _projection_sweep, "gauss_seidel": _gauss_seidel_sweep}
 
 
 def enforce_inextensibility(
-    x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float = 1e-3, max_sweeps: int = 50, method: str = "projection"
+    x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float = 1e-3, max_sweeps: int = 50, method: str = "projection",
+    branch_free: int = 0,
 ) -> Tensor:
     """Project ``x`` (..., n, 3) so every edge has its rest length (..., m) within relative ``tol``.
 
     ``inv_mass`` (..., n): 0 for vertices that must not move. Differentiable (plain tensor ops).
+    ``branch_free``: that many sweeps first run without a host synchronisation, each rod sweeping
+    only while its own error is above ``tol`` (so compiled code holds the usual one or two sweeps
+    in one graph); the checked loop then continues only if a rod is still above ``tol``.
     """
     sweep = SWEEPS[method]
-    err = max_relative_error(x.detach(), rest.detach(), inv_mass)
+    if branch_free:
+        err = max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod=True)
+        for _ in range(branch_free):
+            active = err >= tol
+            swept, swept_err = _sweep_and_measure(sweep, x, inv_mass, rest, per_rod=True)
+            x = torch.where(active[..., None, None], swept, x)
+            err = torch.where(active, swept_err, err)
+        if torch.compiler.is_compiling():  # no data-dependent branch: the caller checks (deform.compiled)
+            return x
+        max_sweeps -= branch_free
+        err = err.amax()
+    else:
+        err = max_relative_error(x.detach(), rest.detach(), inv_mass)
     for _ in range(max_sweeps):
         if float(err) < tol:
             break
@@ -83,10 +100,10 @@ def enforce_inextensibility(
     return x
 
 
-def _sweep_and_measure(sweep, x: Tensor, inv_mass: Tensor, rest: Tensor) -> tuple[Tensor, Tensor]:
+def _sweep_and_measure(sweep, x: Tensor, inv_mass: Tensor, rest: Tensor, per_rod: bool = False) -> tuple[Tensor, Tensor]:
     """One sweep and the error it leaves, in one function so compiled code fuses them."""
     x = sweep(x, inv_mass, rest)
-    return x, max_relative_error(x.detach(), rest.detach(), inv_mass)
+    return x, max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod)
 
 
 def unweighted_inv_mass(inv_mass: Tensor) -> Tensor:

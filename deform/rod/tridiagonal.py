@@ -4,6 +4,9 @@ r"""Batched solve of symmetric tridiagonal systems ``H x = r``.
 dense batched Cholesky (one kernel call beats k Python-level sweeps); large ones use the O(k)
 Thomas algorithm, vectorised over the batch. Both report per system whether ``H`` is positive
 definite (all pivots positive), which the Newton solver uses to pick its step.
+
+Compiled code always takes the Thomas algorithm: inductor fuses its unrolled recursion into one
+loop, where each LAPACK call would be a separate library call with its own checks.
 """
 from __future__ import annotations
 
@@ -39,7 +42,7 @@ def thomas(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
 
 def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
     """Solve and report positive definiteness per system: ``(x, ok)``; ``x`` is meaningless where not ok."""
-    if diag.shape[-1] <= DENSE_MAX:
+    if diag.shape[-1] <= DENSE_MAX and not torch.compiler.is_compiling():
         chol, info = torch.linalg.cholesky_ex(to_dense(diag, off))
         return torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1), info == 0
     return thomas(diag, off, rhs)
@@ -47,6 +50,6 @@ def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor
 
 def solve_tridiagonal(diag: Tensor, off: Tensor, rhs: Tensor) -> Tensor:
     """Solve a system known to be non-singular (used for the implicit gradient)."""
-    if diag.shape[-1] <= DENSE_MAX:
+    if diag.shape[-1] <= DENSE_MAX and not torch.compiler.is_compiling():
         return torch.linalg.solve(to_dense(diag, off), rhs.unsqueeze(-1)).squeeze(-1)
     return thomas(diag, off, rhs)[0]

@@ -66,6 +66,7 @@ def newton_theta(
     tol: float = 1e-10,
     max_iter: int = 30,
     max_step: float = 0.5,
+    branch_free: int = 0,
 ) -> Tensor:
     """Minimise over the free angles by damped Newton; returns all m angles (ends included), detached.
 
@@ -75,6 +76,11 @@ def newton_theta(
     Where the exact Hessian is positive definite the step is plain Newton (quadratic convergence at
     a minimum); elsewhere it uses the twist Hessian plus the absolute value of the bending curvature,
     which is positive definite and so a descent direction. Steps are clipped to ``max_step`` rad.
+
+    ``branch_free``: that many iterations first run without a single host synchronisation, each
+    rod stopping by the same rule on its own (its later updates masked out), so that compiled code
+    holds a converging solve in one graph (warm-started solves converge in two); the checked loop
+    then goes on only if a rod is still unconverged. Per rod the result is that of the checked loop.
     """
     with torch.no_grad():
         a, b, m_ref, theta_ends = a.detach(), b.detach(), m_ref.detach(), theta_ends.detach()
@@ -84,6 +90,18 @@ def newton_theta(
             free = twist_only_minimiser(m_ref, theta_ends)
         else:
             free = theta_init.detach()[..., 1:-1].clone()
+        if branch_free:
+            active = torch.ones(free.shape[:-1], dtype=torch.bool, device=free.device)
+            for _ in range(branch_free):
+                new, size, exact = _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar,
+                                                  max_step, per_rod=True)
+                free = torch.where(active.unsqueeze(-1), new, free)
+                active = active & ~((size < tol) | (exact & (size * size < tol)))
+            # compiled code cannot branch on data: it returns here and its caller checks convergence
+            # afterwards (deform.compiled); eager code goes on while a rod is unconverged
+            if torch.compiler.is_compiling() or not bool(active.any()):
+                return _with_free(theta_ends, free)
+            max_iter -= branch_free
         for _ in range(max_iter):
             free, size, exact = _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step)
             size, exact = float(size), bool(exact)
@@ -93,20 +111,23 @@ def newton_theta(
         return _with_free(theta_ends, free)
 
 
-def _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step: float):
-    """One damped Newton update -> (free angles, largest step, whether the exact Hessian was used
-    everywhere). One function, so that compiled code fuses the whole iteration."""
+def _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step: float,
+                   per_rod: bool = False):
+    """One damped Newton update -> (free angles, largest step, whether the exact Hessian was used).
+    One function, so that compiled code fuses the whole iteration. ``per_rod``: step size and
+    exactness per rod, and no data-dependent branch (the safe step is always computed)."""
     theta = _with_free(theta_ends, free)
     grad, diag, off = gradient_and_hessian(theta, a, b, m_ref, beta, gamma, rest_vor, wbar)
     step, ok = solve_tridiagonal_pd(diag, off, grad)
-    exact = ok.all()
-    if not bool(exact):
+    if per_rod or not bool(ok.all()):
         c = 2.0 * gamma / rest_vor
         twist_diag = c[..., :-1] + c[..., 1:]
         safe = twist_diag + (diag - twist_diag).abs()
         step = torch.where(ok.unsqueeze(-1), step, solve_tridiagonal(safe, off, grad))
     step = step.clamp(-max_step, max_step)
-    return free - step, step.abs().max(), exact
+    if per_rod:
+        return free - step, step.abs().amax(-1), ok
+    return free - step, step.abs().max(), ok.all()
 
 
 def attach_implicit_gradient(
@@ -135,9 +156,11 @@ def attach_implicit_gradient(
 def solve_theta(
     a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor, beta: Tensor, gamma: Tensor,
     rest_vor: Tensor, wbar: Tensor, theta_init: Tensor | None = None, tol: float = 1e-10, max_iter: int = 30,
+    branch_free: int = 0,
 ) -> Tensor:
     """Fast batched solver; differentiable through the implicit function theorem when needed."""
-    theta_star = newton_theta(a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter)
+    theta_star = newton_theta(a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter,
+                              branch_free=branch_free)
     inputs = (a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
         return attach_implicit_gradient(theta_star, *inputs)

@@ -36,4 +36,5 @@ def make_config(endpoint=None, connect=None, **over):
          "connect": [connect] if connect else []}
     # compiling the predict rollout costs ~30 s per batch size: tests/deform/test_compiled.py covers it
     over.setdefault("workers", {"compile_predict": False})
+    over.setdefault("compile_step", False)
     return load_config(zenoh=z, **over)

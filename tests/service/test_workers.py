@@ -62,3 +62,36 @@ def test_hung_job_times_out_and_restarts_the_child(child):
     with pytest.raises(WorkerError, match="longer than"):
         child.call("ping", 30.0, timeout=0.2)
     assert child.call("ping", timeout=60) is True
+
+
+def test_compiled_step_is_not_pickled_but_resolved_on_each_side(model):
+    """A tracker running on a compiled step crosses to a worker without it (each process compiles
+    its own) and comes back with the receiving side's step."""
+    from deform.compiled import CompiledStep
+    from perception import Tracker
+
+    x0 = np.stack([np.linspace(-0.4, 0.4, model.n), np.zeros(model.n), np.full(model.n, 0.5)], axis=1)
+    ours, theirs = CompiledStep(model, enabled=False), CompiledStep(model, enabled=False)
+    tracker = Tracker(model, step_fn=ours)
+    tracker.initialize_from_frames(x0, x0)
+    blob = pack_tracker(tracker, model)
+    assert len(blob) < 20_000  # state only: no model, no compiled code
+    assert unpack_tracker(blob, model).step_fn is None  # a worker without a compiled step: model.step
+    back = unpack_tracker(blob, model, theirs)
+    assert back.step_fn is theirs and back.model is model
+    calls = []
+    back.step_fn = lambda state, grip: calls.append(1) or model.step(state, grip)
+    back.step(x0[[0, 1, -2, -1]])
+    assert calls == [1]
+
+
+def test_use_step_switches_the_tracker_and_status(model):
+    e = Estimator(make_config(), model, OpenLoopTracker(model, settle_steps=30))
+    assert e.status()["step"] == "eager"
+    e.on_poses(M.pose_array(T0, GOOD))
+    e.tick(T0)  # initialisation: no step
+    calls = []
+    e.use_step(lambda state, grip: calls.append(1) or model.step(state, grip))
+    assert e.status()["step"] == "compiled"
+    e.tick(T0 + 10_000_000)
+    assert calls == [1]
