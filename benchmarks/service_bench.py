@@ -188,9 +188,10 @@ def main() -> int:
     misses = s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0)
     skipped = s1["counts"].get("ticks_skipped", 0) - s0["counts"].get("ticks_skipped", 0)
     fused = s1["counts"].get("clouds_fused", 0) - s0["counts"].get("clouds_fused", 0)
+    redone = s1.get("step_redone", 0) - s0.get("step_redone", 0)
     out["loop"] = {"seconds": args.loop_s, "ticks": ticks, "deadline_misses": misses, "ticks_skipped": skipped,
                    "deadline_miss_pct": round(100.0 * (misses + skipped) / max(ticks + skipped, 1), 3),
-                   "rate_hz": s1["rate_hz"], "clouds_fused": fused, "clouds_per_s": round(fused / args.loop_s, 1),
+                   "rate_hz": s1["rate_hz"], "clouds_fused": fused, "compiled_steps_redone": redone, "clouds_per_s": round(fused / args.loop_s, 1),
                    "step_ms": s1["step_ms"], "tick_to_publish_ms": s1["tick_to_publish_ms"],
                    "fusion_ms": s1["fusion_ms"], "dropped": s1["dropped"], "rejected": s1["rejected"]}
     print(json.dumps(out["loop"]), flush=True)

@@ -125,14 +125,18 @@ def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
         str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50))
         for b in ((1, 32, 256) if quick else (1, 32, 256, 1024))
     }
-    # the compiled inference step (deform.compiled; the service's predict path), same data and threads
-    from deform.compiled import CompiledStep
+    # the compiled inference steps (deform.compiled), same data and threads: one graph per step for
+    # a single rollout (the service loop's), convergence-checked loops for batches (predict's)
+    from deform.compiled import LOOP_BRANCH_FREE, CompiledStep
 
-    compiled = CompiledStep(model)
     torch.set_num_threads(1)
+    single = CompiledStep(model, branch_free=LOOP_BRANCH_FREE)
+    single.warmup((1,))
+    result["single_rollout_compiled_1_thread"] = step_latency(model, positions, steps, single)
+    result["single_rollout_compiled_redone"] = single.redone
+    compiled = CompiledStep(model)
     compiled.warmup((1,))
-    result["compiled_active"] = compiled.active
-    result["single_rollout_compiled_1_thread"] = step_latency(model, positions, steps, compiled)
+    result["compiled_active"] = compiled.active and single.active
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     sizes = (1, 32, 256) if quick else (1, 32, 256, 1024)
     compiled.warmup(sizes)

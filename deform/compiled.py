@@ -25,9 +25,12 @@ from deform.model import DeformModel, RodState
 log = logging.getLogger("deform.compiled")
 
 BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
-# twist iterations and projection sweeps traced without host synchronisation: a warm-started step
-# usually needs 2 and 1 (measured on the recordings), so the common step is one graph, not twelve
-BRANCH_FREE = 2
+# For a real-time loop (B = 1, cost per call matters, see CompiledStep): twist iterations and
+# projection sweeps traced without host synchronisation. A plain step needs 2 and 1 (measured on the
+# recordings); harder steps (the material frame of a curved rod turning by radians, 0.5 rad per
+# Newton step; a rope pulled nearly taut) need more. Converged rods are masked but the iterations
+# still run and enlarge the compiled code, so the rare harder steps are redone eagerly instead.
+LOOP_BRANCH_FREE = (12, 6)
 # a C++ wrapper calls the kernels without a Python frame each (a step is ~30 kernels)
 COMPILE_OPTIONS = {"cpp_wrapper": True}
 
@@ -52,11 +55,17 @@ class CompiledStep:
 
     >>> step = CompiledStep(model)          # compiles lazily, per bucket size and dtype
     >>> state = step(state, grip_next)
+
+    ``branch_free=None`` (batches, e.g. predict): the step keeps its convergence-checked loops,
+    each iteration a graph of its own. ``branch_free=(twist, sweeps)`` (a real-time loop, B = 1):
+    the whole step is one graph with that many masked iterations, which cuts the per-call cost
+    about 3x; rods it leaves unconverged (``model.unconverged``) are stepped again eagerly.
     """
 
-    def __init__(self, model: DeformModel, enabled: bool = True):
+    def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] | None = None):
         self.model = model
         self.enabled = enabled
+        self.branch_free = branch_free
         self._compiled = None
         self._failed = False
         self.redone = 0  # rods whose compiled step did not converge and were stepped eagerly
@@ -69,9 +78,12 @@ class CompiledStep:
         """True while the compiled path is in use (False after a fallback to eager)."""
         return self.enabled and not self._failed
 
-    def _checked_step(self, state: RodState, grip_next: Tensor | None) -> tuple[RodState, Tensor]:
-        """The step with fixed iteration counts, and which rods it left unconverged: one graph."""
-        new = self.model.step(state, grip_next, branch_free=BRANCH_FREE)
+    def _checked_step(self, state: RodState, grip_next: Tensor | None) -> tuple[RodState, Tensor | None]:
+        """With ``branch_free``: the step with fixed iteration counts and which rods it left
+        unconverged, one graph. Without: the step with its checked loops (a graph per iteration)."""
+        if self.branch_free is None:
+            return self.model.step(state, grip_next), None
+        new = self.model.step(state, grip_next, branch_free=self.branch_free)
         return new, self.model.unconverged(state, new, held=grip_next is not None)
 
     def _step_fn(self):
@@ -96,7 +108,7 @@ class CompiledStep:
                 return self.model.step(state, grip_next)
         if size != batch:
             out = RodState(*(t[:batch] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
-        bad = unconverged[:batch].nonzero().squeeze(-1)
+        bad = [] if unconverged is None else unconverged[:batch].nonzero().squeeze(-1)
         if len(bad):  # rare (a sudden large motion): those rods again, with the eager checked loops
             with torch.no_grad():
                 redo = self.model.step(state.index(bad), None if grip_next is None else grip_next[bad])

@@ -258,4 +258,5 @@ class Estimator:
             "counts": snap["counts"],
             "tracker": type(self.tracker).__name__,
             "step": "compiled" if getattr(self.tracker, "step_fn", None) is not None else "eager",
+            "step_redone": getattr(self.step_fn, "redone", 0),  # compiled steps redone eagerly (unconverged)
         }

@@ -101,7 +101,9 @@ class FusionWorker(threading.Thread):
             log.warning("cloud fusion failed in the worker: %s", exc)
             est.stats.count("fusion_errors")
             return
-        copy = unpack_tracker(fused, est.model, est.step_fn)
+        copy = unpack_tracker(fused, est.model)
+        if hasattr(copy, "step_fn"):  # the worker stepped eagerly: this side's compiled step again
+            copy.step_fn = est.step_fn
         est.record_fusion(cloud, seconds)
         while True:
             with est.lock:
@@ -110,6 +112,8 @@ class FusionWorker(threading.Thread):
                     est.stats.drop("cloud_too_late", f"{len(todo)} ticks behind")
                     return
                 if len(todo) <= 1:  # one step left: finish under the lock and swap
+                    if hasattr(copy, "step_fn"):  # (compiled meanwhile?)
+                        copy.step_fn = est.step_fn
                     for _, g in todo:
                         copy.step(g)
                     est.tracker = copy

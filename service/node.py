@@ -177,11 +177,11 @@ class Service:
 
     def _compile_step(self) -> None:
         """Compile the loop's step (B = 1) off the loop thread, then switch the tracker to it."""
-        from deform.compiled import CompiledStep
+        from deform.compiled import LOOP_BRANCH_FREE, CompiledStep
 
         t0 = time.perf_counter()
         with torch.no_grad():
-            step = CompiledStep(self.est.model)
+            step = CompiledStep(self.est.model, branch_free=LOOP_BRANCH_FREE)
             if step.warmup((1,)) and not self._stop.is_set():
                 self.est.use_step(step)
                 log.info("[%s] loop step compiled in %.1f s", self.cfg.namespace, time.perf_counter() - t0)

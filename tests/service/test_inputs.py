@@ -79,3 +79,18 @@ def test_modes_follow_inputs(model):
     time.sleep(0.4)                          # poses stop
     assert est.mode() == "waiting"
     assert est.status()["input_age_s"]["ee_poses"] >= 0.3
+
+
+def test_fused_tracker_keeps_the_compiled_step(est, model):
+    """Fusion swaps in a tracker copy corrected in a worker (which has no compiled step of ours):
+    the copy must go on with this side's step, not fall back to the eager one."""
+    est.on_poses(M.pose_array(T0, GOOD))
+    est.tick(T0)
+    from deform.compiled import CompiledStep
+    step = CompiledStep(model, enabled=False)  # the eager fallback: no compile time in the test
+    est.use_step(step)
+    est.on_camera_info(M.camera_info(T0, np.diag([100.0, 100, 1]), 4, 4))
+    cloud = est.decode_cloud(M.point_cloud(T0 + 1, np.ones((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8)))
+    before = est.tracker
+    FusionWorker(est).fuse(cloud)
+    assert est.tracker is not before and est.tracker.step_fn is step
