@@ -62,8 +62,12 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
     return out
 
 
+TOOL_VERSION = 2  # bump when the tool changes: rows of an older tool are never reused (v2: transported window
+# frames, discretisation-independent internal damping)
+
+
 def _config(args) -> dict:
-    return {"quick": args.quick, "fit": args.fit, "check": args.check, "frames": args.frames}
+    return {"quick": args.quick, "fit": args.fit, "check": args.check, "frames": args.frames, "tool": TOOL_VERSION}
 
 
 def load_runs(path: Path, config: dict) -> dict[str, dict]:

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deform.diagnose.simulator import Nominal, Simulator
+from deform.diagnose.simulator import Nominal, Simulator, recording_frames
 from deform.io.recordings import Recording
 
 
@@ -28,24 +28,32 @@ class FitBudget:
     margin: int = 3  # frames kept around a window for the delay term
     seed: int = 0
     progress: bool = True
+    transported: bool = True  # windows start with the reference frames a full rollout carries (make_windows)
     anneal: bool = True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
     # jittering by one Adam step, which would make two fits of the same model differ by noise
 
 
-def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: int, rng: random.Random) -> torch.Tensor:
-    """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings."""
-    out = []
+def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: int, rng: random.Random,
+                 transported: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings, and the reference
+    directors (B, m, 3) a full rollout would carry at each window's start frame (``margin + 1``), or
+    None when not ``transported`` (fresh frames, the behaviour before they were carried)."""
+    out, frames = [], []
     length = horizon + 2 + 2 * margin
     for _ in range(batch):
         r = rng.choice(recordings)
         s = rng.randrange(0, r.n_frames - length + 1)
         out.append(r.positions[s:s + length])
-    return torch.tensor(np.stack(out), dtype=torch.float64)
+        if transported:
+            frames.append(recording_frames(r)[s + margin + 1])
+    X = torch.tensor(np.stack(out), dtype=torch.float64)
+    return X, (torch.tensor(np.stack(frames), dtype=torch.float64) if transported else None)
 
 
-def window_loss(sim: Simulator, windows: torch.Tensor, horizon: int, margin: int, create_graph: bool) -> torch.Tensor:
-    pred = sim.rollout(windows, horizon, margin, create_graph=create_graph)
-    return (pred - windows[:, margin + 2:margin + 2 + horizon]).abs().mean()
+def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph: bool) -> torch.Tensor:
+    X, d1 = windows
+    pred = sim.rollout(X, horizon, margin, create_graph=create_graph, d1=d1)
+    return (pred - X[:, margin + 2:margin + 2 + horizon]).abs().mean()
 
 
 @torch.no_grad()
@@ -58,7 +66,8 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
     points = term.grid()
     if not points:
         return None
-    windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, random.Random(budget.seed + 1))
+    windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, random.Random(budget.seed + 1),
+                           budget.transported)
     named = {k: p for k, p in term.named_parameters()}
     named.update({f"nominal:{k}": p for k, p in sim.nominal.named_parameters()})
     current = {k: named[k].detach().clone() for k in {k for p in points for k in p}}
@@ -104,7 +113,7 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
     history, skipped = [], 0
     bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
     for it in bar:
-        windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, rng)
+        windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, rng, budget.transported)
         opt.zero_grad(set_to_none=True)
         exprs = sim.sync()
         loss = window_loss(sim, windows, budget.horizon, budget.margin, create_graph=True)
@@ -157,7 +166,7 @@ def laplace_uncertainty(sim: Simulator, recordings: list[Recording], budget: Fit
     """Approximate 1-sigma of the term's physical parameters: diagonal curvature of the window
     loss by finite differences, residual windows treated as independent Laplace samples."""
     rng = random.Random(budget.seed + 777)
-    windows = make_windows(recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng)
+    windows = make_windows(recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng, budget.transported)
 
     def loss() -> float:
         sim.sync()
@@ -165,7 +174,7 @@ def laplace_uncertainty(sim: Simulator, recordings: list[Recording], budget: Fit
             return float(window_loss(sim, windows, budget.horizon, budget.margin, False))
 
     base = loss()
-    n_eff = windows.shape[0]
+    n_eff = windows[0].shape[0]
     center = term.params()
     spread: dict[str, float] = {k: 0.0 for k in center}
     for p in term.parameters():

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deform.diagnose.simulator import Simulator
+from deform.diagnose.simulator import Simulator, recording_frames
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
@@ -19,14 +19,15 @@ from deform.model import gripped_indices
 def short_rollout_residuals(sim: Simulator, recordings: list[Recording], horizon: int = 10, stride: int = 10) -> dict:
     """Per (window, vertex): error [m] after ``horizon`` steps, and the state features there."""
     sim.sync()
-    wins, meta = [], []
+    wins, frames, meta = [], [], []
     for ri, r in enumerate(recordings):
         for s in range(0, r.n_frames - horizon - 2, stride):
             wins.append(r.positions[s:s + horizon + 2])
+            frames.append(recording_frames(r)[s + 1])  # the reference frames a full rollout carries there
             meta.append((ri, s + horizon + 1))
     X = torch.tensor(np.stack(wins), dtype=torch.float64)
     with torch.no_grad():
-        pred = sim.rollout(X, horizon)[:, -1].numpy()
+        pred = sim.rollout(X, horizon, d1=torch.tensor(np.stack(frames)))[:, -1].numpy()
     truth = X[:, -1].numpy()
     err = np.linalg.norm(pred - truth, axis=-1)  # (W, n)
     n = truth.shape[1]

