@@ -63,7 +63,7 @@ def snapshot(est: Estimator) -> tuple[tuple, int]:
 
 def rollout(step, base: tuple, grips: np.ndarray) -> np.ndarray:
     """Every plan from the same state: grips (P, S, 4, 3) -> vertices (P, S, n, 3). ``step`` is a
-    :class:`deform.compiled.CompiledStep` (or ``model.step``)."""
+    :class:`deform.compiled.RolloutStep` (or a ``CompiledStep``, or the model)."""
     from deform import RodState
     from deform.compiled import rollout as batched_rollout
 

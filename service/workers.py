@@ -84,7 +84,7 @@ def unpack_tracker(blob: bytes, model, step=None):
 
 # ----- jobs --------------------------------------------------------------------------------------
 class JobContext:
-    """What a worker holds: the model, the service config and the (lazily) compiled step."""
+    """What a worker holds: the model, the service config and the (lazily) compiled predict step."""
 
     def __init__(self, model, cfg):
         self.model, self.cfg = model, cfg
@@ -93,8 +93,8 @@ class JobContext:
     @property
     def step(self):
         if self._step is None:
-            from deform.compiled import CompiledStep
-            self._step = CompiledStep(self.model, enabled=self.cfg.workers.compile_predict)
+            from deform.compiled import RolloutStep
+            self._step = RolloutStep(self.model, enabled=self.cfg.workers.compile_predict)
         return self._step
 
 

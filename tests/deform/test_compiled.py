@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from deform import generate_recording, gripped_indices, load_model
-from deform.compiled import LOOP_BRANCH_FREE, CompiledStep, bucket_size, rollout
+from deform.compiled import LOOP_BRANCH_FREE, CompiledStep, RolloutStep, bucket_size, rollout
 from deform.model import RodState
 
 
@@ -88,3 +88,28 @@ def test_sudden_jump_is_redone_eagerly(model, start):
         eager = model.step(state.index([r]), jump[r:r + 1])
         assert (out.x[r] - eager.x[0]).abs().max() < (1e-15 if r == 0 else 1e-6)
     assert not model.unconverged(state, out).any()
+
+
+def test_rollout_step_one_graph_while_converged(model, start):
+    """Predict's rollout: steps that converge in the one-graph step keep it, and each rod then
+    gets what the eager step gives it alone."""
+    state, grips = start
+    step = RolloutStep(model)
+    out = rollout(step, state, grips)
+    assert step.active and step.switched == 0
+    for r in range(3):
+        alone = rollout(model, state.index([r]), grips[r:r + 1])
+        assert (out[r] - alone[0]).abs().max() < 1e-6
+
+
+def test_rollout_step_goes_over_to_checked_step(model, start):
+    """A grip jumping 5 cm needs more sweeps than the one graph holds: from that step on, the
+    rollout is the checked compiled step's (whole batch); not the unconverged one-graph result."""
+    state, grips = start
+    jump = grips.clone()
+    jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
+    step = RolloutStep(model)
+    out = rollout(step, state, jump)
+    assert step.switched == 1
+    ref = rollout(CompiledStep(model), state, jump)  # the checked step throughout
+    assert (out - ref).abs().max() < 1e-6
