@@ -303,6 +303,60 @@ def write(result: dict) -> None:
     (RESULTS / "diagnose.md").write_text("\n".join(lines) + "\n")
 
 
+def _sources(seed: int, count: int):
+    sources = load_recordings(find_data_root() / "DLO2" / "train")
+    pick = np.random.default_rng(seed).choice(len(sources), count, replace=False)
+    L, M, n = RODS["DLO2"]
+    return [sources[i] for i in pick], RodSpec(length_m=L, mass_kg=M, n_vertices=n, name="DLO2-planted")
+
+
+def mass_equivalence(seed: int, args) -> dict:
+    """How much of the planted marker mass is a uniform mass factor (= stiffness / s, unobservable when
+    stiffness is fitted): the planted data against (a) the control and (b) the control with EI and GJ
+    divided by s, s = (free rod mass + marker masses) / free rod mass; same motions, same noise."""
+    from deform.diagnose.planted import _layout
+
+    src, spec = _sources(seed, args.fit + args.check)
+    recs, truth = generate_planted("mass_scale", src, spec, n_frames=args.frames, seed=seed)
+    ctrl, _ = generate_planted(None, src, spec, n_frames=args.frames, seed=seed)
+    X0, ids = _layout(src[0].positions[0], 3)
+    e = np.linalg.norm(np.diff(X0, axis=0), axis=-1)
+    m = spec.mass_kg * np.concatenate([[e[0] / 2], (e[:-1] + e[1:]) / 2, [e[-1] / 2]]) / e.sum()
+    free = np.ones(len(X0), bool)
+    free[[0, 1, -2, -1]] = False
+    s = (m[free].sum() + truth["marker_mass_kg"] * np.isin(np.arange(len(X0)), ids)[free].sum()) / m[free].sum()
+    eq, _ = generate_planted(None, src, spec, n_frames=args.frames, seed=seed, ei=3e-3 / s, gj=2e-3 / s)
+    diff = lambda a, b: float(np.mean([np.abs(x.positions[:, 2:-2] - y.positions[:, 2:-2]).mean() for x, y in zip(a, b)]))
+    return {"seed": seed, "scale": float(s), "vs_control_mm": diff(recs, ctrl) * 1e3, "vs_uniform_scale_mm": diff(recs, eq) * 1e3}
+
+
+def damping_scan(seed: int, args) -> list[dict]:
+    """Check error of the tool's model on planted internal-damping data with the nominal parameters
+    fixed and the term's nu swept (the truth is 5e-5 m^4/s): how much the term can explain at all."""
+    import math
+
+    from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
+    from deform.diagnose.terms import make_term
+
+    src, spec = _sources(seed, args.fit + args.check)
+    recs, _ = generate_planted("internal_damping", src, spec, n_frames=args.frames, seed=seed)
+    fit_recs, chk = recs[:args.fit], recs[args.fit:]
+    out = []
+    for c in (0.4, 0.7):
+        for nu in (0.0, 1e-5, 5e-5, 2e-4, 1e-3):
+            terms = []
+            if nu:
+                t = make_term("internal_damping", spec.n_vertices, arclength_of(fit_recs))
+                with torch.no_grad():
+                    t.log_nu.fill_(math.log(nu / t.scale))
+                terms = [t]
+            sim = Simulator(spec, Nominal(3.1e-3, 2.0e-3, c), terms)
+            out.append({"damping_1_per_s": c, "nu_m4_per_s": nu,
+                        "check_l1_cm": float(per_recording_l1(sim.predict(chk), chk).mean() * 100)})
+            print(json.dumps(out[-1]), flush=True)
+    return out
+
+
 def main() -> None:
     import sys
 
@@ -319,7 +373,18 @@ def main() -> None:
     p.add_argument("--alpha", type=float, default=0.05, help="family-wise false-positive rate of the calibrated rule")
     p.add_argument("--runs", default=str(RESULTS / "diagnose.runs.jsonl"), help="incremental results (resumed)")
     p.add_argument("--summary-only", action="store_true", help="only rebuild diagnose.{json,md} from the runs file")
+    p.add_argument("--mass-equivalence", type=int, nargs="*", default=None, metavar="SEED",
+                   help="only measure how much of the planted marker mass is a uniform factor (prints JSON)")
+    p.add_argument("--damping-scan", type=int, default=None, metavar="SEED",
+                   help="only sweep the internal-damping term on planted data with fixed nominal parameters")
     args = p.parse_args()
+    if args.mass_equivalence is not None or args.damping_scan is not None:
+        torch.set_num_threads(1)
+        for seed in args.mass_equivalence or []:
+            print(json.dumps(mass_equivalence(seed, args)), flush=True)
+        if args.damping_scan is not None:
+            damping_scan(args.damping_scan, args)
+        return
     if args.smoke:
         args.quick = "smoke"
     torch.set_num_threads(1)
