@@ -191,12 +191,22 @@ class DeformModel(nn.Module):
         return rest
 
     def reposition(self, state: RodState, x: Tensor, v: Tensor | None = None) -> RodState:
-        """The state moved to positions ``x`` (e.g. corrected by perception): reference frames are
-        parallel-transported to the new edges so that twist is carried over consistently, and the
-        material angles re-solved for the new shape (ends kept). A corrected shape can turn a
-        naturally curved rod's material frame by radians; solved here, where the correction is
-        done, the next step's solve starts converged instead of taking tens of iterations."""
+        """The state moved to positions ``x`` (e.g. corrected by perception).
+
+        ``x`` is first projected onto the rest lengths (gripped vertices 0, 1, n-2, n-1 fixed, the
+        same mass-weighted projection as a step): a correction that moves some vertices and not
+        their neighbours breaks edge lengths, and left as it is the next step's projection snaps
+        them back within one ``dt``, which the velocity update ``(x_new - x) / dt`` turns into
+        metres per second of spurious velocity. Then reference frames are parallel-transported
+        to the new edges so that twist is carried over consistently, and the material angles
+        re-solved for the new shape (ends kept): a corrected shape can turn a naturally curved
+        rod's material frame by radians; solved here, the next step's solve starts converged
+        instead of taking tens of iterations."""
         x = x.to(state.x.dtype)
+        with torch.no_grad():
+            inv_mass = (1.0 / self.vertex_mass(state.rest)) * (1.0 - self.gripped.to(x.dtype))
+            x = enforce_inextensibility(x, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
+                                        self.options.pbd_method)
         d1 = G.time_transport(state.d1, G.normalize(G.edges(state.x)), G.normalize(G.edges(x)))
         moved = RodState(x=x, v=state.v if v is None else v.to(state.x.dtype), d1=d1, theta=state.theta, rest=state.rest)
         with torch.no_grad():

@@ -109,6 +109,25 @@ def test_reposition_keeps_frames_perpendicular_to_new_edges(model, recording):
     assert torch.allclose(moved.d1.norm(dim=-1), torch.ones_like(moved.d1[..., 0]))
 
 
+def test_reposition_projects_a_correction_onto_the_rest_lengths(model, recording):
+    """A correction that moves one free vertex must not leave broken edges for the next step to
+    snap back (that snap becomes velocity): edges at rest length, grippers and velocity kept."""
+    X = torch.tensor(recording.positions[:3], dtype=torch.float64)
+    state = model.initial_state(X[0:1], X[1:2])
+    corrected = X[1:2].clone()
+    corrected[0, model.n // 2] += torch.tensor([0.0, 0.03, 0.0], dtype=torch.float64)
+    moved = model.reposition(state, corrected)
+    assert float(max_relative_error(moved.x, state.rest, 1.0 - model.gripped.double())) < model.options.pbd_tol
+    grip = gripped_indices(model.n)
+    assert torch.equal(moved.x[0, grip], corrected[0, grip])
+    assert torch.equal(moved.v, state.v)
+    # the projected correction keeps most of the move (the vertex is not simply sent back)
+    assert float((moved.x[0, model.n // 2] - X[1, model.n // 2]).norm()) > 0.01
+    nxt = model.step(moved, X[2:3, grip])
+    free = [i for i in range(model.n) if i not in grip]
+    assert float(nxt.v[0, free].norm(dim=-1).amax()) < float(state.v[0, free].norm(dim=-1).amax()) + 1.0
+
+
 def test_nominal_rest_lengths_come_from_training_recordings(tmp_path, recording):
     from deform.train import nominal_rest_lengths
 
