@@ -204,7 +204,7 @@ class DeformModel(nn.Module):
         instead of taking tens of iterations."""
         x = x.to(state.x.dtype)
         with torch.no_grad():
-            inv_mass = (1.0 / self.vertex_mass(state.rest)) * (1.0 - self.gripped.to(x.dtype))
+            inv_mass = self._projection_inv_mass(self.vertex_mass(state.rest), held=True)
             x = enforce_inextensibility(x, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
                                         self.options.pbd_method)
         d1 = G.time_transport(state.d1, G.normalize(G.edges(state.x)), G.normalize(G.edges(x)))
@@ -261,13 +261,10 @@ class DeformModel(nn.Module):
         if self.options.residual:
             v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32)).to(x.dtype)
         x_pred = x + dt * v_pred
-        inv_mass = 1.0 / mass
         if grip_next is not None:
             x_pred = x_pred.clone()
             x_pred[..., gripped_indices(self.n), :] = grip_next.to(x_pred.dtype)
-            inv_mass = inv_mass * (1.0 - self.gripped.to(x.dtype))
-        if not self.options.weighted_pbd:
-            inv_mass = unweighted_inv_mass(inv_mass)
+        inv_mass = self._projection_inv_mass(mass, held=grip_next is not None)
         x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
                                         self.options.pbd_method, branch_free[1])
         v_new = (x_new - x) / dt
@@ -276,6 +273,14 @@ class DeformModel(nn.Module):
         if not create_graph:
             return RodState(x_new.detach(), v_new.detach(), d1_new.detach(), theta.detach(), state.rest)
         return RodState(x_new, v_new, d1_new, theta, state.rest)
+
+    def _projection_inv_mass(self, mass: Tensor, held: bool) -> Tensor:
+        """Inverse masses for the inextensibility projection: 0 at the gripped vertices when ``held``
+        (infinitely heavy), all free vertices equal for the 'original inextensibility' ablation."""
+        inv_mass = 1.0 / mass
+        if held:
+            inv_mass = inv_mass * (1.0 - self.gripped.to(mass.dtype))
+        return inv_mass if self.options.weighted_pbd else unweighted_inv_mass(inv_mass)
 
     def unconverged(self, before: RodState, after: RodState, held: bool = True) -> Tensor:
         """(B,) bool: rods whose step from ``before`` to ``after`` left the twist angles or the edge
