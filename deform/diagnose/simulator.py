@@ -8,6 +8,7 @@ backward pass their gradients are chained back to those expressions.
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 import torch
@@ -62,15 +63,18 @@ def transported_frames(positions: np.ndarray) -> np.ndarray:
     return out.numpy()
 
 
-_FRAMES_CACHE: dict[int, tuple[object, np.ndarray]] = {}
+_FRAMES_CACHE: dict[int, tuple[weakref.ref, np.ndarray]] = {}
 
 
 def recording_frames(recording) -> np.ndarray:
-    """:func:`transported_frames` of a recording, cached per recording object."""
-    hit = _FRAMES_CACHE.get(id(recording))
-    if hit is None or hit[0] is not recording:
-        hit = (recording, transported_frames(recording.positions))
-        _FRAMES_CACHE[id(recording)] = hit
+    """:func:`transported_frames` of a recording, cached per recording object while it lives (a weak
+    reference: a long benchmark run does not keep every recording it has seen)."""
+    key = id(recording)
+    hit = _FRAMES_CACHE.get(key)
+    if hit is None or hit[0]() is not recording:
+        hit = (weakref.ref(recording), transported_frames(recording.positions))
+        _FRAMES_CACHE[key] = hit
+        weakref.finalize(recording, _FRAMES_CACHE.pop, key, None)
     return hit[1]
 
 
