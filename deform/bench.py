@@ -83,9 +83,9 @@ def training_iteration(model: DeformModel, positions: np.ndarray, batch: int = 3
     rng = random.Random(0)
     times = []
     for _ in range(iters):
-        w = sample_windows([rec], batch, horizon, rng)
+        w, d1 = sample_windows([rec], batch, horizon, rng)
         t0 = time.perf_counter()
-        loss = rollout_loss(model, w)
+        loss = rollout_loss(model, w, d1)
         loss.backward()
         times.append(time.perf_counter() - t0)
         model.zero_grad(set_to_none=True)

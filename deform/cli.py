@@ -48,7 +48,7 @@ def cmd_train(args) -> int:
                        time_limit_s=args.time_limit, curriculum=tuple(args.curriculum) if args.horizon > 1 else (),
                        lr_physics=args.lr_physics, lr_network=args.lr_network,
                        coarse_sysid=not args.init,  # a given starting model is already identified
-                       drag=not args.no_drag)
+                       drag=not args.no_drag, transported_frames=not args.fresh_frames)
     out = Path(args.out or f"runs/{args.rod}")
     result = train(model, train_recs, val_recs, tcfg, out, resume=not args.fresh)
     best = DeformModel.load(out / "best.pt")
@@ -131,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--original-inextensibility", action="store_true")
     t.add_argument("--theta-solver", choices=["newton", "theseus"], default="newton")
     t.add_argument("--no-drag", action="store_true", help="no quadratic air drag (linear damping only)")
+    t.add_argument("--fresh-frames", action="store_true",
+                   help="start every training window in fresh space-parallel reference frames instead of "
+                        "the ones a rollout from the recording's start carries there")
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
     t.add_argument("--lr-physics", type=float, default=2e-2)
     t.add_argument("--lr-network", type=float, default=1e-3)

@@ -159,14 +159,18 @@ class DeformModel(nn.Module):
         return -self.damping.to(x.dtype) * v - self.drag.to(x.dtype) * v_n.norm(dim=-1, keepdim=True) * v_n
 
     # ----- state ------------------------------------------------------------------------------
-    def initial_state(self, x0: Tensor, x1: Tensor, dt: float | None = None) -> RodState:
-        """State at frame 1 from two observed frames (B, n, 3); rest lengths from frame 0."""
+    def initial_state(self, x0: Tensor, x1: Tensor, dt: float | None = None, d1: Tensor | None = None) -> RodState:
+        """State at frame 1 from two observed frames (B, n, 3); rest lengths from frame 0.
+
+        ``d1`` (B, n-1, 3): reference directors at frame 1; default space-parallel, which is what a
+        recording's first frames get. A window cut from later in a recording passes the directors
+        a rollout from the recording's start carries there (``Recording.reference_frames``)."""
         dt = dt or self.dt
         x0, x1 = torch.as_tensor(x0), torch.as_tensor(x1)
         if x1.dim() == 2:
             x0, x1 = x0.unsqueeze(0), x1.unsqueeze(0)
         t = G.normalize(G.edges(x1))
-        d1 = G.space_parallel_frame(t)
+        d1 = G.space_parallel_frame(t) if d1 is None else G.time_transport(torch.as_tensor(d1, dtype=x1.dtype), t, t)
         theta = torch.zeros(t.shape[:-1], dtype=x1.dtype)
         rest = G.edges(x0).norm(dim=-1)
         return RodState(x=x1, v=(x1 - x0) / dt, d1=d1, theta=theta, rest=rest)

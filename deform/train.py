@@ -42,6 +42,7 @@ class TrainConfig:
     rest_curvature_lr_scale: float = 0.05
     coarse_sysid: bool = True
     drag: bool = True  # False: no quadratic air drag (fixed at its floor), linear damping only
+    transported_frames: bool = True  # windows start in the reference frames evaluation carries (sample_windows)
     extra: dict = field(default_factory=dict)
 
 
@@ -58,19 +59,28 @@ def split_validation(recordings: list[Recording], every: int = 5) -> tuple[list[
     return train, val
 
 
-def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: random.Random) -> torch.Tensor:
-    """(B, horizon + 2, n, 3) windows: two frames to start from and ``horizon`` frames to predict."""
-    out = []
+def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: random.Random,
+                   transported: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(B, horizon + 2, n, 3) windows (two frames to start from, ``horizon`` frames to predict) and
+    the reference directors (B, n-1, 3) to start them in.
+
+    ``transported``: the directors a rollout from the recording's first frame carries at the window's
+    start (``Recording.reference_frames``), so that training states have the twist and material frame
+    that evaluation's states have; otherwise None (fresh space-parallel frames for every window)."""
+    out, frames = [], []
     for _ in range(batch):
         r = rng.choice(recordings)
         s = rng.randrange(0, r.n_frames - horizon - 2 + 1)
         out.append(r.positions[s : s + horizon + 2])
-    return torch.tensor(np.stack(out), dtype=torch.float64)
+        if transported:
+            frames.append(r.reference_frames[s + 1])
+    X = torch.tensor(np.stack(out), dtype=torch.float64)
+    return X, (torch.tensor(np.stack(frames), dtype=torch.float64) if transported else None)
 
 
-def rollout_loss(model: DeformModel, windows: torch.Tensor) -> torch.Tensor:
+def rollout_loss(model: DeformModel, windows: torch.Tensor, d1: torch.Tensor | None = None) -> torch.Tensor:
     idx = gripped_indices(model.n)
-    state = model.initial_state(windows[:, 0], windows[:, 1])
+    state = model.initial_state(windows[:, 0], windows[:, 1], d1=d1)
     pred, _ = model.rollout(state, windows[:, 2:, idx], create_graph=True)
     return (pred - windows[:, 2:]).abs().mean()
 
@@ -192,9 +202,9 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
     for it in bar:
         t0 = time.perf_counter()
         horizon = horizon_at(it, cfg)
-        windows = sample_windows(train_recs, cfg.batch, horizon, rng)
+        windows, d1 = sample_windows(train_recs, cfg.batch, horizon, rng, cfg.transported_frames)
         opt.zero_grad(set_to_none=True)
-        fit = rollout_loss(model, windows)
+        fit = rollout_loss(model, windows, d1)
         loss = fit + cfg.rest_curvature_penalty * model.wbar.pow(2).mean()
         params = [p for g in opt.param_groups for p in g["params"]]
         if torch.isfinite(loss):

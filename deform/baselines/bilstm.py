@@ -135,7 +135,7 @@ def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: in
     it = 0
     for it in range(iterations):
         horizon = [h for start, h in curriculum if it >= start][-1]
-        w = sample_windows(train_recs, batch, horizon, rng)
+        w, _ = sample_windows(train_recs, batch, horizon, rng, transported=False)
         state = model.initial_state(w[:, 0], w[:, 1])
         pred = model.rollout(state, w[:, 2:, idx])
         loss = (pred - w[:, 2:]).abs().mean()

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deform.diagnose.simulator import Nominal, Simulator, recording_frames
+from deform.diagnose.simulator import Nominal, Simulator
 from deform.io.recordings import Recording
 
 
@@ -45,7 +45,7 @@ def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: 
         s = rng.randrange(0, r.n_frames - length + 1)
         out.append(r.positions[s:s + length])
         if transported:
-            frames.append(recording_frames(r)[s + margin + 1])
+            frames.append(r.reference_frames[s + margin + 1])
     X = torch.tensor(np.stack(out), dtype=torch.float64)
     return X, (torch.tensor(np.stack(frames), dtype=torch.float64) if transported else None)
 

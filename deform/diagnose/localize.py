@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from deform.diagnose.simulator import Simulator, recording_frames
+from deform.diagnose.simulator import Simulator
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
@@ -23,7 +23,7 @@ def short_rollout_residuals(sim: Simulator, recordings: list[Recording], horizon
     for ri, r in enumerate(recordings):
         for s in range(0, r.n_frames - horizon - 2, stride):
             wins.append(r.positions[s:s + horizon + 2])
-            frames.append(recording_frames(r)[s + 1])  # the reference frames a full rollout carries there
+            frames.append(r.reference_frames[s + 1])  # the reference frames a full rollout carries there
             meta.append((ri, s + horizon + 1))
     X = torch.tensor(np.stack(wins), dtype=torch.float64)
     with torch.no_grad():

@@ -8,7 +8,6 @@ backward pass their gradients are chained back to those expressions.
 from __future__ import annotations
 
 import math
-import weakref
 
 import numpy as np
 import torch
@@ -42,40 +41,6 @@ class Nominal(nn.Module):
             self.log_ei.clamp_(math.log(1e-6), math.log(0.3))
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(20.0))
-
-
-def transported_frames(positions: np.ndarray) -> np.ndarray:
-    """(T, m, 3) reference directors of each frame's edges as a full open-loop rollout from frame 0
-    carries them: space-parallel ("up" at edge 0) at frame 1, then transported in time along the
-    recorded edges. The gripper's roll is not observed, so the model's convention is "no roll in a
-    frame transported in time"; a window cut from the middle of a recording must start with these
-    directors, not with fresh space-parallel ones, or the material frame (in which a rest curvature
-    and the twist live) differs between windows by the recording's accumulated holonomy."""
-    from deform.rod import geometry as G
-
-    X = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
-    t = G.normalize(G.edges(X))  # (T, m, 3)
-    out = torch.empty_like(t)
-    out[0] = G.space_parallel_frame(t[1])  # frame 0 is only a rest-length source for a rollout
-    out[1] = out[0]
-    for k in range(2, len(t)):
-        out[k] = G.time_transport(out[k - 1], t[k - 1], t[k])
-    return out.numpy()
-
-
-_FRAMES_CACHE: dict[int, tuple[weakref.ref, np.ndarray]] = {}
-
-
-def recording_frames(recording) -> np.ndarray:
-    """:func:`transported_frames` of a recording, cached per recording object while it lives (a weak
-    reference: a long benchmark run does not keep every recording it has seen)."""
-    key = id(recording)
-    hit = _FRAMES_CACHE.get(key)
-    if hit is None or hit[0]() is not recording:
-        hit = (weakref.ref(recording), transported_frames(recording.positions))
-        _FRAMES_CACHE[key] = hit
-        weakref.finalize(recording, _FRAMES_CACHE.pop, key, None)
-    return hit[1]
 
 
 def arclength_of(recordings) -> np.ndarray:
@@ -160,7 +125,7 @@ class Simulator:
                 d1: Tensor | None = None) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
         steps, grippers from the recorded frames (shifted by a delay term if any). ``d1`` (B, m, 3):
-        reference directors at ``frames[:, margin+1]`` (see :func:`transported_frames`; default: a
+        reference directors at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`; default: a
         fresh space-parallel frame, right for a rollout from a recording's first frame).
         -> (B, steps, n, 3)."""
         idx = gripped_indices(self.n)

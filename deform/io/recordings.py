@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import pickle
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,16 @@ class Recording:
     @property
     def n_frames(self) -> int:
         return self.positions.shape[0]
+
+    @cached_property
+    def reference_frames(self) -> np.ndarray:
+        """(T, n-1, 3) reference directors an open-loop rollout from frame 0 carries at each frame
+        (:func:`deform.rod.geometry.transported_frames`): where a window cut from this recording starts."""
+        import torch
+
+        from deform.rod.geometry import transported_frames
+
+        return transported_frames(torch.as_tensor(self.positions, dtype=torch.float64)).numpy()
 
 
 def find_data_root() -> Path | None:

@@ -85,6 +85,26 @@ def time_transport(d1_prev: Tensor, t_prev: Tensor, t: Tensor) -> Tensor:
     return normalize(d1 - dot(d1, t).unsqueeze(-1) * t)  # remove round-off drift
 
 
+def transported_frames(x: Tensor) -> Tensor:
+    """(T, m, 3) reference directors of a recorded motion ``x`` (T, n, 3) as an open-loop rollout
+    from its first two frames carries them: space-parallel at frame 1, then transported in time
+    along the recorded edges (frame 0 repeats frame 1; it only gives a rollout its rest lengths).
+
+    The grippers' roll is not observed, so the model's convention is "no roll in a frame transported
+    in time". A window cut from the middle of a recording (training, diagnosis) must start in these
+    directors, not in fresh space-parallel ones: those differ by the holonomy the motion has
+    accumulated, and the material frame (in which the rest curvature and the twist live) with them.
+    """
+    t = normalize(edges(x))
+    out = torch.empty_like(t)
+    out[0] = space_parallel_frame(t[1])
+    if len(t) > 1:
+        out[1] = out[0]
+    for k in range(2, len(t)):
+        out[k] = time_transport(out[k - 1], t[k - 1], t[k])
+    return out
+
+
 def reference_twist(d1: Tensor, t: Tensor) -> Tensor:
     """Signed angle at each interior vertex from the transported ``d1_{i-1}`` to ``d1_i`` about ``t_i``."""
     u = parallel_transport(d1[..., :-1, :], t[..., :-1, :], t[..., 1:, :])

@@ -35,3 +35,33 @@ def test_coarse_identification_finds_the_stiffness_decade():
     found = coarse_identification(model, recs, steps=60, progress=False)
     assert 3e-3 <= found["bend_stiffness"] <= 3e-2
     assert abs(float(model.log_beta.exp().mean()) - found["bend_stiffness"]) < 1e-6 * found["bend_stiffness"]
+
+
+def test_training_windows_start_in_the_frames_evaluation_carries():
+    """A window cut at frame s starts with the reference directors a rollout from the recording's
+    first frame carries there: at s = 0 exactly evaluation's start, later perpendicular to the edges
+    and different from fresh space-parallel frames once the grippers have turned."""
+    import random
+
+    import numpy as np
+
+    from deform.rod import geometry as G
+    from deform.train import sample_windows
+
+    cfg = load_rod_config("DLO2")
+    rec = generate_recording(DeformModel(cfg), n_frames=120, seed=3, amplitude=0.3)
+    X, d1 = sample_windows([rec], 8, 20, random.Random(0))
+    assert X.shape == (8, 22, cfg.n_vertices, 3) and d1.shape == (8, cfg.n_vertices - 1, 3)
+    frames = torch.tensor(rec.reference_frames)
+    starts = [int(np.flatnonzero((rec.positions == X[b, 0].numpy()).all(axis=(1, 2)))[0]) for b in range(8)]
+    for b, s in enumerate(starts):
+        assert torch.equal(d1[b], frames[s + 1])
+    model = DeformModel(cfg)
+    x = torch.tensor(rec.positions)
+    assert torch.allclose(frames[1], model.initial_state(x[0], x[1]).d1[0], atol=1e-12)
+    t = G.normalize(G.edges(x))
+    assert float(G.dot(frames[1:], t[1:]).abs().max()) < 1e-9
+    fresh = G.space_parallel_frame(t[-1])
+    assert float((fresh - frames[-1]).norm(dim=-1).max()) > 1e-3
+    _, none = sample_windows([rec], 2, 20, random.Random(0), transported=False)
+    assert none is None

@@ -97,11 +97,10 @@ def test_windows_start_in_the_reference_frame_a_full_rollout_carries(sources):
     """A window cut from the middle of a recording starts with the directors transported in time
     from the first frame; a rest curvature acts in that frame. Fresh space-parallel directors differ
     by the accumulated holonomy of the motion."""
-    from deform.diagnose.simulator import transported_frames
     from deform.rod import geometry as G
 
     P = np.asarray(sources[0].positions, dtype=np.float64)
-    D = transported_frames(P)
+    D = G.transported_frames(torch.tensor(P)).numpy()
     t = G.normalize(G.edges(torch.tensor(P)))
     assert float((torch.tensor(D[1:]) * t[1:]).sum(-1).abs().max()) < 1e-9  # perpendicular to the edges (frame 0 unused)
     # the same as what the model's own rollout carries when driven along the recorded positions
