@@ -102,14 +102,29 @@ def test_rollout_step_one_graph_while_converged(model, start):
         assert (out[r] - alone[0]).abs().max() < 1e-6
 
 
-def test_rollout_step_goes_over_to_checked_step(model, start):
-    """A grip jumping 5 cm needs more sweeps than the one graph holds: from that step on, the
-    rollout is the checked compiled step's (whole batch); not the unconverged one-graph result."""
+def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, start):
+    """A grip jumping 1 cm needs more sweeps than the one graph holds: that step is the checked
+    compiled step's (whole batch), not the unconverged one-graph result, and the following steps
+    go back to the one graph."""
     state, grips = start
     jump = grips.clone()
-    jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
+    jump[0, 3:, 2:] += torch.tensor([0.01, 0.0, 0.0], dtype=jump.dtype)
     step = RolloutStep(model)
     out = rollout(step, state, jump)
-    assert step.switched == 1
+    assert step.redone == 1 and step.switched == 0
     ref = rollout(CompiledStep(model), state, jump)  # the checked step throughout
+    assert (out - ref).abs().max() < 1e-6
+
+
+def test_rollout_step_goes_over_to_checked_step_after_misses_in_a_row(model, start):
+    """A batch that keeps needing more than the one graph (a grip jerked 3 cm at every step) stops
+    paying for the wasted attempts: after ``max_misses`` in a row the checked step runs alone."""
+    state, grips = start
+    jerk = grips.clone()
+    jerk[0, :, 2:] += 0.03 * (torch.arange(jerk.shape[1], dtype=jerk.dtype) % 2)[:, None, None] * torch.tensor(
+        [1.0, 0.0, 0.0], dtype=jerk.dtype)
+    step = RolloutStep(model)
+    out = rollout(step, state, jerk)
+    assert step.switched == 1 and step.redone == step.max_misses
+    ref = rollout(CompiledStep(model), state, jerk)
     assert (out - ref).abs().max() < 1e-6
