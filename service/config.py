@@ -64,6 +64,10 @@ class Workers(_Strict):
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)
     predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile
+    # nice value of the fusion worker process: on a busy machine a planner's query gets the core
+    # first and fusion (latest-only) catches up after. Not applied to threads of the service's own
+    # process: a lowered thread holding the interpreter lock would delay the loop (priority inversion)
+    fusion_nice: int = Field(default=5, ge=0, le=19)
 
 
 class ZenohSettings(_Strict):

@@ -83,7 +83,8 @@ class Service:
             self.rerun = RerunLogger(cfg.rerun, cfg.namespace, self.stats)
         # child processes (or inline workers) for cloud fusion (wall clock only: the message clock
         # fuses in order, in the loop, for bit-exact replays) and for predict
-        self.fusion_worker = None if self.est.message_clock else make_worker(model, cfg, f"fusion[{cfg.namespace}]")
+        self.fusion_worker = None if self.est.message_clock else make_worker(model, cfg, f"fusion[{cfg.namespace}]",
+                                                                                 cfg.workers.fusion_nice)
         self.fusion = None if self.est.message_clock else FusionWorker(self.est, self.fusion_worker)
         self.predict_worker = make_worker(model, cfg, f"predict[{cfg.namespace}]")
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)

@@ -127,13 +127,16 @@ def job_ping(ctx: JobContext, delay_s: float = 0.0) -> bool:
 JOBS = {"fuse": job_fuse, "predict": job_predict, "warmup": job_warmup, "ping": job_ping}
 
 
-def _serve(conn, model_path: str, cfg) -> None:
-    """Child process main: load the model, then answer jobs in order until the pipe closes."""
+def _serve(conn, model_path: str, cfg, nice: int = 0) -> None:
+    """Child process main: lower its priority by ``nice``, load the model, then answer jobs in
+    order until the pipe closes."""
     import torch
 
     torch.set_num_threads(cfg.torch_threads)
     from deform import DeformModel
 
+    if nice:
+        os.nice(nice)
     ctx = JobContext(DeformModel.load(model_path), cfg)
     while True:
         try:
@@ -153,11 +156,11 @@ def _serve(conn, model_path: str, cfg) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m service.workers FD MODEL CONFIG_JSON``: a worker on an inherited socket."""
+    """``python -m service.workers FD MODEL CONFIG_JSON [NICE]``: a worker on an inherited socket."""
     from service.config import ServiceConfig
 
-    fd, model_path, cfg_json = (argv or sys.argv[1:])[:3]
-    _serve(Connection(int(fd)), model_path, ServiceConfig.model_validate_json(cfg_json))
+    fd, model_path, cfg_json, *rest = (argv or sys.argv[1:])
+    _serve(Connection(int(fd)), model_path, ServiceConfig.model_validate_json(cfg_json), int(rest[0]) if rest else 0)
 
 
 class InlineWorker:
@@ -183,8 +186,8 @@ class WorkerProcess:
     Calls from several threads are serialised. A call that times out restarts the child (the
     reply would otherwise arrive to the next caller)."""
 
-    def __init__(self, model, cfg, name: str):
-        self.cfg, self.name = cfg, name
+    def __init__(self, model, cfg, name: str, nice: int = 0):
+        self.cfg, self.name, self.nice = cfg, name, nice
         self._dir = tempfile.TemporaryDirectory(prefix="deform-worker-")
         self._model_path = str(Path(self._dir.name) / "model.pt")
         model.save(self._model_path)
@@ -197,7 +200,8 @@ class WorkerProcess:
         # main script (which then needs an `if __name__ == "__main__"` guard)
         ours, theirs = socket.socketpair()
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "service.workers", str(theirs.fileno()), self._model_path, self.cfg.model_dump_json()],
+            [sys.executable, "-m", "service.workers", str(theirs.fileno()), self._model_path, self.cfg.model_dump_json(),
+             str(self.nice)],
             pass_fds=[theirs.fileno()], cwd=_PROJECT_ROOT, env=_child_env())
         theirs.close()
         self._conn = Connection(ours.detach())
@@ -242,8 +246,10 @@ class WorkerProcess:
         self._dir.cleanup()
 
 
-def make_worker(model, cfg, name: str):
-    return WorkerProcess(model, cfg, name) if cfg.workers.processes else InlineWorker(model, cfg)
+def make_worker(model, cfg, name: str, nice: int = 0):
+    """A worker process (``nice``: its CPU priority below the service's), or inline when
+    ``workers.processes`` is off."""
+    return WorkerProcess(model, cfg, name, nice) if cfg.workers.processes else InlineWorker(model, cfg)
 
 
 if __name__ == "__main__":

@@ -95,3 +95,32 @@ def test_use_step_switches_the_tracker_and_status(model):
     assert e.status()["step"] == "compiled"
     e.tick(T0 + 10_000_000)
     assert calls == [1]
+
+
+def test_a_worker_can_run_at_lower_cpu_priority(model):
+    """The fusion worker runs ``workers.fusion_nice`` below the service so that predict gets the
+    core first on a busy machine; a worker started without it keeps the service's priority."""
+    import os
+
+    low = WorkerProcess(model, make_config(), "test-low", nice=5)
+    try:
+        assert low.call("ping") is True  # the child is up and has applied its nice value
+        assert os.getpriority(os.PRIO_PROCESS, low.pid) == os.getpriority(os.PRIO_PROCESS, 0) + 5
+    finally:
+        low.close()
+
+
+def test_the_service_lowers_its_fusion_worker_not_predict(model):
+    import os
+
+    from service.node import Service
+
+    svc = Service(make_config(workers={"processes": True, "compile_predict": False}), model=model)
+    try:
+        assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
+        base = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) == base + svc.cfg.workers.fusion_nice > base
+        assert os.getpriority(os.PRIO_PROCESS, svc.predict_worker.pid) == base
+    finally:
+        svc.fusion_worker.close()
+        svc.predict_worker.close()
