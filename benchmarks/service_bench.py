@@ -198,7 +198,13 @@ def main() -> int:
 
     # 2. predict 64 plans x 100 steps from the current estimate, asked by a separate client process
     #    (a planner is its own process; in this one its JSON work would compete with the loop)
-    out["predict_64x100"] = dict(predict_client(ep, args.predict_n),
+    def inside(n: int) -> dict:
+        """The last ``n`` predictions as the service saw them: job handed to the predict worker ->
+        reply back (IPC included), and the time inside the worker (parse, rollout, encode)."""
+        return {"service_ms": svc.stats.predict_s.summary(last=n),
+                "worker_ms": svc.stats.predict_compute_s.summary(last=n)}
+
+    out["predict_64x100"] = dict(predict_client(ep, args.predict_n), **inside(args.predict_n),
                                  note="service idle (no feeder); request sent to reply received, client process")
     print(json.dumps(out["predict_64x100"]), flush=True)
     feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps)
@@ -208,7 +214,7 @@ def main() -> int:
     s1 = status(client)
     feed.kill()
     out["predict_64x100_live"] = dict(
-        live, loop_deadline_misses=s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0),
+        live, **inside(args.predict_n), loop_deadline_misses=s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0),
         loop_ticks=s1["counts"]["ticks"] - s0["counts"]["ticks"],
         note="while the loop runs at 100 Hz with clouds at 30 Hz; client process")
     print(json.dumps(out["predict_64x100_live"]), flush=True)

@@ -83,8 +83,9 @@ class CompiledStep:
         unconverged, one graph. Without: the step with its checked loops (a graph per iteration)."""
         if self.branch_free is None:
             return self.model.step(state, grip_next), None
-        new = self.model.step(state, grip_next, branch_free=self.branch_free)
-        return new, self.model.unconverged(state, new, held=grip_next is not None)
+        report: dict = {}
+        new = self.model.step(state, grip_next, branch_free=self.branch_free, report=report)
+        return new, self.model.unconverged_from_report(report)
 
     def _step_fn(self):
         if self._compiled is None:

@@ -229,34 +229,37 @@ class DeformModel(nn.Module):
         return force, theta
 
     def _forces(self, state: RodState, params: ElasticParams, mass: Tensor, theta_ends: Tensor | None,
-                create_graph: bool, branch_free: int = 0):
+                create_graph: bool, branch_free: int = 0, report: dict | None = None):
         x = state.x if create_graph else state.x.detach()
         if theta_ends is None:
             theta_ends = state.theta[..., [0, -1]].detach()
         # the frame is carried along by parallel transport: identity at x, but it moves with x
         geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
         a, b = curvature_projections(geo)
-        theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta, branch_free)
+        theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report)
         return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
 
-    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init, branch_free: int = 0):
+    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init, branch_free: int = 0,
+                     report: dict | None = None):
         if self.options.theta_solver == "theseus":
             from deform.rod.twist_theseus import theseus_theta
 
             return theseus_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar)
         return solve_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar,
-                           theta_init=theta_init, tol=self.options.theta_tol, branch_free=branch_free)
+                           theta_init=theta_init, tol=self.options.theta_tol, branch_free=branch_free, report=report)
 
     def step(self, state: RodState, grip_next: Tensor | None, theta_ends: Tensor | None = None,
-             create_graph: bool = False, branch_free: tuple[int, int] = (0, 0)) -> RodState:
+             create_graph: bool = False, branch_free: tuple[int, int] = (0, 0), report: dict | None = None) -> RodState:
         """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
         (``None``: nothing is held, e.g. a dropped rope). ``branch_free``: iterations of the twist
         solve and sweeps of the projection done without host synchronisation before the checked
-        loops (for compiled code; same result per rod, see :func:`newton_theta`)."""
+        loops (for compiled code; same result per rod, see :func:`newton_theta`). ``report``: a dict
+        that receives the solvers' per-rod convergence after those iterations (``twist_unconverged``,
+        ``length_error``; see :meth:`unconverged_from_report`)."""
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
-        force, theta, t_old = self._forces(state, params, mass, theta_ends, create_graph, branch_free[0])
+        force, theta, t_old = self._forces(state, params, mass, theta_ends, create_graph, branch_free[0], report)
         accel = force / mass.unsqueeze(-1) + self.drag_acceleration(x, v)
         for ext in self.extensions:
             if hasattr(ext, "acceleration"):
@@ -270,7 +273,7 @@ class DeformModel(nn.Module):
             x_pred[..., gripped_indices(self.n), :] = grip_next.to(x_pred.dtype)
         inv_mass = self._projection_inv_mass(mass, held=grip_next is not None)
         x_new = enforce_inextensibility(x_pred, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
-                                        self.options.pbd_method, branch_free[1])
+                                        self.options.pbd_method, branch_free[1], report)
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))
         d1_new = G.time_transport(state.d1, t_old, t_new)
@@ -306,6 +309,15 @@ class DeformModel(nn.Module):
         if self.options.theta_solver == "theseus":
             twist_bad = torch.zeros_like(twist_bad)
         return twist_bad | length_bad
+
+    def unconverged_from_report(self, report: dict) -> Tensor:
+        """(B,) bool: what :meth:`unconverged` says, from the flags a ``branch_free`` step reported
+        (the solvers' own stopping rules after their fixed iterations) instead of a second
+        evaluation of the twist Hessian: about a fifth of a short compiled step."""
+        bad = ~(report["length_error"] < self.options.pbd_tol)  # NaN counts as unconverged
+        if self.options.theta_solver != "theseus" and "twist_unconverged" in report:
+            bad = bad | report["twist_unconverged"]
+        return bad
 
     def rollout(self, state: RodState, grips: Tensor, create_graph: bool = False) -> tuple[Tensor, RodState]:
         """Open-loop prediction. ``grips`` (B, T, 4, 3) -> positions (B, T, n, 3) and the final state."""

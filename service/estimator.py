@@ -250,6 +250,8 @@ class Estimator:
             "step_ms": self.stats.step_s.summary(),
             "tick_to_publish_ms": self.stats.publish_s.summary(),
             "fusion_ms": self.stats.fusion_s.summary(),
+            "predict_ms": self.stats.predict_s.summary(),
+            "predict_compute_ms": self.stats.predict_compute_s.summary(),
             "deadline_misses": snap["counts"].get("deadline_misses", 0),
             "input_age_s": {k: round(now - v, 4) for k, v in self.arrived.items()},
             "last_fusion_age_s": None if self.fused_at is None else round(now - self.fused_at, 4),

@@ -6,6 +6,7 @@ rollout never touches the live tracker.
 from __future__ import annotations
 
 import json
+import time
 import weakref
 
 import numpy as np
@@ -97,9 +98,13 @@ def handle(est: Estimator, body: bytes, worker=None) -> tuple[bool, bytes]:
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
     if worker is None:  # no service around it (tests, scripts): run here
         worker = _inline_worker(est)
-    ok, reply, reason, detail = worker.call("predict", body, base, stamp, timeout=est.cfg.workers.predict_timeout_s)
+    t0 = time.perf_counter()
+    ok, reply, reason, detail, compute_s = worker.call("predict", body, base, stamp,
+                                                       timeout=est.cfg.workers.predict_timeout_s)
     if ok:
         est.stats.count("predictions")
+        est.stats.predict_s.add(time.perf_counter() - t0)
+        est.stats.predict_compute_s.add(compute_s)
     else:
         est.stats.reject("predict", reason, detail)
     return ok, reply

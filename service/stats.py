@@ -24,10 +24,12 @@ class Rolling:
     def add(self, value: float) -> None:
         self._buf.append(value)
 
-    def summary(self, scale: float = 1e3) -> dict:
-        if not self._buf:
+    def summary(self, scale: float = 1e3, last: int | None = None) -> dict:
+        """p50, p99 and max (times ``scale``: ms by default) over the buffer or its ``last`` samples."""
+        values = list(self._buf)[-last:] if last else self._buf
+        if not values:
             return {"p50": None, "p99": None, "max": None, "n": 0}
-        a = np.fromiter(self._buf, dtype=float) * scale
+        a = np.fromiter(values, dtype=float) * scale
         return {"p50": round(float(np.percentile(a, 50)), 4), "p99": round(float(np.percentile(a, 99)), 4),
                 "max": round(float(a.max()), 4), "n": len(a)}
 
@@ -41,6 +43,8 @@ class Stats:
         self.step_s = Rolling()
         self.publish_s = Rolling()  # tick start -> vertices handed to Zenoh
         self.fusion_s = Rolling(500)
+        self.predict_s = Rolling(200)  # a predict job handed to the worker -> its reply back (IPC included)
+        self.predict_compute_s = Rolling(200)  # the same job inside the worker: parse, rollout, encode
         self.tick_starts = deque(maxlen=500)
         self._last_log: dict[str, float] = {}
         self._lock = threading.Lock()

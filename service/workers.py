@@ -110,8 +110,10 @@ def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]
 
 
 def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
+    """-> ``predict.answer``'s (ok, reply, reason, detail) and the seconds it took in here."""
     from service import predict
-    return predict.answer(ctx, body, base, stamp_ns)
+    t0 = time.perf_counter()
+    return (*predict.answer(ctx, body, base, stamp_ns), time.perf_counter() - t0)
 
 
 def job_warmup(ctx: JobContext, batch_sizes) -> bool:

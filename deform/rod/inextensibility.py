@@ -70,7 +70,7 @@ SWEEPS = {"projection": _projection_sweep, "gauss_seidel": _gauss_seidel_sweep}
 
 def enforce_inextensibility(
     x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float = 1e-3, max_sweeps: int = 50, method: str = "projection",
-    branch_free: int = 0,
+    branch_free: int = 0, report: dict | None = None,
 ) -> Tensor:
     """Project ``x`` (..., n, 3) so every edge has its rest length (..., m) within relative ``tol``.
 
@@ -78,6 +78,8 @@ def enforce_inextensibility(
     ``branch_free``: that many sweeps first run without a host synchronisation, each rod sweeping
     only while its own error is above ``tol`` (so compiled code holds the usual one or two sweeps
     in one graph); the checked loop then continues only if a rod is still above ``tol``.
+    ``report``: when given, receives ``"length_error"``, each rod's largest relative edge error after
+    the branch-free sweeps (what a convergence check would measure, already computed).
     """
     sweep = SWEEPS[method]
     if branch_free:
@@ -87,6 +89,8 @@ def enforce_inextensibility(
             swept, swept_err = _sweep_and_measure(sweep, x, inv_mass, rest, per_rod=True)
             x = torch.where(active[..., None, None], swept, x)
             err = torch.where(active, swept_err, err)
+        if report is not None:
+            report["length_error"] = err
         if torch.compiler.is_compiling():  # no data-dependent branch: the caller checks (deform.compiled)
             return x
         max_sweeps -= branch_free

@@ -67,6 +67,7 @@ def newton_theta(
     max_iter: int = 30,
     max_step: float = 0.5,
     branch_free: int = 0,
+    report: dict | None = None,
 ) -> Tensor:
     """Minimise over the free angles by damped Newton; returns all m angles (ends included), detached.
 
@@ -81,6 +82,8 @@ def newton_theta(
     rod stopping by the same rule on its own (its later updates masked out), so that compiled code
     holds a converging solve in one graph (warm-started solves converge in two); the checked loop
     then goes on only if a rod is still unconverged. Per rod the result is that of the checked loop.
+    ``report``: when given, receives ``"twist_unconverged"`` (per rod, after the branch-free
+    iterations, by the same stopping rule), so compiled code checks convergence for free.
     """
     with torch.no_grad():
         a, b, m_ref, theta_ends = a.detach(), b.detach(), m_ref.detach(), theta_ends.detach()
@@ -99,6 +102,8 @@ def newton_theta(
                 active = active & ~((size < tol) | (exact & (size * size < tol)))
             # compiled code cannot branch on data: it returns here and its caller checks convergence
             # afterwards (deform.compiled); eager code goes on while a rod is unconverged
+            if report is not None:
+                report["twist_unconverged"] = active
             if torch.compiler.is_compiling() or not bool(active.any()):
                 return _with_free(theta_ends, free)
             max_iter -= branch_free
@@ -156,11 +161,11 @@ def attach_implicit_gradient(
 def solve_theta(
     a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor, beta: Tensor, gamma: Tensor,
     rest_vor: Tensor, wbar: Tensor, theta_init: Tensor | None = None, tol: float = 1e-10, max_iter: int = 30,
-    branch_free: int = 0,
+    branch_free: int = 0, report: dict | None = None,
 ) -> Tensor:
     """Fast batched solver; differentiable through the implicit function theorem when needed."""
     theta_star = newton_theta(a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter,
-                              branch_free=branch_free)
+                              branch_free=branch_free, report=report)
     inputs = (a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
         return attach_implicit_gradient(theta_star, *inputs)

@@ -78,9 +78,10 @@ def test_sudden_jump_is_redone_eagerly(model, start):
     makes: that rod is stepped again by the checked eager loop and the result stays within tol."""
     state, grips = start
     step = CompiledStep(model, branch_free=(2, 1))
-    state = step(state, grips[:, 0])
+    state = model.step(state, grips[:, 0])  # the twist angles solved (the start has none)
+    state = step(state, grips[:, 1])
     assert step.redone == 0
-    jump = grips[:, 1].clone()
+    jump = grips[:, 2].clone()
     jump[0, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
     out = step(state, jump)
     assert step.redone == 1
@@ -107,6 +108,7 @@ def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, st
     compiled step's (whole batch), not the unconverged one-graph result, and the following steps
     go back to the one graph."""
     state, grips = start
+    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
     jump = grips.clone()
     jump[0, 3:, 2:] += torch.tensor([0.01, 0.0, 0.0], dtype=jump.dtype)
     step = RolloutStep(model)
