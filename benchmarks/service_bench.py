@@ -209,12 +209,15 @@ def main() -> int:
     print(json.dumps(out["predict_64x100"]), flush=True)
     feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps)
     time.sleep(3.0)
-    s0 = status(client)
+    s0, t_live0 = status(client), time.perf_counter()
     live = predict_client(ep, args.predict_n)
-    s1 = status(client)
+    s1, t_live1 = status(client), time.perf_counter()
     feed.kill()
     out["predict_64x100_live"] = dict(
         live, **inside(args.predict_n), loop_deadline_misses=s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0),
+        clouds_fused=s1["counts"].get("clouds_fused", 0) - s0["counts"].get("clouds_fused", 0),
+        fusions_deferred=s1["counts"].get("fusion_deferred", 0) - s0["counts"].get("fusion_deferred", 0),
+        seconds=round(t_live1 - t_live0, 1),
         loop_ticks=s1["counts"]["ticks"] - s0["counts"]["ticks"],
         note="while the loop runs at 100 Hz with clouds at 30 Hz; client process")
     print(json.dumps(out["predict_64x100_live"]), flush=True)

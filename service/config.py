@@ -68,6 +68,9 @@ class Workers(_Strict):
     # first and fusion (latest-only) catches up after. Not applied to threads of the service's own
     # process: a lowered thread holding the interpreter lock would delay the loop (priority inversion)
     fusion_nice: int = Field(default=5, ge=0, le=19)
+    # while a predict runs, the next cloud fusion waits up to this long (0: never): on a small
+    # machine predict then has the cores; the estimate runs open-loop meanwhile (latest-only clouds)
+    fusion_yields_to_predict_s: float = Field(default=0.5, ge=0)
 
 
 class ZenohSettings(_Strict):

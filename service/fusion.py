@@ -42,7 +42,8 @@ class LatestSlot:
 
 
 class FusionWorker(threading.Thread):
-    def __init__(self, est: Estimator, worker=None, max_lag_ticks: int = 200):
+    def __init__(self, est: Estimator, worker=None, max_lag_ticks: int = 200,
+                 yield_to: threading.Event | None = None, max_yield_s: float = 0.0):
         super().__init__(name=f"fusion[{est.cfg.namespace}]", daemon=True)
         self.est = est
         self.worker = worker if worker is not None else InlineWorker(est.model, est.cfg)
@@ -50,6 +51,20 @@ class FusionWorker(threading.Thread):
         self.max_lag = max_lag_ticks
         self._stop_event = threading.Event()
         self._can_clone = True
+        self.yield_to = yield_to  # set while a predict runs: the next fusion waits (see _yield)
+        self.max_yield_s = max_yield_s
+
+    def _yield(self) -> None:
+        """Wait (at most ``max_yield_s``) while ``yield_to`` is set. On 2 cores a fusion (decode,
+        perception, catch-up steps: about half a core at 30 Hz) running beside a predict more than
+        doubles the planner's wait; deferred, the cloud waits in the latest-only slot (a newer one
+        supersedes it) and the estimate runs open-loop for those ticks."""
+        if self.yield_to is None or self.max_yield_s <= 0 or not self.yield_to.is_set():
+            return
+        deadline = time.monotonic() + self.max_yield_s
+        self.est.stats.count("fusion_deferred")
+        while self.yield_to.is_set() and time.monotonic() < deadline and not self._stop_event.is_set():
+            time.sleep(0.002)
 
     def submit(self, raw: bytes) -> None:
         if not self.est.admit_cloud(raw):
@@ -64,6 +79,7 @@ class FusionWorker(threading.Thread):
         import torch
         torch.set_num_threads(self.est.cfg.torch_threads)
         while not self._stop_event.is_set():
+            self._yield()
             raw = self.slot.take(0.1)
             if raw is None:
                 continue

@@ -85,7 +85,10 @@ class Service:
         # fuses in order, in the loop, for bit-exact replays) and for predict
         self.fusion_worker = None if self.est.message_clock else make_worker(model, cfg, f"fusion[{cfg.namespace}]",
                                                                                  cfg.workers.fusion_nice)
-        self.fusion = None if self.est.message_clock else FusionWorker(self.est, self.fusion_worker)
+        self.predict_running = threading.Event()  # fusion defers to it (workers.fusion_yields_to_predict_s)
+        self.fusion = None if self.est.message_clock else FusionWorker(
+            self.est, self.fusion_worker, yield_to=self.predict_running,
+            max_yield_s=cfg.workers.fusion_yields_to_predict_s)
         self.predict_worker = make_worker(model, cfg, f"predict[{cfg.namespace}]")
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
@@ -347,7 +350,11 @@ class Service:
                 continue
             try:
                 body = query.payload.to_bytes() if query.payload is not None else b""
-                ok, reply = predict.handle(self.est, body, self.predict_worker)
+                self.predict_running.set()
+                try:
+                    ok, reply = predict.handle(self.est, body, self.predict_worker)
+                finally:
+                    self.predict_running.clear()
                 if ok:
                     query.reply(self.cfg.key("predict"), reply)
                 else:

@@ -94,3 +94,26 @@ def test_fused_tracker_keeps_the_compiled_step(est, model):
     before = est.tracker
     FusionWorker(est).fuse(cloud)
     assert est.tracker is not before and est.tracker.step_fn is step
+
+
+def test_fusion_defers_to_a_running_predict_for_a_bounded_time(est):
+    """While a predict runs the next fusion waits (counted), at most ``max_yield_s``, and goes on
+    as soon as the predict ends; without a running predict it does not wait at all."""
+    import threading
+    import time
+
+    busy = threading.Event()
+    worker = FusionWorker(est, yield_to=busy, max_yield_s=0.15)
+    t = time.perf_counter()
+    worker._yield()
+    assert time.perf_counter() - t < 0.05 and "fusion_deferred" not in est.stats.snapshot()["counts"]
+    busy.set()
+    t = time.perf_counter()
+    worker._yield()  # the predict never ends: bounded
+    assert 0.15 <= time.perf_counter() - t < 1.0
+    worker.max_yield_s = 2.0
+    threading.Timer(0.03, busy.clear).start()
+    t = time.perf_counter()
+    worker._yield()  # the predict ends after 30 ms: fusion goes on then, long before the bound
+    assert 0.02 <= time.perf_counter() - t < 1.0
+    assert est.stats.snapshot()["counts"]["fusion_deferred"] == 2
