@@ -62,10 +62,14 @@ class CompiledStep:
     about 3x; rods it leaves unconverged (``model.unconverged``) are stepped again eagerly.
     """
 
-    def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] | None = None):
+    def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] | None = None,
+                 check: str = "report"):
         self.model = model
         self.enabled = enabled
         self.branch_free = branch_free
+        # how a branch-free step is verified: "report", the solvers' own flags (cheaper), or
+        # "recompute", DeformModel.unconverged (a second evaluation of the twist Hessian)
+        self.check = check
         self._compiled = None
         self._failed = False
         self.redone = 0  # rods whose compiled step did not converge and were stepped eagerly
@@ -83,6 +87,9 @@ class CompiledStep:
         unconverged, one graph. Without: the step with its checked loops (a graph per iteration)."""
         if self.branch_free is None:
             return self.model.step(state, grip_next), None
+        if self.check == "recompute":
+            new = self.model.step(state, grip_next, branch_free=self.branch_free)
+            return new, self.model.unconverged(state, new, held=grip_next is not None)
         report: dict = {}
         new = self.model.step(state, grip_next, branch_free=self.branch_free, report=report)
         return new, self.model.unconverged_from_report(report)

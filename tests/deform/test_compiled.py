@@ -130,3 +130,16 @@ def test_rollout_step_goes_over_to_checked_step_after_misses_in_a_row(model, sta
     assert step.switched == 1 and step.redone == step.max_misses
     ref = rollout(CompiledStep(model), state, jerk)
     assert (out - ref).abs().max() < 1e-6
+
+
+def test_solver_flags_agree_with_a_recomputed_check(model, start):
+    """The one-graph step's convergence read from the solvers' own flags flags the same rods as a
+    second evaluation (``DeformModel.unconverged``): none on a plain step, the jerked rod on a jump."""
+    state, grips = start
+    state = model.step(state, grips[:, 0])
+    jump = grips[:, 1].clone()
+    jump[1, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
+    for g, expected in ((grips[:, 1], [False, False, False]), (jump, [False, True, False])):
+        flags = [CompiledStep(model, branch_free=(2, 1), check=c).attempt(state, g)[1].tolist()
+                 for c in ("report", "recompute")]
+        assert flags[0] == flags[1] == expected
