@@ -59,7 +59,8 @@ class CompiledStep:
     ``branch_free=None`` (batches, e.g. predict): the step keeps its convergence-checked loops,
     each iteration a graph of its own. ``branch_free=(twist, sweeps)`` (a real-time loop, B = 1):
     the whole step is one graph with that many masked iterations, which cuts the per-call cost
-    about 3x; rods it leaves unconverged (``model.unconverged``) are stepped again eagerly.
+    about 3x; rods it leaves unconverged (by the solvers' own flags, ``check="report"``, or by
+    ``model.unconverged``, ``check="recompute"``) are stepped again eagerly.
     """
 
     def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] | None = None,
