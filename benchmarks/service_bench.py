@@ -84,6 +84,11 @@ def rss_mb(svc) -> float:
     return (_rss_kb("self") + sum(_rss_kb(p) for p in pids)) / 1024
 
 
+def counted(s0: dict, s1: dict, key: str) -> int:
+    """How much the status counter ``key`` grew between two status snapshots."""
+    return s1["counts"].get(key, 0) - s0["counts"].get(key, 0)
+
+
 def status(session, key="deform/rod1/status") -> dict:
     for r in session.get(key, timeout=5.0):
         return json.loads(r.ok.payload.to_bytes())
@@ -185,9 +190,9 @@ def main() -> int:
     s1 = status(client)
     feed.wait()
     ticks = s1["counts"]["ticks"] - s0["counts"]["ticks"]
-    misses = s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0)
-    skipped = s1["counts"].get("ticks_skipped", 0) - s0["counts"].get("ticks_skipped", 0)
-    fused = s1["counts"].get("clouds_fused", 0) - s0["counts"].get("clouds_fused", 0)
+    misses = counted(s0, s1, "deadline_misses")
+    skipped = counted(s0, s1, "ticks_skipped")
+    fused = counted(s0, s1, "clouds_fused")
     redone = s1.get("step_redone", 0) - s0.get("step_redone", 0)
     out["loop"] = {"seconds": args.loop_s, "ticks": ticks, "deadline_misses": misses, "ticks_skipped": skipped,
                    "deadline_miss_pct": round(100.0 * (misses + skipped) / max(ticks + skipped, 1), 3),
@@ -214,9 +219,9 @@ def main() -> int:
     s1, t_live1 = status(client), time.perf_counter()
     feed.kill()
     out["predict_64x100_live"] = dict(
-        live, **inside(args.predict_n), loop_deadline_misses=s1["counts"].get("deadline_misses", 0) - s0["counts"].get("deadline_misses", 0),
-        clouds_fused=s1["counts"].get("clouds_fused", 0) - s0["counts"].get("clouds_fused", 0),
-        fusions_deferred=s1["counts"].get("fusion_deferred", 0) - s0["counts"].get("fusion_deferred", 0),
+        live, **inside(args.predict_n), loop_deadline_misses=counted(s0, s1, "deadline_misses"),
+        clouds_fused=counted(s0, s1, "clouds_fused"),
+        fusions_deferred=counted(s0, s1, "fusion_deferred"),
         seconds=round(t_live1 - t_live0, 1),
         loop_ticks=s1["counts"]["ticks"] - s0["counts"]["ticks"],
         note="while the loop runs at 100 Hz with clouds at 30 Hz; client process")

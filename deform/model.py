@@ -302,9 +302,7 @@ class DeformModel(nn.Module):
                                                params.rest_vor, params.wbar)
         step, pd = solve_tridiagonal_pd(diag, off, grad)
         twist_bad = ~pd | ~(step.abs().amax(-1) < max(self.options.theta_tol, 1e-12) ** 0.5)
-        inv_mass = 1.0 / mass
-        if held:
-            inv_mass = inv_mass * (1.0 - self.gripped.to(inv_mass.dtype))
+        inv_mass = self._projection_inv_mass(mass, held)  # only which vertices can move matters here
         length_bad = ~(max_relative_error(after.x, before.rest, inv_mass, per_rod=True) < self.options.pbd_tol)
         if self.options.theta_solver == "theseus":
             twist_bad = torch.zeros_like(twist_bad)
@@ -315,7 +313,7 @@ class DeformModel(nn.Module):
         (the solvers' own stopping rules after their fixed iterations) instead of a second
         evaluation of the twist Hessian: about a fifth of a short compiled step."""
         bad = ~(report["length_error"] < self.options.pbd_tol)  # NaN counts as unconverged
-        if self.options.theta_solver != "theseus" and "twist_unconverged" in report:
+        if "twist_unconverged" in report:  # absent with the Theseus solver, as in :meth:`unconverged`
             bad = bad | report["twist_unconverged"]
         return bad
 
