@@ -4,8 +4,13 @@
     .venv/bin/python benchmarks/service_bench.py [--loop-s 30] [--soak-s 1800] [--json out.json]
 
 The robot and the camera are simulated by a separate feeder process publishing over Zenoh on
-loopback (poses at 100 Hz, rendered clouds at 30 Hz, looping over a recording), so the service
-process is measured alone, as deployed. Use ``--soak-s 120`` for a short soak.
+loopback (poses at 100 Hz, rendered clouds at 30 Hz, playing a recording forward and backward), so
+the service process is measured alone, as deployed. Use ``--soak-s 120`` for a short soak.
+
+Why forward and backward: played in a loop, the 300-frame demo recording jumps back to its first
+frame every 3 s, and one gripper with it, by 24 cm in one tick (24 m/s; the recording itself moves a
+gripper at most 6.4 mm per frame). No robot does that, and each jump left the loop's model step
+unconverged for several ticks. ``--loop-jumps`` restores the loop (the benchmark until 2026-11-23).
 """
 from __future__ import annotations
 
@@ -25,8 +30,17 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def feeder(endpoint: str, seconds: float, fps: float) -> None:
-    """Publish poses at 100 Hz and clouds at ``fps`` with the current time as stamp, looping."""
+def frame_at(k: int, n_frames: int, loop_jumps: bool = False) -> int:
+    """The recording's frame for tick ``k``: forward then backward (continuous), or in a loop."""
+    if loop_jumps:
+        return k % n_frames
+    i = k % (2 * (n_frames - 1))
+    return i if i < n_frames else 2 * (n_frames - 1) - i
+
+
+def feeder(endpoint: str, seconds: float, fps: float, loop_jumps: bool = False) -> None:
+    """Publish poses at 100 Hz and clouds at ``fps`` with the current time as stamp, back and forth
+    over the recording (see the module docstring)."""
     from service import messages as M
     from service import scenario
     from service.config import ZenohSettings
@@ -55,7 +69,7 @@ def feeder(endpoint: str, seconds: float, fps: float) -> None:
         if k % 100 == 0:
             pi.put(M.camera_info(now, K, cam.width, cam.height))
             pk.put(M.pose_stamped(now, matrix_to_pose(cam.world_from_camera)))
-        i = k % len(positions)
+        i = frame_at(k, len(positions), loop_jumps)
         pp.put(M.pose_array(now, poses[i]))
         if i in by_step:
             f = by_step[i]
@@ -94,9 +108,12 @@ def status(session, key="deform/rod1/status") -> dict:
         return json.loads(r.ok.payload.to_bytes())
 
 
+LOOP_JUMPS = False  # set from --loop-jumps in main()
+
+
 def start_feeder(endpoint: str, seconds: float, fps: float):
-    p = subprocess.Popen([sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)],
-                         stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    p = subprocess.Popen([sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)]
+                         + (["--loop-jumps"] if LOOP_JUMPS else []), stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert p.stdout.readline().strip() == "ready"
     return p
 
@@ -153,12 +170,16 @@ def main() -> int:
     ap.add_argument("--config", help="service YAML (default: config/service.yaml)")
     ap.add_argument("--predict-client")
     ap.add_argument("--feeder-s", type=float)
+    ap.add_argument("--loop-jumps", action="store_true",
+                    help="play the recording in a loop (a 24 cm gripper jump every 3 s) instead of back and forth")
     args = ap.parse_args()
+    global LOOP_JUMPS
+    LOOP_JUMPS = args.loop_jumps
     if args.predict_client:
         predict_run(args.predict_client, args.predict_n)
         return 0
     if args.feeder:
-        feeder(args.feeder, args.feeder_s, args.fps)
+        feeder(args.feeder, args.feeder_s, args.fps, args.loop_jumps)
         return 0
 
     import logging
@@ -172,7 +193,8 @@ def main() -> int:
     svc = Service(cfg).start()
     client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
     out: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                             "processor": platform.processor()}, "tracker": type(svc.est.tracker).__name__}
+                             "processor": platform.processor()}, "tracker": type(svc.est.tracker).__name__,
+                 "feeder": "loop (gripper jumps)" if LOOP_JUMPS else "back and forth"}
 
     t_ready = time.perf_counter()
     # the predict worker compiles its rollout, and the service its loop step, first

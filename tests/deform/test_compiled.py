@@ -1,11 +1,14 @@
 """The compiled inference step gives the eager step's values (it is only faster), pads batches to
 bucket sizes without changing results, and falls back to eager when compilation fails."""
+import math
+
 import pytest
 import torch
 
 from deform import generate_recording, gripped_indices, load_model
 from deform.compiled import LOOP_BRANCH_FREE, CompiledStep, RolloutStep, bucket_size, rollout
 from deform.model import RodState
+from deform.rod.inextensibility import max_relative_error
 
 
 @pytest.fixture(scope="module")
@@ -95,39 +98,48 @@ def test_rollout_step_one_graph_while_converged(model, start):
     """Predict's rollout: steps that converge in the one-graph step keep it, and each rod then
     gets what the eager step gives it alone."""
     state, grips = start
+    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
     step = RolloutStep(model)
     out = rollout(step, state, grips)
-    assert step.active and step.switched == 0
+    assert step.active and step.redone == 0
     for r in range(3):
         alone = rollout(model, state.index([r]), grips[r:r + 1])
         assert (out[r] - alone[0]).abs().max() < 1e-6
 
 
 def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, start):
-    """A grip jumping 1 cm needs more sweeps than the one graph holds: that step is the checked
+    """A grip jumping 5 cm needs more sweeps than the one graph holds: that step is the checked
     compiled step's (whole batch), not the unconverged one-graph result, and the following steps
     go back to the one graph."""
     state, grips = start
     state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
     jump = grips.clone()
-    jump[0, 3:, 2:] += torch.tensor([0.01, 0.0, 0.0], dtype=jump.dtype)
+    jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
     step = RolloutStep(model)
     out = rollout(step, state, jump)
-    assert step.redone == 1 and step.switched == 0
-    ref = rollout(CompiledStep(model), state, jump)  # the checked step throughout
-    assert (out - ref).abs().max() < 1e-6
+    assert step.redone == 1 and step.paused == 0
+    for k in range(out.shape[1]):  # every step within the projection's tolerance
+        assert max_relative_error(out[:, k], state.rest).max() < model.options.pbd_tol
+    # the checked step throughout: the same motion; rods converged early sweep on in its batch-wide
+    # loop while the jerked rod needs more, so they differ within the solver tolerance (0.1 mm here)
+    ref = rollout(CompiledStep(model), state, jump)
+    assert (out - ref).abs().max() < 5e-4
 
 
-def test_rollout_step_goes_over_to_checked_step_after_misses_in_a_row(model, start):
-    """A batch that keeps needing more than the one graph (a grip jerked 3 cm at every step) stops
-    paying for the wasted attempts: after ``max_misses`` in a row the checked step runs alone."""
+def test_rollout_step_pauses_the_fast_graph_after_misses_in_a_row(model, start):
+    """A batch that keeps needing more than the one graph (a grip pulled 10 cm further at every step,
+    soon farther from the other than the rod is long) stops paying for the wasted attempts: after
+    ``max_misses`` in a row the fast graph pauses for 1, 2, 4, ... steps, so it is tried a number
+    of times logarithmic in the rollout's length, and every step is the checked step's."""
     state, grips = start
+    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
     jerk = grips.clone()
-    jerk[0, :, 2:] += 0.03 * (torch.arange(jerk.shape[1], dtype=jerk.dtype) % 2)[:, None, None] * torch.tensor(
-        [1.0, 0.0, 0.0], dtype=jerk.dtype)
+    jerk[0, :, 2:, 0] += 0.1 * torch.arange(1, jerk.shape[1] + 1, dtype=jerk.dtype)[:, None]
     step = RolloutStep(model)
     out = rollout(step, state, jerk)
-    assert step.switched == 1 and step.redone == step.max_misses
+    steps = jerk.shape[1]  # 37: misses at steps 0, 1, 2, then after pauses at 4, 7, 12, 21
+    assert step.redone == step.max_misses + 4 and step.paused == 5
+    assert step.redone < step.max_misses + math.log2(steps) + 1
     ref = rollout(CompiledStep(model), state, jerk)
     assert (out - ref).abs().max() < 1e-6
 
