@@ -11,12 +11,12 @@ Public API (perception, service and tools use only these names):
 """
 from deform.config import ConfigError, RodConfig, available_rods, load_rod_config
 from deform.io import Recording, RecordingError, find_data_root, load_recording, load_recordings, save_recording
-from deform.model import DeformModel, ModelOptions, RodState, gripped_indices, load_model
+from deform.model import DeformModel, ModelOptions, RodState, gripped_indices, load_model, overstretched
 from deform.synthetic import generate_recording
 
 __all__ = [
     "ConfigError", "RodConfig", "available_rods", "load_rod_config",
     "Recording", "RecordingError", "find_data_root", "load_recording", "load_recordings", "save_recording",
-    "DeformModel", "ModelOptions", "RodState", "gripped_indices", "load_model",
+    "DeformModel", "ModelOptions", "RodState", "gripped_indices", "load_model", "overstretched",
     "generate_recording",
 ]

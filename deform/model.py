@@ -37,6 +37,15 @@ def gripped_indices(n: int) -> list[int]:
     return [0, 1, n - 2, n - 1]
 
 
+def overstretched(grip: Tensor, rest: Tensor) -> Tensor:
+    """True where the grippers hold the rod farther apart than it is long: vertices 1 and n-2 (the
+    inner gripped ones) more than the free chain's rest length ``sum(rest[1:n-2])`` apart. No shape
+    then meets the edge lengths, and the projection cannot converge. ``grip`` (..., 4, 3) as
+    ``DeformModel.step`` takes it, ``rest`` (..., n-1), broadcast against each other."""
+    free = rest[..., 1:-1].sum(-1)
+    return (grip[..., 1, :] - grip[..., 2, :]).norm(dim=-1) > free
+
+
 @dataclass
 class RodState:
     """Batched rod state. ``x``, ``v``: (B, n, 3); ``d1``: (B, m, 3) reference directors of the

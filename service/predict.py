@@ -13,6 +13,7 @@ import numpy as np
 import orjson
 import torch
 
+from deform import overstretched
 from service.estimator import NS, Estimator
 from service.geometry import grips_from_poses
 from service.messages import InputError
@@ -80,9 +81,13 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
         plans = parse_request(body, ctx.cfg.limits, ctx.model.dt)
     except InputError as exc:
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
-    verts = rollout(ctx.step, base, grips_from_poses(plans, ctx.cfg.grippers))
+    grips = grips_from_poses(plans, ctx.cfg.grippers)
+    verts = rollout(ctx.step, base, grips)
+    # plans that at some step hold the rod farther apart than it is long: no shape meets them, their
+    # vertices are whatever the unconverged projection left (a planner should discard them)
+    taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
     # 0.01 mm resolution: the estimate is not better than that, and the reply is a third shorter
-    return True, orjson.dumps({"stamp": stamp_ns / NS, "vertices": np.round(verts, 5)},
+    return True, orjson.dumps({"stamp": stamp_ns / NS, "vertices": np.round(verts, 5), "overstretched": taut},
                               option=orjson.OPT_SERIALIZE_NUMPY), None, None
 
 

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from deform import DeformModel, ModelOptions, generate_recording, gripped_indices, load_model, load_rod_config
+from deform import (DeformModel, ModelOptions, generate_recording, gripped_indices, load_model, load_rod_config,
+                    overstretched)
 from deform.rod.inextensibility import max_relative_error
 
 
@@ -141,3 +142,18 @@ def test_nominal_rest_lengths_come_from_training_recordings(tmp_path, recording)
     r = loaded.rest_lengths(grip)
     assert torch.allclose(r[1:-1], rest[1:-1])
     assert abs(float(r[0]) - np.linalg.norm(grip[1] - grip[0])) < 1e-12
+
+
+def test_overstretched_when_the_grippers_are_farther_apart_than_the_free_length():
+    """A straight rod held at its own length is not overstretched; its far end pulled out by 1 mm is;
+    a chord shorter than the free length never is, however the rod lies between."""
+    rest = torch.tensor([0.03, 0.1, 0.1, 0.1, 0.03], dtype=torch.float64)
+    x = torch.zeros(6, 3, dtype=torch.float64)
+    x[:, 0] = torch.cat([torch.zeros(1, dtype=x.dtype), torch.cumsum(rest, 0)])
+    grip = x[gripped_indices(6)]
+    pulled = grip.clone()
+    pulled[2:, 0] += 1e-3
+    pushed = grip.clone()
+    pushed[2:, 0] -= 0.2
+    out = overstretched(torch.stack([grip, pulled, pushed]), rest)  # batch against one rest shape
+    assert out.tolist() == [False, True, False]

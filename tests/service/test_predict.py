@@ -69,3 +69,14 @@ def test_no_estimate_yet(model):
     e = Estimator(make_config(), model, OpenLoopTracker(model))
     ok, reply = predict.handle(e, body(np.tile(GOOD, (1, 1, 1, 1))))
     assert not ok and json.loads(reply)["error"] == "no_estimate"
+
+
+def test_overstretched_plans_flagged(est, model):
+    """A plan that pulls the grippers farther apart than the rod is long has no valid shape: the
+    reply flags it, and only it."""
+    free = float(model.rest_lengths()[1:-1].sum())
+    plans = np.tile(GOOD, (2, 5, 1, 1))
+    gap = np.linalg.norm(GOOD[1, :3] - GOOD[0, :3])  # the poses; the gripped vertices sit inside them
+    plans[1, :, 1, 0] += np.linspace(0, free - gap + 0.2, 5)  # the second gripper pulled out along x
+    ok, reply = predict.handle(est, body(plans))
+    assert ok and json.loads(reply)["overstretched"] == [False, True]
