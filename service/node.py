@@ -6,6 +6,7 @@ in arrival order on one thread, so a replay gives the same output bit for bit.
 """
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -123,6 +124,7 @@ class Service:
         if self.cfg.compile_step and not self.est.message_clock:
             # not on the message clock: a replay must not depend on when compilation finished
             threading.Thread(target=self._compile_step, name=f"compile[{self.cfg.namespace}]", daemon=True).start()
+        gc.freeze()  # torch and the model out of the collector's reach (see _compile_step)
         loop = self._message_loop if self.est.message_clock else self._wall_loop
         for target, name in ((loop, "loop"), (self._predict_loop, "predict")):
             t = threading.Thread(target=target, name=f"{name}[{self.cfg.namespace}]", daemon=True)
@@ -191,6 +193,9 @@ class Service:
                 log.info("[%s] loop step compiled in %.1f s", self.cfg.namespace, time.perf_counter() - t0)
             else:
                 log.warning("[%s] loop step not compiled: running eagerly", self.cfg.namespace)
+        # the compiled code's objects (hundreds of thousands) out of the collector's reach: a full
+        # collection holds the interpreter lock, and the loop thread with it, for about 0.4 s
+        gc.freeze()
         self.step_ready = True
 
     # ----- inputs ------------------------------------------------------------------------------
