@@ -157,3 +157,27 @@ def test_overstretched_when_the_grippers_are_farther_apart_than_the_free_length(
     pushed[2:, 0] -= 0.2
     out = overstretched(torch.stack([grip, pulled, pushed]), rest)  # batch against one rest shape
     assert out.tolist() == [False, True, False]
+
+
+def test_overstretched_rod_is_stretched_evenly_instead_of_flung_about():
+    """Grippers held 5 % farther apart than the rod is long: no shape meets the rest lengths. The
+    free edges are stretched evenly (to 0.1 % beyond reaching, so the rod sags and swings a little
+    under gravity) instead of a projection without a solution flinging the vertices about (3-28 m/s
+    before this rule)."""
+    model = load_model("DLO1")
+    n, rest = model.n, model.rest_lengths().to(torch.float64)
+    x = torch.zeros(1, n, 3, dtype=torch.float64)
+    x[0, :, 0] = torch.cat([torch.zeros(1, dtype=x.dtype), torch.cumsum(rest, 0)])
+    state = model.static_state(x, rest=rest[None].clone())
+    grip = x[:, gripped_indices(n)].clone()
+    grip[:, 2:, 0] += 0.05 * float(rest[1:-1].sum())
+    assert overstretched(grip, rest).all()
+    speeds = []
+    with torch.no_grad():
+        for _ in range(150):
+            state = model.step(state, grip)
+            speeds.append(float(state.v.norm(dim=-1).max()))
+    assert torch.isfinite(state.x).all()
+    assert max(speeds[50:]) < 0.5
+    stretch = (state.x[0, 2:n - 1] - state.x[0, 1:n - 2]).norm(dim=-1) / rest[1:-1]
+    assert ((stretch > 1.048) & (stretch < 1.053)).all()
