@@ -108,12 +108,9 @@ def status(session, key="deform/rod1/status") -> dict:
         return json.loads(r.ok.payload.to_bytes())
 
 
-LOOP_JUMPS = False  # set from --loop-jumps in main()
-
-
-def start_feeder(endpoint: str, seconds: float, fps: float):
+def start_feeder(endpoint: str, seconds: float, fps: float, loop_jumps: bool = False):
     p = subprocess.Popen([sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)]
-                         + (["--loop-jumps"] if LOOP_JUMPS else []), stdout=subprocess.PIPE, text=True, cwd=ROOT)
+                         + (["--loop-jumps"] if loop_jumps else []), stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert p.stdout.readline().strip() == "ready"
     return p
 
@@ -173,8 +170,6 @@ def main() -> int:
     ap.add_argument("--loop-jumps", action="store_true",
                     help="play the recording in a loop (a 24 cm gripper jump every 3 s) instead of back and forth")
     args = ap.parse_args()
-    global LOOP_JUMPS
-    LOOP_JUMPS = args.loop_jumps
     if args.predict_client:
         predict_run(args.predict_client, args.predict_n)
         return 0
@@ -194,7 +189,7 @@ def main() -> int:
     client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
     out: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                              "processor": platform.processor()}, "tracker": type(svc.est.tracker).__name__,
-                 "feeder": "loop (gripper jumps)" if LOOP_JUMPS else "back and forth"}
+                 "feeder": "loop (gripper jumps)" if args.loop_jumps else "back and forth"}
 
     t_ready = time.perf_counter()
     # the predict worker compiles its rollout, and the service its loop step, first
@@ -205,7 +200,7 @@ def main() -> int:
     out["loop_step"] = (status(client) or {}).get("step")
 
     # 1. live loop with clouds at 30 Hz
-    feed = start_feeder(ep, args.loop_s + 3, args.fps)
+    feed = start_feeder(ep, args.loop_s + 3, args.fps, args.loop_jumps)
     time.sleep(3.0)   # initialization and warm-up
     s0 = status(client)
     time.sleep(args.loop_s)
@@ -234,7 +229,7 @@ def main() -> int:
     out["predict_64x100"] = dict(predict_client(ep, args.predict_n), **inside(args.predict_n),
                                  note="service idle (no feeder); request sent to reply received, client process")
     print(json.dumps(out["predict_64x100"]), flush=True)
-    feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps)
+    feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps, args.loop_jumps)
     time.sleep(3.0)
     s0, t_live0 = status(client), time.perf_counter()
     live = predict_client(ep, args.predict_n)
@@ -250,7 +245,7 @@ def main() -> int:
     print(json.dumps(out["predict_64x100_live"]), flush=True)
 
     # 3. memory soak
-    feed = start_feeder(ep, args.soak_s + 10, args.fps)
+    feed = start_feeder(ep, args.soak_s + 10, args.fps, args.loop_jumps)
     time.sleep(min(60.0, max(10.0, args.soak_s / 10)))
     samples = [(0.0, rss_mb(svc))]
     t0 = time.perf_counter()

@@ -37,13 +37,18 @@ def gripped_indices(n: int) -> list[int]:
     return [0, 1, n - 2, n - 1]
 
 
+def _reach_ratio(grip: Tensor, rest: Tensor) -> Tensor:
+    """Distance between the inner gripped vertices 1 and n-2 over the free chain's rest length
+    ``sum(rest[1:n-2])``: above 1, no shape of the rod reaches both grippers."""
+    return (grip[..., 1, :] - grip[..., 2, :]).norm(dim=-1) / rest[..., 1:-1].sum(-1)
+
+
 def overstretched(grip: Tensor, rest: Tensor) -> Tensor:
-    """True where the grippers hold the rod farther apart than it is long: vertices 1 and n-2 (the
-    inner gripped ones) more than the free chain's rest length ``sum(rest[1:n-2])`` apart. No shape
-    then meets the edge lengths, and the projection cannot converge. ``grip`` (..., 4, 3) as
-    ``DeformModel.step`` takes it, ``rest`` (..., n-1), broadcast against each other."""
-    free = rest[..., 1:-1].sum(-1)
-    return (grip[..., 1, :] - grip[..., 2, :]).norm(dim=-1) > free
+    """True where the grippers hold the rod farther apart than it is long (vertices 1 and n-2 more
+    than the free chain's rest length apart). No shape then meets the edge lengths, and the
+    projection cannot converge. ``grip`` (..., 4, 3) as ``DeformModel.step`` takes it, ``rest``
+    (..., n-1), broadcast against each other."""
+    return _reach_ratio(grip, rest) > 1.0
 
 
 def rest_within_reach(rest: Tensor, grip: Tensor, slack: float = 1e-3) -> Tensor:
@@ -54,8 +59,7 @@ def rest_within_reach(rest: Tensor, grip: Tensor, slack: float = 1e-3) -> Tensor
     system for a straight chain) fling the free vertices about at metres per second; stretched, the
     rod lies straight between the grippers. A model change only where no shape was valid: the
     recordings never come within 1 % of it."""
-    free = rest[..., 1:-1].sum(-1)
-    scale = ((grip[..., 1, :] - grip[..., 2, :]).norm(dim=-1) * (1.0 + slack) / free).clamp_min(1.0)
+    scale = (_reach_ratio(grip, rest) * (1.0 + slack)).clamp_min(1.0)
     return torch.cat([rest[..., :1], rest[..., 1:-1] * scale.unsqueeze(-1), rest[..., -1:]], dim=-1)
 
 

@@ -83,8 +83,8 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
     grips = grips_from_poses(plans, ctx.cfg.grippers)
     verts = rollout(ctx.step, base, grips)
-    # plans that at some step hold the rod farther apart than it is long: no shape meets them, their
-    # vertices are whatever the unconverged projection left (a planner should discard them)
+    # plans that at some step hold the rod farther apart than it is long: no real rope follows them
+    # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
     # 0.01 mm resolution: the estimate is not better than that, and the reply is a third shorter
     return True, orjson.dumps({"stamp": stamp_ns / NS, "vertices": np.round(verts, 5), "overstretched": taut},
