@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from deform.errors import UsageError
 from deform.io.recordings import Recording
 from deform.model import DeformModel, gripped_indices
 
@@ -67,9 +68,14 @@ def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: r
     ``transported``: the directors a rollout from the recording's first frame carries at the window's
     start (``Recording.reference_frames``), so that training states have the twist and material frame
     that evaluation's states have; otherwise None (fresh space-parallel frames for every window)."""
+    usable = [r for r in recordings if r.n_frames >= horizon + 2]  # too short for a window: not sampled
+    if not usable:
+        longest = max((r.n_frames for r in recordings), default=0)
+        raise UsageError(f"a {horizon}-step window needs recordings of at least {horizon + 2} frames; "
+                         f"the longest has {longest}")
     out, frames = [], []
     for _ in range(batch):
-        r = rng.choice(recordings)
+        r = rng.choice(usable)
         s = rng.randrange(0, r.n_frames - horizon - 2 + 1)
         out.append(r.positions[s : s + horizon + 2])
         if transported:
@@ -167,6 +173,10 @@ def validation_l1(model: DeformModel, recordings: list[Recording], steps: int) -
 def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Recording], cfg: TrainConfig,
           out_dir: str | Path, resume: bool = True, progress: bool = True) -> dict:
     """Train in place; writes ``out_dir/checkpoint.pt`` (resumable), ``best.pt`` and ``log.jsonl``."""
+    longest = max((r.n_frames for r in train_recs), default=0)
+    if longest < cfg.horizon + 2:  # before any work: the first training batch could not be cut
+        raise UsageError(f"horizon {cfg.horizon} needs training recordings of at least {cfg.horizon + 2} frames; "
+                         f"the longest has {longest}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model.options.residual = cfg.residual

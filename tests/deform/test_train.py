@@ -1,5 +1,6 @@
 import json
 
+import pytest
 import torch
 
 from deform import DeformModel, generate_recording, load_rod_config
@@ -65,3 +66,23 @@ def test_training_windows_start_in_the_frames_evaluation_carries():
     assert float((fresh - frames[-1]).norm(dim=-1).max()) > 1e-3
     _, none = sample_windows([rec], 2, 20, random.Random(0), transported=False)
     assert none is None
+
+
+def test_a_horizon_longer_than_every_recording_is_a_clear_error_before_any_work(tmp_path):
+    """Windows cannot be cut from recordings shorter than the horizon: training says so up front
+    (the CLI prints it as one line) instead of failing inside the random window sampler; shorter
+    recordings among longer ones are simply not sampled."""
+    import random
+
+    from deform.errors import UsageError
+    from deform.train import TrainConfig, sample_windows, train
+
+    cfg = load_rod_config("DLO2")
+    model = DeformModel(cfg)
+    short = generate_recording(model, n_frames=30, seed=1)
+    long = generate_recording(model, n_frames=60, seed=2)
+    with pytest.raises(UsageError, match="at least 52 frames; the longest has 30"):
+        train(model, [short], [], TrainConfig(iterations=1, horizon=50), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
+    X, _ = sample_windows([short, long], 6, 50, random.Random(0))
+    assert X.shape[1] == 52 and all((X[b, 0].numpy() == long.positions).all(axis=(1, 2)).any() for b in range(6))
