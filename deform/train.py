@@ -63,7 +63,8 @@ def split_validation(recordings: list[Recording], every: int = 5) -> tuple[list[
 def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: random.Random,
                    transported: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, horizon + 2, n, 3) windows (two frames to start from, ``horizon`` frames to predict) and
-    the reference directors (B, n-1, 3) to start them in.
+    the reference directors (B, n-1, 3) to start them in. Recordings shorter than ``horizon + 2``
+    frames are skipped; a UsageError when all are.
 
     ``transported``: the directors a rollout from the recording's first frame carries at the window's
     start (``Recording.reference_frames``), so that training states have the twist and material frame
