@@ -60,6 +60,17 @@ def split_validation(recordings: list[Recording], every: int = 5) -> tuple[list[
     return train, val
 
 
+def long_enough(recordings: list[Recording], horizon: int) -> list[Recording]:
+    """The recordings a ``horizon``-step window (``horizon + 2`` frames) can be cut from; a
+    UsageError naming the longest when there is none."""
+    usable = [r for r in recordings if r.n_frames >= horizon + 2]
+    if not usable:
+        longest = max((r.n_frames for r in recordings), default=0)
+        raise UsageError(f"a {horizon}-step window needs recordings of at least {horizon + 2} frames; "
+                         f"the longest has {longest}")
+    return usable
+
+
 def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: random.Random,
                    transported: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, horizon + 2, n, 3) windows (two frames to start from, ``horizon`` frames to predict) and
@@ -69,11 +80,7 @@ def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: r
     ``transported``: the directors a rollout from the recording's first frame carries at the window's
     start (``Recording.reference_frames``), so that training states have the twist and material frame
     that evaluation's states have; otherwise None (fresh space-parallel frames for every window)."""
-    usable = [r for r in recordings if r.n_frames >= horizon + 2]  # too short for a window: not sampled
-    if not usable:
-        longest = max((r.n_frames for r in recordings), default=0)
-        raise UsageError(f"a {horizon}-step window needs recordings of at least {horizon + 2} frames; "
-                         f"the longest has {longest}")
+    usable = long_enough(recordings, horizon)  # too short for a window: not sampled
     out, frames = [], []
     for _ in range(batch):
         r = rng.choice(usable)
@@ -174,10 +181,7 @@ def validation_l1(model: DeformModel, recordings: list[Recording], steps: int) -
 def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Recording], cfg: TrainConfig,
           out_dir: str | Path, resume: bool = True, progress: bool = True) -> dict:
     """Train in place; writes ``out_dir/checkpoint.pt`` (resumable), ``best.pt`` and ``log.jsonl``."""
-    longest = max((r.n_frames for r in train_recs), default=0)
-    if longest < cfg.horizon + 2:  # before any work: the first training batch could not be cut
-        raise UsageError(f"horizon {cfg.horizon} needs training recordings of at least {cfg.horizon + 2} frames; "
-                         f"the longest has {longest}")
+    long_enough(train_recs, cfg.horizon)  # before any work: the first training batch could not be cut
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model.options.residual = cfg.residual
