@@ -115,23 +115,34 @@ def start_feeder(endpoint: str, seconds: float, fps: float, loop_jumps: bool = F
     return p
 
 
-def predict_run(endpoint: str, n: int) -> None:
-    """Client process: ``n`` predict queries of 64 random plans x 100 steps; prints the timings as JSON."""
+def predict_run(endpoint: str, n: int, stale_plans: bool = False) -> None:
+    """Client process: ``n`` predict queries of 64 random plans x 100 steps; prints the timings as JSON.
+
+    As a planner does, each request's plans start at the grippers' current poses: the client asks for
+    the latest estimate (``{ns}/vertices``, outside the timed part) before building them.
+    ``stale_plans``: every plan starts where the grippers were when the client started (the benchmark
+    until 2026-11-23): while the rod moves, each plan then opens with a gripper jump of centimetres.
+    """
     from service import messages as M
     from service.config import ZenohSettings, load_config
     from service.geometry import poses_from_vertices
     from service.node import open_session
 
     s = open_session(ZenohSettings(connect=[endpoint], multicast_scouting=False))
-    x = None
-    while x is None:
-        for r in s.get("deform/rod1/vertices", timeout=5.0):
-            if r.ok is not None:
-                x = M.parse_vertices(r.ok.payload.to_bytes())[1].astype(float)
-    base = poses_from_vertices(x, load_config().grippers)
+    grippers = load_config().grippers
+
+    def current_poses():
+        while True:
+            for r in s.get("deform/rod1/vertices", timeout=5.0):
+                if r.ok is not None:
+                    return poses_from_vertices(M.parse_vertices(r.ok.payload.to_bytes())[1].astype(float), grippers)
+
+    base = current_poses()
     rng = np.random.default_rng(0)
     times, size = [], 0
     for _ in range(n):
+        if not stale_plans:
+            base = current_poses()
         plans = base[None, None] + np.linspace(0, 1, 100)[None, :, None, None] * np.concatenate(
             [rng.uniform(-0.1, 0.1, (64, 1, 2, 3)), np.zeros((64, 1, 2, 4))], axis=-1)
         body = json.dumps({"plans": plans.tolist(), "dt": 0.01}).encode()
@@ -147,8 +158,9 @@ def predict_run(endpoint: str, n: int) -> None:
     s.close()
 
 
-def predict_client(endpoint: str, n: int) -> dict:
-    p = subprocess.run([sys.executable, __file__, "--predict-client", endpoint, "--predict-n", str(n)],
+def predict_client(endpoint: str, n: int, stale_plans: bool = False) -> dict:
+    p = subprocess.run([sys.executable, __file__, "--predict-client", endpoint, "--predict-n", str(n)]
+                       + (["--stale-plans"] if stale_plans else []),
                        capture_output=True, text=True, cwd=ROOT, timeout=600)
     lines = [l for l in p.stdout.splitlines() if l.startswith("{")]
     if not lines:
@@ -169,9 +181,11 @@ def main() -> int:
     ap.add_argument("--feeder-s", type=float)
     ap.add_argument("--loop-jumps", action="store_true",
                     help="play the recording in a loop (a 24 cm gripper jump every 3 s) instead of back and forth")
+    ap.add_argument("--stale-plans", action="store_true",
+                    help="plans start where the grippers were when the client started, not at their current poses")
     args = ap.parse_args()
     if args.predict_client:
-        predict_run(args.predict_client, args.predict_n)
+        predict_run(args.predict_client, args.predict_n, args.stale_plans)
         return 0
     if args.feeder:
         feeder(args.feeder, args.feeder_s, args.fps, args.loop_jumps)
@@ -226,13 +240,14 @@ def main() -> int:
         return {"service_ms": svc.stats.predict_s.summary(last=n),
                 "worker_ms": svc.stats.predict_compute_s.summary(last=n)}
 
-    out["predict_64x100"] = dict(predict_client(ep, args.predict_n), **inside(args.predict_n),
+    out["plans_start"] = "where the grippers were at client start" if args.stale_plans else "current gripper poses"
+    out["predict_64x100"] = dict(predict_client(ep, args.predict_n, args.stale_plans), **inside(args.predict_n),
                                  note="service idle (no feeder); request sent to reply received, client process")
     print(json.dumps(out["predict_64x100"]), flush=True)
     feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps, args.loop_jumps)
     time.sleep(3.0)
     s0, t_live0 = status(client), time.perf_counter()
-    live = predict_client(ep, args.predict_n)
+    live = predict_client(ep, args.predict_n, args.stale_plans)
     s1, t_live1 = status(client), time.perf_counter()
     feed.kill()
     out["predict_64x100_live"] = dict(
