@@ -241,7 +241,9 @@ def main() -> int:
                 "worker_ms": svc.stats.predict_compute_s.summary(last=n)}
 
     out["plans_start"] = "where the grippers were at client start" if args.stale_plans else "current gripper poses"
+    s0 = status(client)
     out["predict_64x100"] = dict(predict_client(ep, args.predict_n, args.stale_plans), **inside(args.predict_n),
+                                 steps_redone=counted(s0, status(client), "predict_steps_redone"),
                                  note="service idle (no feeder); request sent to reply received, client process")
     print(json.dumps(out["predict_64x100"]), flush=True)
     feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps, args.loop_jumps)
@@ -251,7 +253,8 @@ def main() -> int:
     s1, t_live1 = status(client), time.perf_counter()
     feed.kill()
     out["predict_64x100_live"] = dict(
-        live, **inside(args.predict_n), loop_deadline_misses=counted(s0, s1, "deadline_misses"),
+        live, **inside(args.predict_n), steps_redone=counted(s0, s1, "predict_steps_redone"),
+        loop_deadline_misses=counted(s0, s1, "deadline_misses"),
         clouds_fused=counted(s0, s1, "clouds_fused"),
         fusions_deferred=counted(s0, s1, "fusion_deferred"),
         seconds=round(t_live1 - t_live0, 1),

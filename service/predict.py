@@ -104,10 +104,11 @@ def handle(est: Estimator, body: bytes, worker=None) -> tuple[bool, bytes]:
     if worker is None:  # no service around it (tests, scripts): run here
         worker = _inline_worker(est)
     t0 = time.perf_counter()
-    ok, reply, reason, detail, compute_s = worker.call("predict", body, base, stamp,
-                                                       timeout=est.cfg.workers.predict_timeout_s)
+    ok, reply, reason, detail, compute_s, redone = worker.call("predict", body, base, stamp,
+                                                               timeout=est.cfg.workers.predict_timeout_s)
     if ok:
         est.stats.count("predictions")
+        est.stats.count("predict_steps_redone", redone)
         est.stats.predict_s.add(time.perf_counter() - t0)
         est.stats.predict_compute_s.add(compute_s)
     else:

@@ -111,10 +111,14 @@ def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]
 
 
 def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
-    """-> ``predict.answer``'s (ok, reply, reason, detail) and the seconds it took in here."""
+    """-> ``predict.answer``'s (ok, reply, reason, detail), the seconds it took in here, and the
+    rollout steps its one-graph step left unconverged (redone with the checked step; they double a
+    step's cost, so status counts them)."""
     from service import predict
     t0 = time.perf_counter()
-    return (*predict.answer(ctx, body, base, stamp_ns), time.perf_counter() - t0)
+    redone0 = getattr(ctx.step, "redone", 0)
+    out = predict.answer(ctx, body, base, stamp_ns)
+    return (*out, time.perf_counter() - t0, getattr(ctx.step, "redone", 0) - redone0)
 
 
 def job_warmup(ctx: JobContext, batch_sizes) -> bool:

@@ -80,3 +80,20 @@ def test_overstretched_plans_flagged(est, model):
     plans[1, :, 1, 0] += np.linspace(0, free - gap + 0.2, 5)  # the second gripper pulled out along x
     ok, reply = predict.handle(est, body(plans))
     assert ok and json.loads(reply)["overstretched"] == [False, True]
+
+
+def test_redone_rollout_steps_counted(est, monkeypatch):
+    """Steps the predict rollout redid (its one-graph step left them unconverged; each costs about
+    two) reach ``status.counts.predict_steps_redone``."""
+    from deform.compiled import RolloutStep
+
+    original = RolloutStep.rollout
+
+    def rollout_redoing_three(self, state, grips):
+        self.redone += 3
+        return original(self, state, grips)
+
+    monkeypatch.setattr(RolloutStep, "rollout", rollout_redoing_three)
+    before = est.status()["counts"].get("predict_steps_redone", 0)
+    ok, _ = predict.handle(est, body(np.tile(GOOD, (2, 3, 1, 1))))
+    assert ok and est.status()["counts"]["predict_steps_redone"] == before + 3
