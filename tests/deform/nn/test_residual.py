@@ -3,7 +3,7 @@ import torch
 from deform.nn.residual import ResidualGNN
 
 
-def test_dense_propagation_equals_pyg_gcnconv():
+def test_chain_propagation_equals_pyg_gcnconv():
     net = ResidualGNN(13)
     torch.nn.init.normal_(net.head[2].weight)  # a non-zero head so that the outputs differ from 0
     x, v = torch.randn(13, 3), torch.randn(13, 3)
