@@ -64,8 +64,9 @@ class ResidualGNN(nn.Module):
         y = conv.lin(h)
         prev = F.pad(y[..., :-1, :], (0, 0, 1, 0))  # row i holds y[i-1] (zeros for i = 0)
         nxt = F.pad(y[..., 1:, :], (0, 0, 0, 1))    # row i holds y[i+1] (zeros for i = n-1)
-        dt = y.dtype
-        return self.adj_self.to(dt) * y + self.adj_prev.to(dt) * prev + self.adj_next.to(dt) * nxt + conv.bias
+        dtype = y.dtype
+        return (self.adj_self.to(dtype) * y + self.adj_prev.to(dtype) * prev + self.adj_next.to(dtype) * nxt
+                + conv.bias)
 
     def forward(self, x: Tensor, v: Tensor) -> Tensor:
         """(..., n, 3) positions and velocities -> (..., n, 3) velocity correction."""
