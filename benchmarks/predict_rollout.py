@@ -8,6 +8,9 @@ in ``benchmarks/service_bench.py``: each gripper moves linearly to a random offs
 axis over the 100 steps, from the state of a recording at frames 50, 200 and 350.
 
     python benchmarks/predict_rollout.py [--rod DLO1] [--recordings 5] [--settings 2,1 2,2 3,2] [--repeats 3]
+    python benchmarks/predict_rollout.py --settings 2,2 2,2:aot    # torch.compile vs ahead of time
+
+A setting ``T,S:aot`` runs the one-graph step as an AOTInductor package (``deform.aot``).
 
 Prints one JSON line per setting: median, p90 and max rollout time (best of ``repeats`` per start
 state), the starts where the one graph missed, steps redone, and pauses.
@@ -60,7 +63,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)  # as in the service's predict worker
     model = load_model(args.rod)
-    steps = {s: RolloutStep(model, branch_free=tuple(int(v) for v in s.split(","))) for s in args.settings}
+    steps = {s: RolloutStep(model, branch_free=tuple(int(v) for v in s.split(":")[0].split(",")),
+                            ahead_of_time=s.endswith(":aot")) for s in args.settings}
     for st in steps.values():
         st.warmup((args.plans,))
     rng = np.random.default_rng(args.seed)

@@ -67,10 +67,14 @@ class CompiledStep:
     """
 
     def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] | None = None,
-                 check: str = "report"):
+                 check: str = "report", ahead_of_time: bool = False):
         self.model = model
         self.enabled = enabled
         self.branch_free = branch_free
+        # the branch-free step as an AOTInductor package per (bucket, dtype) (deform.aot: the same
+        # values, without dynamo's per-call entry cost); torch.compile if it cannot be built
+        self.ahead_of_time = ahead_of_time and branch_free is not None and check == "report"
+        self._aot: dict = {}
         # how a branch-free step is verified: "report", the solvers' own flags (cheaper), or
         # "recompute", DeformModel.unconverged (a second evaluation of the twist Hessian)
         self.check = check
@@ -103,6 +107,20 @@ class CompiledStep:
             self._compiled = torch.compile(self._checked_step, dynamic=False, options=COMPILE_OPTIONS)
         return self._compiled
 
+    def _aot_fn(self, size: int, dtype: torch.dtype):
+        """The ahead-of-time step for this bucket (built on first use), or None."""
+        if not self.ahead_of_time:
+            return None
+        fn = self._aot.get((size, dtype))
+        if fn is None:
+            from deform.aot import AheadOfTimeStep
+            try:
+                fn = self._aot[(size, dtype)] = AheadOfTimeStep(self.model, self.branch_free, size, dtype)
+            except Exception as exc:  # noqa: BLE001 - no AOTInductor here: the torch.compile step
+                self.ahead_of_time = False
+                log.warning("ahead-of-time step unavailable (%s: %s); using torch.compile", type(exc).__name__, exc)
+        return fn
+
     def attempt(self, state: RodState, grip_next: Tensor | None) -> tuple[RodState, Tensor | None]:
         """The compiled step alone: ``(new state, unconverged)``, ``unconverged`` a (B,) bool tensor
         with ``branch_free`` (rods outside the solver tolerances, see ``model.unconverged``), else
@@ -115,7 +133,8 @@ class CompiledStep:
         grip = None if grip_next is None else _pad(grip_next, size)
         try:
             with torch.no_grad(), self._lock:
-                out, unconverged = self._step_fn()(padded, grip)
+                fn = self._aot_fn(size, state.x.dtype) if grip is not None else None
+                out, unconverged = (fn or self._step_fn())(padded, grip)
         except Exception as exc:  # noqa: BLE001 - any compiler failure: keep running, eagerly
             self._failed = True
             log.warning("compiled step unavailable (%s: %s); using the eager step", type(exc).__name__, exc)
@@ -172,9 +191,9 @@ class RolloutStep:
     """
 
     def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] = (2, 2),
-                 max_misses: int = 3):
+                 max_misses: int = 3, ahead_of_time: bool = False):
         self.model = model
-        self.fast = CompiledStep(model, enabled, branch_free=branch_free)
+        self.fast = CompiledStep(model, enabled, branch_free=branch_free, ahead_of_time=ahead_of_time)
         self.checked = CompiledStep(model, enabled)
         self.max_misses = max_misses
         self.redone = 0  # steps the fast graph left unconverged, redone with the checked step

@@ -61,6 +61,9 @@ class Limits(_Strict):
 class Workers(_Strict):
     processes: bool = True        # fusion (wall clock) and predict run in child processes, off the loop's GIL
     compile_predict: bool = True  # torch.compile the predict rollout (eager fallback if it cannot compile)
+    # its one-graph step as an AOTInductor package (deform.aot: same values, 0.7x per step; cached
+    # on disk, torch.compile if it cannot be built); only with compile_predict
+    predict_ahead_of_time: bool = True
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)
     predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile

@@ -95,7 +95,8 @@ class JobContext:
     def step(self):
         if self._step is None:
             from deform.compiled import RolloutStep
-            self._step = RolloutStep(self.model, enabled=self.cfg.workers.compile_predict)
+            self._step = RolloutStep(self.model, enabled=self.cfg.workers.compile_predict,
+                                     ahead_of_time=self.cfg.workers.predict_ahead_of_time)
         return self._step
 
 

@@ -1,0 +1,128 @@
+"""The one-graph model step compiled ahead of time (AOTInductor): a shared library called from C++.
+
+Why: a ``torch.compile`` step is entered through dynamo's guards, AOTAutograd's runtime wrappers
+and a few Python frames on every call. For the predict rollout (64 rods, 100 calls per request) that
+entry costs about a quarter of the step: the same graph exported with ``torch.export`` and compiled
+by AOTInductor gives bit-identical values at 0.75x the time per step (scratch A/B, 2026-11-23; see
+``benchmarks/predict_rollout.py --ahead-of-time``). The price: the package is specialised on one
+batch size and dtype, and the model's parameters are frozen into it. So packages are keyed on the
+parameters' values (and on this package's source and the torch build) and cached on disk
+(``$DEFORM_CACHE``, default ``~/.cache/deform``); a step whose model's parameters changed after
+the package was made builds a new one rather than use stale weights.
+
+Only the branch-free step (fixed twist iterations and projection sweeps, see
+:class:`deform.compiled.CompiledStep`) is compiled this way: the convergence-checked step has
+data-dependent loops that do not export into one graph.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from deform.model import DeformModel, RodState
+
+log = logging.getLogger("deform.aot")
+
+_PACKAGE_SOURCE = Path(__file__).resolve().parent
+
+
+def cache_dir() -> Path:
+    """Where compiled packages are kept: ``$DEFORM_CACHE`` or ``~/.cache/deform``."""
+    return Path(os.environ.get("DEFORM_CACHE") or Path.home() / ".cache" / "deform") / "aot"
+
+
+def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype) -> str:
+    """Hash of everything the compiled code depends on: the model's values and configuration, the
+    step's settings, the source of ``deform`` and the torch build and CPU."""
+    h = hashlib.sha256()
+    for part in (torch.__version__, platform.machine(), torch.backends.cpu.get_cpu_capability(),
+                 repr(branch_free), str(batch), str(dtype), repr(model.cfg),
+                 repr([type(e).__name__ for e in getattr(model, "extensions", [])])):
+        h.update(part.encode())
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    for src in sorted(_PACKAGE_SOURCE.rglob("*.py")):
+        h.update(src.read_bytes())
+    return h.hexdigest()[:32]
+
+
+class _BranchFreeStep(torch.nn.Module):
+    """``model.step`` with fixed iterations on flat tensors, and the rods it left unconverged."""
+
+    def __init__(self, model: DeformModel, branch_free: tuple[int, int]):
+        super().__init__()
+        self.model, self.branch_free = model, branch_free
+
+    def forward(self, x: Tensor, v: Tensor, d1: Tensor, theta: Tensor, rest: Tensor, grip: Tensor):
+        report: dict = {}
+        new = self.model.step(RodState(x, v, d1, theta, rest), grip, branch_free=self.branch_free, report=report)
+        return new.x, new.v, new.d1, new.theta, new.rest, self.model.unconverged_from_report(report)
+
+
+def _build(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype, path: Path) -> None:
+    """Export the step for a rod at rest (shapes and dtype are all that matter) and compile it."""
+    n = model.n
+    rest = model.rest_lengths().to(dtype)
+    x = torch.zeros(n, 3, dtype=dtype)
+    x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
+    state = model.static_state(x.expand(batch, n, 3).clone(), rest=rest.expand(batch, -1).clone())
+    grip = state.x[:, [0, 1, n - 2, n - 1]].clone()
+    args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        exported = torch.export.export(_BranchFreeStep(model, branch_free), args, strict=False)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent) as tmp:  # atomic: no half-written package
+            part = Path(tmp) / path.name
+            torch._inductor.aoti_compile_and_package(exported, package_path=str(part),
+                                                     inductor_configs={"memory_planning": True})
+            os.replace(part, path)
+    log.info("compiled the step ahead of time for %d rods (%s) in %.0f s: %s", batch, dtype,
+             time.perf_counter() - t0, path)
+
+
+class AheadOfTimeStep:
+    """``(state, grip_next) -> (new state, unconverged (B,) bool)`` for exactly ``batch`` rods of
+    ``dtype``, no gradients; values identical to the ``torch.compile`` one-graph step.
+
+    >>> step = AheadOfTimeStep(model, (2, 2), batch=64)  # builds or loads the package
+    >>> new, unconverged = step(state, grip_next)
+    """
+
+    def __init__(self, model: DeformModel, branch_free: tuple[int, int], batch: int,
+                 dtype: torch.dtype = torch.float64):
+        self.model, self.branch_free, self.batch, self.dtype = model, branch_free, batch, dtype
+        self._runner = None
+        self._tensors: list[Tensor] = []  # the parameters and buffers the package was made from
+        self._versions: tuple[int, ...] = ()
+        self.path: Path | None = None
+        self.load()
+
+    def load(self) -> None:
+        """The package for the model's current parameters: from the cache, else compiled now."""
+        self.path = cache_dir() / f"step-{package_key(self.model, self.branch_free, self.batch, self.dtype)}.pt2"
+        if not self.path.exists():
+            _build(self.model, self.branch_free, self.batch, self.dtype, self.path)
+        self._runner = torch._inductor.aoti_load_package(str(self.path))
+        # their version counters change on any in-place update (an optimiser step, load_state_dict);
+        # kept as a list because walking the modules costs 60 us, a tenth of a step
+        self._tensors = [*self.model.parameters(), *self.model.buffers()]
+        self._versions = self._current_versions()
+
+    def _current_versions(self) -> tuple[int, ...]:
+        return tuple(t._version for t in self._tensors)
+
+    def __call__(self, state: RodState, grip_next: Tensor) -> tuple[RodState, Tensor]:
+        if self._current_versions() != self._versions:  # parameters changed in place: not these weights
+            self.load()
+        x, v, d1, theta, rest, unconverged = self._runner(state.x, state.v, state.d1, state.theta, state.rest, grip_next)
+        return RodState(x, v, d1, theta, rest), unconverged

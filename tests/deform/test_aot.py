@@ -1,0 +1,87 @@
+"""The ahead-of-time step gives the torch.compile one-graph step's values, is built once per model
+and reused from disk, never runs with weights the model no longer has, and falls back to
+torch.compile when it cannot be built."""
+import pytest
+import torch
+
+import deform.aot as aot
+from deform import generate_recording, gripped_indices, load_model
+from deform.compiled import RolloutStep, rollout
+
+BRANCH_FREE = (2, 2)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model("DLO1")
+
+
+@pytest.fixture(scope="module")
+def start(model):
+    rec = generate_recording(model, n_frames=30, seed=6)
+    X = torch.tensor(rec.positions).unsqueeze(0).expand(3, -1, -1, -1).clone()
+    X[1:, :, :, 2] += torch.tensor([0.01, -0.02])[:, None, None]  # three different rods, a bucket of 4
+    return model.initial_state(X[:, 0], X[:, 1]), X[:, 2:, gripped_indices(model.n)]
+
+
+@pytest.fixture(scope="module")
+def built(model, start):
+    """A rollout through the ahead-of-time step (its package built or loaded once for the module)."""
+    state, grips = start
+    step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
+    out = rollout(step, state, grips)
+    assert step.fast.ahead_of_time, "the ahead-of-time step could not be built here (see the warning)"
+    return step, out
+
+
+def test_same_values_as_the_compiled_one_graph_step(model, start, built):
+    state, grips = start
+    step, out = built
+    compiled = rollout(RolloutStep(model, branch_free=BRANCH_FREE), state, grips)
+    eager = rollout(model, state, grips)
+    assert torch.equal(out, compiled)  # the same graph and kernels, only entered differently
+    assert (out - eager).abs().max() < 1e-6
+    assert step.redone == 0, "the fast graph must have run (else the comparison proves nothing)"
+
+
+def test_a_second_step_loads_the_package_without_compiling(model, start, built, monkeypatch):
+    def no_build(*args, **kwargs):
+        raise AssertionError("compiled again although the package is on disk")
+
+    monkeypatch.setattr(aot, "_build", no_build)
+    state, grips = start
+    again = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
+    assert torch.equal(rollout(again, state, grips), built[1])
+    assert again.fast.ahead_of_time
+
+
+def test_changed_parameters_are_never_run_with_the_old_package(start, built, monkeypatch):
+    model = load_model("DLO1")  # a model of its own: its parameters are changed below
+    state, grips = start
+    step = aot.AheadOfTimeStep(model, BRANCH_FREE, batch=4)  # loads the package built above
+    key = aot.package_key(model, BRANCH_FREE, 4, torch.float64)
+    loads = []
+    monkeypatch.setattr(aot.AheadOfTimeStep, "load", lambda self: loads.append(self.model))
+    pad = lambda t: torch.cat([t, t[:1]])  # noqa: E731 - 3 rods to the package's 4
+    padded = type(state)(*(pad(t) for t in (state.x, state.v, state.d1, state.theta, state.rest)))
+    step(padded, pad(grips[:, 0]))
+    assert loads == []
+    with torch.no_grad():
+        next(model.parameters()).mul_(1.5)
+    assert aot.package_key(model, BRANCH_FREE, 4, torch.float64) != key
+    step(padded, pad(grips[:, 0]))  # would build a package for the new values (load stubbed out)
+    assert loads == [model]
+
+
+def test_unbuildable_package_falls_back_to_torch_compile(model, start, built, monkeypatch, caplog):
+    def broken(*args, **kwargs):
+        raise RuntimeError("no AOTInductor")
+
+    monkeypatch.setattr(aot.AheadOfTimeStep, "__init__", broken)
+    state, grips = start
+    step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
+    with caplog.at_level("WARNING", logger="deform.compiled"):
+        out = rollout(step, state, grips)
+    assert not step.fast.ahead_of_time and step.active
+    assert "ahead-of-time step unavailable" in caplog.text
+    assert torch.equal(out, built[1])
