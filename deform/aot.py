@@ -3,11 +3,11 @@
 Why: a ``torch.compile`` step is entered through dynamo's guards, AOTAutograd's runtime wrappers
 and a few Python frames on every call. For the predict rollout (64 rods, 100 calls per request) that
 entry costs about a quarter of the step: the same graph exported with ``torch.export`` and compiled
-by AOTInductor gives bit-identical values at 0.75x the time per step (scratch A/B, 2026-11-23; see
-``benchmarks/predict_rollout.py --ahead-of-time``). The price: the package is specialised on one
+by AOTInductor gives bit-identical values at 0.71x the time per step (scratch A/B at 64 rods,
+2026-11-23) and 0.86x per predict rollout (``benchmarks/predict_rollout.py --settings 2,2 2,2:aot``). The price: the package is specialised on one
 batch size and dtype, and the model's parameters are frozen into it. So packages are keyed on the
 parameters' values (and on this package's source and the torch build) and cached on disk
-(``$DEFORM_CACHE``, default ``~/.cache/deform``); a step whose model's parameters changed after
+(``$DEFORM_CACHE/aot``, default ``~/.cache/deform/aot``); a step whose model's parameters changed after
 the package was made builds a new one rather than use stale weights.
 
 Only the branch-free step (fixed twist iterations and projection sweeps, see
@@ -27,15 +27,18 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from deform.compiled import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 from deform.model import DeformModel, RodState
 
 log = logging.getLogger("deform.aot")
 
 _PACKAGE_SOURCE = Path(__file__).resolve().parent
+# torch.compile's options for the same graph; its C++ wrapper is what AOTInductor always generates
+AOT_OPTIONS = {k: v for k, v in COMPILE_OPTIONS.items() if k != "cpp_wrapper"}
 
 
 def cache_dir() -> Path:
-    """Where compiled packages are kept: ``$DEFORM_CACHE`` or ``~/.cache/deform``."""
+    """Where compiled packages are kept: ``aot`` in ``$DEFORM_CACHE`` or ``~/.cache/deform``."""
     return Path(os.environ.get("DEFORM_CACHE") or Path.home() / ".cache" / "deform") / "aot"
 
 
@@ -63,19 +66,13 @@ class _BranchFreeStep(torch.nn.Module):
         self.model, self.branch_free = model, branch_free
 
     def forward(self, x: Tensor, v: Tensor, d1: Tensor, theta: Tensor, rest: Tensor, grip: Tensor):
-        report: dict = {}
-        new = self.model.step(RodState(x, v, d1, theta, rest), grip, branch_free=self.branch_free, report=report)
-        return new.x, new.v, new.d1, new.theta, new.rest, self.model.unconverged_from_report(report)
+        new, unconverged = branch_free_step(self.model, RodState(x, v, d1, theta, rest), grip, self.branch_free)
+        return new.x, new.v, new.d1, new.theta, new.rest, unconverged
 
 
 def _build(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype, path: Path) -> None:
     """Export the step for a rod at rest (shapes and dtype are all that matter) and compile it."""
-    n = model.n
-    rest = model.rest_lengths().to(dtype)
-    x = torch.zeros(n, 3, dtype=dtype)
-    x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
-    state = model.static_state(x.expand(batch, n, 3).clone(), rest=rest.expand(batch, -1).clone())
-    grip = state.x[:, [0, 1, n - 2, n - 1]].clone()
+    state, grip = rod_at_rest(model, batch, dtype)
     args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -84,7 +81,7 @@ def _build(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: 
         with tempfile.TemporaryDirectory(dir=path.parent) as tmp:  # atomic: no half-written package
             part = Path(tmp) / path.name
             torch._inductor.aoti_compile_and_package(exported, package_path=str(part),
-                                                     inductor_configs={"memory_planning": True})
+                                                     inductor_configs=AOT_OPTIONS)
             os.replace(part, path)
     log.info("compiled the step ahead of time for %d rods (%s) in %.0f s: %s", batch, dtype,
              time.perf_counter() - t0, path)

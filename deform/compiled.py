@@ -38,6 +38,25 @@ LOOP_BRANCH_FREE = (12, 6)
 COMPILE_OPTIONS = {"cpp_wrapper": True, "memory_planning": True}
 
 
+def branch_free_step(model: DeformModel, state: RodState, grip_next: Tensor | None,
+                     branch_free: tuple[int, int]) -> tuple[RodState, Tensor]:
+    """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
+    own flags): what the one-graph step computes, compiled or ahead of time."""
+    report: dict = {}
+    new = model.step(state, grip_next, branch_free=branch_free, report=report)
+    return new, model.unconverged_from_report(report)
+
+
+def rod_at_rest(model: DeformModel, batch: int, dtype: torch.dtype) -> tuple[RodState, Tensor]:
+    """``batch`` straight rods at rest and their gripped vertices: inputs to compile a step for
+    (only shapes and dtype matter)."""
+    n, rest = model.n, model.rest_lengths().to(dtype)
+    x = torch.zeros(n, 3, dtype=dtype)
+    x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
+    state = model.static_state(x.expand(batch, n, 3).clone(), rest=rest.expand(batch, -1).clone())
+    return state, state.x[:, [0, 1, n - 2, n - 1]].clone()
+
+
 def bucket_size(batch: int) -> int:
     """Smallest bucket that holds ``batch`` rods (batches above the largest bucket are not padded)."""
     for b in BUCKETS:
@@ -98,9 +117,7 @@ class CompiledStep:
         if self.check == "recompute":
             new = self.model.step(state, grip_next, branch_free=self.branch_free)
             return new, self.model.unconverged(state, new, held=grip_next is not None)
-        report: dict = {}
-        new = self.model.step(state, grip_next, branch_free=self.branch_free, report=report)
-        return new, self.model.unconverged_from_report(report)
+        return branch_free_step(self.model, state, grip_next, self.branch_free)
 
     def _step_fn(self):
         if self._compiled is None:
@@ -158,12 +175,8 @@ class CompiledStep:
 
     def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64) -> bool:
         """Compile for these batch sizes now (a rod at rest, held at its ends). -> still active."""
-        n, rest = self.model.n, self.model.rest_lengths().to(dtype)
-        x = torch.zeros(n, 3, dtype=dtype)
-        x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
         for b in batch_sizes:
-            state = self.model.static_state(x.expand(b, n, 3).clone(), rest=rest.expand(b, -1).clone())
-            grip = state.x[:, [0, 1, n - 2, n - 1]].clone()
+            state, grip = rod_at_rest(self.model, b, dtype)
             for _ in range(2):  # the second call runs the warm-start branch of the twist solve
                 state = self(state, grip)
         return self.active
