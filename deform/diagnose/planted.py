@@ -130,13 +130,15 @@ def oracle_term(effect: str | None, truth: dict, n: int, arclength: np.ndarray, 
 
 def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec, n_frames: int = 300,
                      refine: int = 3, substeps: int = 5, noise_m: float = 3e-4, seed: int = 0,
-                     ei: float = 3e-3, gj: float = 2e-3, damping: float = 1.0, settle_s: float = 1.0):
-    """-> (recordings, truth params). Each source recording gives the gripper motion of one output."""
+                     ei: float = 3e-3, gj: float = 2e-3, damping: float = 1.0, settle_s: float = 1.0,
+                     truth_override: dict | None = None):
+    """-> (recordings, truth params). Each source recording gives the gripper motion of one output.
+    ``truth_override``: planted parameter values replacing :func:`planted_truth`'s (a size study)."""
     rng = np.random.default_rng(seed)
     n = spec.n_vertices
     # a table just above the lowest points most recordings reach: the rod touches it in most of them
     lowest = float(np.percentile([r.positions[:n_frames, 2:-2, 2].min() for r in sources], 80))
-    truth = planted_truth(effect, spec, lowest)
+    truth = {**planted_truth(effect, spec, lowest), **(truth_override or {})}
     starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
     grips_rec = np.stack([r.positions[s:s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)])
     x0_markers = np.stack([r.positions[s] for r, s in zip(sources, starts)])

@@ -50,21 +50,80 @@ def arclength_of(recordings) -> np.ndarray:
     return s / s[-1]
 
 
-class Simulator:
-    """A DeformModel driven by a :class:`Nominal` and a list of :class:`Term`."""
+def marker_nodes(n_markers: int, hidden: int) -> list[int]:
+    """Node ids of the markers on a rod with ``hidden`` extra nodes in every free marker interval
+    (none in the two gripped end edges, which the grippers hold straight)."""
+    return [0] + [1 + (hidden + 1) * k for k in range(n_markers - 2)] + [1 + (hidden + 1) * (n_markers - 3) + 1]
 
-    def __init__(self, spec: RodSpec, nominal: Nominal, terms: list[Term] | None = None):
-        cfg = RodConfig(name=spec.name, length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=spec.n_vertices,
-                        dt=spec.dt, marker_mass_kg=1e-9, bend_stiffness=1e-3, twist_stiffness=7e-4)
+
+def refine_markers(x: Tensor, hidden: int) -> Tensor:
+    """(..., n, 3) marker positions -> (..., N, 3) nodes, ``hidden`` nodes per free interval on a
+    cubic Hermite curve in chord length (a smooth rod's shape between its markers, where a straight
+    chord would start every window with kinks at the markers). Tangents at the markers are the
+    three-point derivative for uneven spacing, ``(h_j d_{j-1} + h_{j-1} d_j) / (h_{j-1} + h_j)`` with
+    ``d_j`` the slope of interval ``j``: exact on a parabola, so the short gripped end edges do not
+    bend the first and last intervals as the plain Catmull-Rom secant would."""
+    if hidden == 0:
+        return x
+    n = x.shape[-2]
+    h = (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1, keepdim=True).clamp_min(1e-9)  # (..., n-1, 1)
+    d = (x[..., 1:, :] - x[..., :-1, :]) / h  # slopes of the intervals
+    tangent = (h[..., 1:, :] * d[..., :-1, :] + h[..., :-1, :] * d[..., 1:, :]) / (h[..., 1:, :] + h[..., :-1, :])
+    parts = [x[..., :2, :]]
+    for j in range(1, n - 2):
+        p0, p1, m0, m1, hj = x[..., j, :], x[..., j + 1, :], tangent[..., j - 1, :], tangent[..., j, :], h[..., j, :]
+        for k in range(1, hidden + 1):
+            t = k / (hidden + 1)
+            h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+            parts.append((h00 * p0 + h10 * hj * m0 + h01 * p1 + h11 * hj * m1).unsqueeze(-2))
+        parts.append(x[..., j + 1:j + 2, :])
+    parts.append(x[..., n - 1:, :])
+    return torch.cat(parts, -2)
+
+
+def refine_arclength(s: np.ndarray, hidden: int) -> np.ndarray:
+    """(n,) marker arc length -> (N,) node arc length (hidden nodes evenly between their markers)."""
+    if hidden == 0:
+        return np.asarray(s)
+    out = [s[0], s[1]]
+    for j in range(1, len(s) - 2):
+        out += [s[j] + (s[j + 1] - s[j]) * k / (hidden + 1) for k in range(1, hidden + 2)]
+    out.append(s[-1])
+    return np.asarray(out)
+
+
+class Simulator:
+    """A DeformModel driven by a :class:`Nominal` and a list of :class:`Term`.
+
+    ``hidden``: unobserved nodes simulated in every free marker interval (0: nodes only at the
+    markers), stepped at ``dt / (hidden + 1)``. Why: at marker resolution a mass on every marker is
+    the same as a uniform mass factor, which the fitted stiffness absorbs; with mass between the
+    markers the two differ. Terms are then built on the node arc length (:meth:`node_arclength`)."""
+
+    def __init__(self, spec: RodSpec, nominal: Nominal, terms: list[Term] | None = None, hidden: int = 0):
+        self.hidden = hidden
+        self.substeps = hidden + 1
+        self.n_markers = spec.n_vertices
+        self.markers = marker_nodes(spec.n_vertices, hidden)
+        n = self.markers[-1] + 1
+        cfg = RodConfig(name=spec.name, length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=n,
+                        dt=spec.dt / self.substeps, marker_mass_kg=1e-9, bend_stiffness=1e-3, twist_stiffness=7e-4)
         self.model = DeformModel(cfg, ModelOptions(residual=False))
-        self.n = spec.n_vertices
+        self.n = n
         self.nominal = nominal
         self.terms = list(terms or [])
+        emap = [0] + [j for j in range(1, spec.n_vertices - 2) for _ in range(hidden + 1)] + [spec.n_vertices - 2]
+        self._edge_of_node_edge = emap  # marker edge each node edge lies on
         for t in self.terms:
             if hasattr(t, "set_dt"):
-                t.set_dt(spec.dt)
+                t.set_dt(cfg.dt)
+            if hasattr(t, "set_markers"):
+                t.set_markers(self.markers, n)
             if hasattr(t, "acceleration") or hasattr(t, "mass"):
                 self.model.extensions.append(t)
+
+    def node_arclength(self, marker_arclength: np.ndarray) -> np.ndarray:
+        return refine_arclength(marker_arclength, self.hidden)
 
     def parameters(self) -> list[nn.Parameter]:
         out = list(self.nominal.parameters())
@@ -124,19 +183,20 @@ class Simulator:
     def rollout(self, frames: Tensor, steps: int, margin: int = 0, create_graph: bool = False,
                 d1: Tensor | None = None) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
-        steps, grippers from the recorded frames (shifted by a delay term if any). ``d1`` (B, m, 3):
-        reference directors at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`; default: a
-        fresh space-parallel frame, right for a rollout from a recording's first frame).
-        -> (B, steps, n, 3)."""
-        idx = gripped_indices(self.n)
+        frames, grippers from the recorded frames (shifted by a delay term if any; linearly
+        interpolated between frames for the substeps of hidden nodes). ``d1`` (B, n-1, 3): reference
+        directors of the marker edges at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`;
+        default: a fresh space-parallel frame, right for a rollout from a recording's first frame).
+        -> (B, steps, n_markers, 3)."""
+        idx = gripped_indices(self.n_markers)
         grips = frames[:, :, idx]
         tau = self.delay()
         T = frames.shape[1]
 
-        def grip_at(frame: int) -> Tensor:
-            if tau is None:
-                return grips[:, frame]
-            pos = (frame - tau).clamp(0, T - 1)
+        def grip_at(frame: float) -> Tensor:
+            if tau is None and float(frame).is_integer():
+                return grips[:, int(frame)]
+            pos = (frame - tau if tau is not None else frames.new_tensor(frame)).clamp(0, T - 1)
             lo = pos.detach().floor().clamp(max=T - 2)
             i = int(lo)
             a = pos - lo
@@ -147,18 +207,21 @@ class Simulator:
             x0, x1 = x0.clone(), x1.clone()
             x0[:, idx] = grip_at(margin).to(x0.dtype)
             x1[:, idx] = grip_at(margin + 1).to(x1.dtype)
-        state = self.model.initial_state(x0, x1)
+        state = self.model.initial_state(refine_markers(x0, self.hidden), refine_markers(x1, self.hidden),
+                                         dt=self.model.dt * self.substeps)
         if d1 is not None:
             from deform.rod import geometry as G
 
-            t_rec = G.normalize(G.edges(frames[:, margin + 1]))
-            d1 = G.time_transport(d1.to(state.d1.dtype), t_rec.to(state.d1.dtype), G.normalize(G.edges(state.x)))
+            emap = self._edge_of_node_edge
+            t_rec = G.normalize(G.edges(frames[:, margin + 1]))[:, emap]
+            d1 = G.time_transport(d1[:, emap].to(state.d1.dtype), t_rec.to(state.d1.dtype), G.normalize(G.edges(state.x)))
             state = type(state)(x=state.x, v=state.v, d1=d1, theta=state.theta, rest=state.rest)
         out = []
         for k in range(steps):
-            g = grip_at(margin + 2 + k)
-            state = self.model.step(state, g, create_graph=create_graph)
-            out.append(state.x)
+            for j in range(1, self.substeps + 1):
+                g = grip_at(margin + 1 + k + j / self.substeps)
+                state = self.model.step(state, g, create_graph=create_graph)
+            out.append(state.x[:, self.markers] if self.hidden else state.x)
         return torch.stack(out, 1)
 
     def predict(self, recordings, steps: int | None = None) -> list[np.ndarray]:
