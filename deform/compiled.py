@@ -151,7 +151,16 @@ class CompiledStep:
         try:
             with torch.no_grad(), self._lock:
                 fn = self._aot_fn(size, state.x.dtype) if grip is not None else None
-                out, unconverged = (fn or self._step_fn())(padded, grip)
+                if fn is not None:
+                    try:
+                        out, unconverged = fn(padded, grip)
+                    except Exception as exc:  # noqa: BLE001 - a package that fails at run time: the
+                        # torch.compile step of the same graph is still good, so only this path goes
+                        self.ahead_of_time, fn = False, None
+                        self._aot.clear()
+                        log.warning("ahead-of-time step failed (%s: %s); using torch.compile", type(exc).__name__, exc)
+                if fn is None:
+                    out, unconverged = self._step_fn()(padded, grip)
         except Exception as exc:  # noqa: BLE001 - any compiler failure: keep running, eagerly
             self._failed = True
             log.warning("compiled step unavailable (%s: %s); using the eager step", type(exc).__name__, exc)

@@ -85,3 +85,17 @@ def test_unbuildable_package_falls_back_to_torch_compile(model, start, built, mo
     assert not step.fast.ahead_of_time and step.active
     assert "ahead-of-time step unavailable" in caplog.text
     assert torch.equal(out, built[1])
+
+
+def test_package_failing_at_run_time_falls_back_to_torch_compile_not_eager(model, start, built, monkeypatch, caplog):
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("package call failed")
+
+    monkeypatch.setattr(aot.AheadOfTimeStep, "__call__", broken)
+    state, grips = start
+    step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
+    with caplog.at_level("WARNING", logger="deform.compiled"):
+        out = rollout(step, state, grips)
+    assert "ahead-of-time step failed" in caplog.text
+    assert not step.fast.ahead_of_time and step.active  # still compiled, only without the package
+    assert torch.equal(out, built[1])  # the torch.compile one-graph step's values, not the eager ones
