@@ -362,15 +362,15 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
     marker masses of 4 g (the benchmark's) and 10 g, the nominal fit, then at 0 and 1 hidden node per
     marker interval a reference refit and the mass_scale candidate (same budget, scored as the tool
     scores candidates)."""
-    import copy
-
     from deform.diagnose.fitting import coarse_nominal, fit
     from deform.diagnose.scoring import score
+    from deform.diagnose.selection import fit_and_check
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
     from deform.diagnose.terms import make_term
 
     src, spec = _sources(seed, args.fit + args.check)
-    cb = dataclasses.replace(budget(True).candidate, progress=False)
+    quick = budget(True)
+    cb = dataclasses.replace(quick.candidate, progress=False)
     out = []
     for effect, kg in ((None, 0.0), ("mass_scale", 0.004), ("mass_scale", 0.010)):
         recs, _ = generate_planted(effect, src, spec, n_frames=args.frames, seed=seed,
@@ -378,18 +378,14 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
         inputs = Inputs(spec=spec, fit=recs[:args.fit], check=recs[args.fit:])
         sim = Simulator(spec, Nominal())
         coarse_nominal(sim, inputs.fit)
-        fit(sim, inputs.fit, dataclasses.replace(cb, iterations=budget(True).nominal_iterations))
+        fit(sim, inputs.fit, dataclasses.replace(cb, iterations=quick.nominal_iterations))
         e_nom = per_recording_l1(sim.predict(inputs.check), inputs.check)
         for hidden in (0, 1):
             t0 = time.perf_counter()
-            ref = Simulator(spec, copy.deepcopy(sim.nominal), hidden=hidden)
-            fit(ref, inputs.fit, cb)
-            e_ref = per_recording_l1(ref.predict(inputs.check), inputs.check)
+            ref, e_ref = fit_and_check(spec, sim.nominal, [], inputs, cb, "reference", hidden=hidden)
             term = make_term("mass_scale", ref.n, ref.node_arclength(arclength_of(inputs.fit)),
                              {"rod_mass_kg": spec.mass_kg})
-            cand = Simulator(spec, copy.deepcopy(sim.nominal), [term], hidden=hidden)
-            fit(cand, inputs.fit, cb, new_term=term)
-            e = per_recording_l1(cand.predict(inputs.check), inputs.check)
+            _, e = fit_and_check(spec, sim.nominal, [term], inputs, cb, "mass_scale", new_term=term, hidden=hidden)
             sc = score(e_ref, e, term.n_params)
             out.append({"seed": seed, "marker_mass_kg": kg, "hidden_nodes": hidden,
                         "nominal_check_cm": float(e_nom.mean() * 100), "reference_check_cm": float(e_ref.mean() * 100),

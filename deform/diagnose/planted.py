@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from deform.diagnose.simulator import Nominal, Simulator
+from deform.diagnose.simulator import Nominal, Simulator, between_markers, marker_nodes
 from deform.diagnose.spec import RodSpec
 from deform.diagnose.terms import make_term
 from deform.io.recordings import Recording
@@ -38,17 +38,7 @@ class MarkerMass(nn.Module):
 
 def _layout(markers0: np.ndarray, refine: int) -> tuple[np.ndarray, list[int]]:
     """Sim node positions (N, 3) interpolated from one frame of markers, and the marker node ids."""
-    n = markers0.shape[0]
-    nodes = [markers0[0], markers0[1]]
-    ids = [0, 1]
-    for j in range(1, n - 2):
-        for k in range(1, refine + 1):
-            a = k / refine
-            nodes.append((1 - a) * markers0[j] + a * markers0[j + 1])
-        ids.append(len(nodes) - 1)
-    nodes.append(markers0[n - 1])
-    ids.append(len(nodes) - 1)
-    return np.stack(nodes), ids
+    return between_markers(markers0, refine - 1), marker_nodes(len(markers0), refine - 1)
 
 
 def planted_truth(effect: str | None, spec: RodSpec, lowest_z: float) -> dict:

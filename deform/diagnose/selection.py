@@ -53,8 +53,11 @@ def _nominal_from_model(path: str) -> Nominal:
     return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()), float(m.damping))
 
 
-def _fit_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None):
-    sim = Simulator(spec, copy.deepcopy(nominal), terms)
+def fit_and_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None,
+                  hidden: int = 0):
+    """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
+    per-recording check error."""
+    sim = Simulator(spec, copy.deepcopy(nominal), terms, hidden=hidden)
     fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
     err = per_recording_l1(sim.predict(inputs.check), inputs.check)
     return sim, err
@@ -84,14 +87,14 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     for rnd in range(budget.max_rounds):
         if not remaining:
             break
-        ref_sim, e_ref = _fit_check(spec, base_nominal, [copy.deepcopy(t) for t in selected], inputs, cb,
+        ref_sim, e_ref = fit_and_check(spec, base_nominal, [copy.deepcopy(t) for t in selected], inputs, cb,
                                     f"round {rnd + 1}: reference")
         if e_ref.mean() > base_err.mean():  # a refit that got worse must not make candidates look good
             e_ref = base_err
         results = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context)
-            csim, e = _fit_check(spec, base_nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, cb,
+            csim, e = fit_and_check(spec, base_nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, cb,
                                  f"round {rnd + 1}: {name}", new_term=term)
             sc = score(e_ref, e, term.n_params)
             results.append((name, term, csim, e, sc))

@@ -81,15 +81,19 @@ def refine_markers(x: Tensor, hidden: int) -> Tensor:
     return torch.cat(parts, -2)
 
 
-def refine_arclength(s: np.ndarray, hidden: int) -> np.ndarray:
-    """(n,) marker arc length -> (N,) node arc length (hidden nodes evenly between their markers)."""
+def between_markers(values: np.ndarray, hidden: int) -> np.ndarray:
+    """(n, ...) values at the markers -> (N, ...), ``hidden`` values evenly (linearly) spaced in
+    every free interval: node arc length, or a straight start for a finer simulated rod."""
+    values = np.asarray(values)
     if hidden == 0:
-        return np.asarray(s)
-    out = [s[0], s[1]]
-    for j in range(1, len(s) - 2):
-        out += [s[j] + (s[j + 1] - s[j]) * k / (hidden + 1) for k in range(1, hidden + 2)]
-    out.append(s[-1])
-    return np.asarray(out)
+        return values
+    out = [values[0], values[1]]
+    for j in range(1, len(values) - 2):
+        for k in range(1, hidden + 2):
+            a = k / (hidden + 1)
+            out.append((1 - a) * values[j] + a * values[j + 1])
+    out.append(values[-1])
+    return np.stack(out)
 
 
 class Simulator:
@@ -123,7 +127,7 @@ class Simulator:
                 self.model.extensions.append(t)
 
     def node_arclength(self, marker_arclength: np.ndarray) -> np.ndarray:
-        return refine_arclength(marker_arclength, self.hidden)
+        return between_markers(marker_arclength, self.hidden)
 
     def parameters(self) -> list[nn.Parameter]:
         out = list(self.nominal.parameters())

@@ -281,6 +281,7 @@ class MassScale(Term):
         super().__init__(n, arclength)
         self.raw_g = nn.Parameter(torch.tensor(_inv_softplus(0.2), dtype=torch.float64))
         self.register_buffer("on_marker", torch.ones(n, dtype=torch.float64))
+        self.rod_mass_kg = 0.0  # unknown: the grid leaves the stiffness alone
 
     def set_markers(self, nodes: list[int], n_nodes: int) -> None:
         """Markers at these node ids of a simulator with hidden nodes (mass on the markers only)."""
@@ -300,10 +301,14 @@ class MassScale(Term):
         # passed by the hidden-node study, not yet by `diagnose`), each mass is tried with EI and GJ
         # raised by the factor of mass it adds, so the grid compares distributions, not totals
         free = float(self.on_marker[2:-2].sum())
-        rod = getattr(self, "rod_mass_kg", 0.0)
-        return [{"raw_g": _inv_softplus(g), **({"nominal:log_ei": math.log1p(free * g * 1e-3 / rod),
-                                                "nominal:log_gj": math.log1p(free * g * 1e-3 / rod)} if rod > 0 else {})}
-                for g in (0.2, 1.0, 3.0, 10.0)]
+        points = []
+        for g in (0.2, 1.0, 3.0, 10.0):
+            point = {"raw_g": _inv_softplus(g)}
+            if self.rod_mass_kg > 0:
+                heavier = math.log1p(free * g * 1e-3 / self.rod_mass_kg)
+                point.update({"nominal:log_ei": heavier, "nominal:log_gj": heavier})
+            points.append(point)
+        return points
 
     @torch.no_grad()
     def params(self):

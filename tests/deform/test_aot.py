@@ -73,29 +73,20 @@ def test_changed_parameters_are_never_run_with_the_old_package(start, built, mon
     assert loads == [model]
 
 
-def test_unbuildable_package_falls_back_to_torch_compile(model, start, built, monkeypatch, caplog):
+@pytest.mark.parametrize("broken_part, warning", [
+    ("__init__", "ahead-of-time step unavailable"),  # cannot be built here
+    ("__call__", "ahead-of-time step failed"),  # built, but fails when called: not eager either
+])
+def test_package_that_cannot_run_falls_back_to_torch_compile(model, start, built, monkeypatch, caplog,
+                                                             broken_part, warning):
     def broken(*args, **kwargs):
         raise RuntimeError("no AOTInductor")
 
-    monkeypatch.setattr(aot.AheadOfTimeStep, "__init__", broken)
+    monkeypatch.setattr(aot.AheadOfTimeStep, broken_part, broken)
     state, grips = start
     step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
     with caplog.at_level("WARNING", logger="deform.compiled"):
         out = rollout(step, state, grips)
-    assert not step.fast.ahead_of_time and step.active
-    assert "ahead-of-time step unavailable" in caplog.text
-    assert torch.equal(out, built[1])
-
-
-def test_package_failing_at_run_time_falls_back_to_torch_compile_not_eager(model, start, built, monkeypatch, caplog):
-    def broken(self, *args, **kwargs):
-        raise RuntimeError("package call failed")
-
-    monkeypatch.setattr(aot.AheadOfTimeStep, "__call__", broken)
-    state, grips = start
-    step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
-    with caplog.at_level("WARNING", logger="deform.compiled"):
-        out = rollout(step, state, grips)
-    assert "ahead-of-time step failed" in caplog.text
     assert not step.fast.ahead_of_time and step.active  # still compiled, only without the package
+    assert warning in caplog.text
     assert torch.equal(out, built[1])  # the torch.compile one-graph step's values, not the eager ones
