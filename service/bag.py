@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from service import messages as M
+from service.ordering import encode_order, new_stream_id
 
 TYPES = {"ee_poses": M.POSE_ARRAY, "points": M.POINT_CLOUD2, "camera_info": M.CAMERA_INFO,
          "camera_pose": M.POSE_STAMPED, "vertices": M.POINT_CLOUD2}
@@ -103,17 +104,20 @@ def record(session: zenoh.Session, namespace: str, path: str | Path, stop: threa
 def replay(session: zenoh.Session, namespace: str, messages: list[Message], fast: bool = True,
            speed: float = 1.0) -> int:
     """Publish on ``{namespace}/<name>``: as fast as possible (reliable, blocking: nothing dropped) or
-    paced by the recorded log times. Returns the number of messages sent."""
+    paced by the recorded log times. Every sample carries its place in the send order (see
+    :mod:`service.ordering`), so a message-clock service handles them in this order whatever order
+    the transport delivers them in. Returns the number of messages sent."""
     pubs = {n: session.declare_publisher(f"{namespace}/{n}", congestion_control=zenoh.CongestionControl.BLOCK,
                                          reliability=zenoh.Reliability.RELIABLE)
             for n in {m.name for m in messages}}
     t0_log, t0_wall = (messages[0].log_time if messages else 0), time.perf_counter()
-    for m in messages:
+    stream = new_stream_id()
+    for seq, m in enumerate(messages):
         if not fast:
             delay = (m.log_time - t0_log) / 1e9 / speed - (time.perf_counter() - t0_wall)
             if delay > 0:
                 time.sleep(delay)
-        pubs[m.name].put(m.data)
+        pubs[m.name].put(m.data, attachment=encode_order(stream, seq))
     for p in pubs.values():
         p.undeclare()
     return len(messages)

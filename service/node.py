@@ -2,7 +2,7 @@
 
 Two clocks. ``wall``: a fixed-rate timer ticks with the latest gripper poses, clouds are fused by a
 worker. ``message``: every gripper message is one tick at its own stamp and everything is handled
-in arrival order on one thread, so a replay gives the same output bit for bit.
+on one thread in send order (:mod:`service.ordering`), so a replay gives the same output bit for bit.
 """
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ import zenoh
 
 from service import messages as M
 from service import predict
+from service.ordering import SequenceBuffer, decode_order
 from service.config import ServiceConfig, ZenohSettings
 from service.estimator import Estimator
 from service.fusion import FusionWorker
@@ -203,7 +204,9 @@ class Service:
         if self.est.message_clock:
             def enqueue(sample):
                 self._idle = False
-                self.inbox.put((name, sample.payload.to_bytes()))  # blocks: back-pressure, never loss
+                att = sample.attachment
+                order = decode_order(att.to_bytes() if att is not None else None)
+                self.inbox.put((name, sample.payload.to_bytes(), order))  # blocks: back-pressure, never loss
             return enqueue
         handlers = {"ee_poses": self.est.on_poses, "points": self.fusion.submit,
                     "camera_info": self.est.on_camera_info, "camera_pose": self.est.on_camera_pose}
@@ -270,55 +273,71 @@ class Service:
 
     def _message_loop(self) -> None:
         """Message clock. Zenoh does not keep the order between keys (large clouds are fragmented and
-        overtaken by small pose messages), so poses wait in a queue and the tick at stamp t runs only
-        once a cloud stamped at or after t has arrived, or poses are ``reorder_s`` ahead, or the input
-        has been idle: then every cloud up to t is known and the result does not depend on timing."""
+        overtaken by small messages), so samples are first put back into send order when the sender
+        numbered them (a replay does: :mod:`service.ordering`), and poses wait in a queue until the
+        tick at their stamp can no longer be changed by a message still in transit (see _advance)."""
         torch.set_num_threads(self.cfg.torch_threads)
         est = self.est
         handlers = {"camera_info": est.on_camera_info, "camera_pose": est.on_camera_pose, "points": est.on_cloud_sync}
         window = int(self.cfg.timeouts.reorder_s * 1e9)
+        order = SequenceBuffer(self.cfg.timeouts.reorder_s)
         poses: list = []
         last_pose = None
         last_message = time.perf_counter()
         while not self._stop.is_set():
             try:
-                name, raw = self.inbox.get(timeout=0.05)
+                name, raw, seq = self.inbox.get(timeout=0.05)
                 last_message = time.perf_counter()
+                ready, taken = order.push((name, raw, seq is not None), seq, last_message), True
+                ready += order.expire(last_message)
             except queue.Empty:
+                taken = False
+                ready = order.expire(time.perf_counter())
                 # idle for as long as a cloud may lag the poses: nothing is in transit any more
                 # (a shorter wait made replays on a loaded machine depend on scheduling)
-                if time.perf_counter() - last_message >= self.cfg.timeouts.reorder_s:
+                if not ready and not order.holding() and time.perf_counter() - last_message >= self.cfg.timeouts.reorder_s:
                     self._advance(poses, flush=True)
-                continue
-            try:
-                if name == "ee_poses":
-                    parsed = est.parse_poses(raw, last_pose)
-                    if parsed is not None:
-                        poses.append((parsed, time.perf_counter()))
-                        last_pose = parsed[0]
-                else:
-                    handlers[name](raw)
-                self._advance(poses, window=window)
-            except Exception:
-                log.exception("message %s failed", name)
-                self.stats.count("tick_errors")
-            finally:
+            for name, raw, ordered in ready:
+                try:
+                    if name == "ee_poses":
+                        parsed = est.parse_poses(raw, last_pose)
+                        if parsed is not None:
+                            poses.append((parsed, time.perf_counter(), ordered))
+                            last_pose = parsed[0]
+                    else:
+                        handlers[name](raw)
+                    self._advance(poses, window=window)
+                except Exception:
+                    log.exception("message %s failed", name)
+                    self.stats.count("tick_errors")
+            if order.gaps:  # samples lost in transit (or sent before the service started)
+                self.stats.count("sequence_gaps", order.gaps)
+                order.gaps = 0
+            if taken:  # idle = nothing left to tick (drain: after the last task_done, nothing in flight)
+                self._idle = not poses and not order.holding()
                 self.inbox.task_done()
 
     def _advance(self, poses: list, window: int = 0, flush: bool = False) -> None:
-        """Tick through the queued poses ``(parsed, arrival)`` whose clouds are settled. Without a
-        cloud stamped at or after t, the pose at t waits until later poses are ``window`` ahead in
-        message time *and* it has itself waited ``reorder_s`` of wall time: a fast replay sends a
-        second of poses in milliseconds, so message time alone made the result depend on how long
-        a cloud took in transit (runs of the demo differed)."""
+        """Tick through the queued poses ``(parsed, arrival, ordered)`` whose clouds are settled.
+
+        A pose in send order (``ordered``) ticks once the next pose has been released: everything
+        sent between the two (its cloud, a camera_info) has then been handled, so the outcome
+        depends only on the send order. Other poses tick once a cloud stamped at or after t has
+        arrived, or once later poses are ``window`` ahead in message time *and* the pose has waited
+        ``reorder_s`` of wall time (a fast replay sends a second of poses in milliseconds, so message
+        time alone made the result depend on how long a cloud took in transit). ``flush`` (the input
+        has been idle for ``reorder_s``) ticks them all."""
         est = self.est
         patience = self.cfg.timeouts.reorder_s
         now = time.perf_counter()
         while poses:
-            (t, *_), arrived = poses[0]
-            cloud_seen = est.last_cloud_ns is not None and est.last_cloud_ns >= t
-            ahead = poses[-1][0][0] - t >= window and now - arrived >= patience
-            if not (flush or cloud_seen or ahead):
+            (t, *_), arrived, ordered = poses[0]
+            if ordered:
+                ready = len(poses) > 1
+            else:
+                cloud_seen = est.last_cloud_ns is not None and est.last_cloud_ns >= t
+                ready = cloud_seen or (poses[-1][0][0] - t >= window and now - arrived >= patience)
+            if not (flush or ready):
                 return
             est.set_poses(poses.pop(0)[0])
             self.stats.count("ticks")

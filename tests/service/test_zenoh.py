@@ -177,10 +177,11 @@ def test_message_clock_waits_wall_time_for_a_cloud_in_transit(model):
     svc = Service(cfg, model=model)   # not started: ticks run here, published into a stub
     svc.pub = type("Pub", (), {"put": lambda self, payload: None})()
     t0 = 1_700_000_000 * 10**9
-    queue = [(svc.est.parse_poses(M2.pose_array(t0 + k * 10**7, GOOD), None), time.perf_counter()) for k in range(150)]
+    queue = [(svc.est.parse_poses(M2.pose_array(t0 + k * 10**7, GOOD), None), time.perf_counter(), False)
+             for k in range(150)]   # not in send order (no replay attachment): the wall-time rule
     svc._advance(queue, window=int(1e9))
     assert svc.est.tick_index == 0 and len(queue) == 150   # 1.5 s of poses ahead, but no wall time waited
-    queue = [(p, arrived - 2.0) for p, arrived in queue]    # the same poses, received two seconds ago
+    queue = [(p, arrived - 2.0, o) for p, arrived, o in queue]  # the same poses, received two seconds ago
     svc._advance(queue, window=int(1e9))
     assert svc.est.tick_index == 50 and len(queue) == 100   # gave up on clouds up to 1 s behind the newest
     svc.stop()
