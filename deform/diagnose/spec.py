@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from deform.io.recordings import Recording, RecordingError, load_recordings
 
-LENGTH_TOLERANCE = 0.10  # ROD.json length vs the markers' polyline length
+LENGTH_TOLERANCE = 0.10  # a rope shorter than its markers' polyline by more than this is an error
 
 
 class RodSpec(BaseModel):
@@ -62,6 +62,29 @@ def polyline_length(rec: Recording) -> float:
     return float(np.median(seg))
 
 
+def marker_span_spec(spec: RodSpec, span_m: float, source: str | Path = "ROD.json") -> tuple[RodSpec, str | None]:
+    """The rod the tool simulates: the part between the outer markers.
+
+    Real ropes run past their outer markers (DLO1 is 1.152 m long, its markers span about 1.035 m),
+    and the grippers hold the rest, so a rope longer than the span is simulated over the span with
+    the mass of that part (mass per length kept) and a warning. A rope *shorter* than the markers'
+    polyline (a lower bound of the arc length between them) by more than ``LENGTH_TOLERANCE``
+    contradicts the data: an error. -> (spec to simulate, warning or None)."""
+    rel = (span_m - spec.length_m) / spec.length_m
+    if rel > LENGTH_TOLERANCE:
+        raise RecordingError(f"{source}: length_m={spec.length_m} but the markers span {span_m:.3f} m, "
+                             f"{rel * 100:+.0f} % longer than the rope (tolerance {LENGTH_TOLERANCE * 100:.0f} %)")
+    if rel >= 0:
+        note = (f"ROD.json length {spec.length_m} m is {rel * 100:.1f} % shorter than the marker polyline "
+                f"{span_m:.3f} m") if rel > 0.05 else None
+        return spec, note
+    scaled = spec.model_copy(update={"length_m": span_m, "mass_kg": spec.mass_kg * span_m / spec.length_m})
+    note = (f"the rope ({spec.length_m} m, {spec.mass_kg * 1e3:.1f} g) runs {-rel * 100:.0f} % past its markers: "
+            f"simulating the {span_m:.3f} m between the outer markers with {scaled.mass_kg * 1e3:.1f} g "
+            f"(mass per length kept)") if rel < -0.02 else None
+    return scaled, note
+
+
 def load_inputs(rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min_fit: int = 2,
                 min_check: int = 1) -> Inputs:
     """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed."""
@@ -81,13 +104,9 @@ def load_inputs(rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min
         raise RecordingError(f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} have fewer than 40 frames")
     warnings: list[str] = []
     lengths = np.array([polyline_length(r) for r in fit + check])
-    measured = float(np.median(lengths))
-    rel = (measured - spec.length_m) / spec.length_m
-    if abs(rel) > LENGTH_TOLERANCE:
-        raise RecordingError(f"{rod}: length_m={spec.length_m} but the markers span {measured:.3f} m "
-                             f"({rel * 100:+.0f} %, tolerance {LENGTH_TOLERANCE * 100:.0f} %)")
-    if abs(rel) > 0.05:
-        warnings.append(f"ROD.json length {spec.length_m} m differs from the marker polyline {measured:.3f} m by {rel * 100:+.1f} %")
+    spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
+    if note:
+        warnings.append(note)
     if len(check) < 3:
         warnings.append(f"only {len(check)} check recording(s): the bootstrap interval over recordings is unreliable")
     names = {r.name for r in fit} & {r.name for r in check}

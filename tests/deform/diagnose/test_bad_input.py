@@ -39,7 +39,7 @@ def _cli(rod, fit, check, out):
     ({"check_n": 9}, "markers"),
     ({"nan": True}, "NaN"),
     ({"n_fit": 1}, "at least"),
-    ({"length": 0.8}, "length_m"),
+    ({"length": 0.5}, "length_m"),   # a rope shorter than its markers' span
 ])
 def test_bad_input_is_one_error_line_and_nothing_written(tmp_path, capsys, kwargs, needle):
     rod, fit, check = _write(tmp_path, **kwargs)
@@ -58,9 +58,21 @@ def test_bad_rod_json_names_the_file(tmp_path, capsys):
 
 
 def test_length_off_by_a_little_is_a_warning(tmp_path):
-    rod, fit, check = _write(tmp_path, length=0.64)
+    rod, fit, check = _write(tmp_path, length=0.57)   # 5 % shorter than the 0.6 m the markers span
     inputs = load_inputs(rod, fit, check)
     assert any("length" in w for w in inputs.warnings)
+    assert inputs.spec.length_m == 0.57
+
+
+@pytest.mark.parametrize("length", [0.64, 0.8, 2.0])
+def test_a_rope_longer_than_its_markers_is_simulated_over_the_span(tmp_path, length):
+    """Real ropes run past their outer markers: the span is simulated with its share of the mass."""
+    rod, fit, check = _write(tmp_path, length=length)
+    inputs = load_inputs(rod, fit, check)
+    span = inputs.spec.length_m
+    assert span == pytest.approx(0.6, abs=0.01)
+    assert inputs.spec.mass_kg == pytest.approx(0.04 * span / length)
+    assert any("past its markers" in w for w in inputs.warnings)
 
 
 def test_two_check_recordings_warn_about_the_interval(tmp_path):
