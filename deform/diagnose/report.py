@@ -101,8 +101,13 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
               "and the mean exceeds the parameter-penalised threshold. ± : approximate 1-sigma (Laplace).", "",
               "![candidates](candidates.png)" if "candidates.png" in files else "", "",
               "## Result", "",
-              f"Selected: **{', '.join(rep['selected']) or 'none'}**", "",
-              f"Check error: {nom['check_l1_m'] * 100:.3f} cm (nominal) -> **{rep['final_check_l1_m'] * 100:.3f} cm**", "",
+              f"Selected: **{', '.join(rep['selected']) or 'none'}**", ""]
+    for c in rep["candidates"]:
+        if len(c.get("equivalence_class", [])) > 1:
+            lines += [f"Marker motion cannot tell **{c['name']}** apart from "
+                      f"{', '.join(n for n in c['equivalence_class'] if n != c['name'])} (round {c['round']}): "
+                      "either explains the held-out recordings as well; " + "; ".join(c["equivalence_why"]) + ".", ""]
+    lines += [f"Check error: {nom['check_l1_m'] * 100:.3f} cm (nominal) -> **{rep['final_check_l1_m'] * 100:.3f} cm**", "",
               "Final parameters: " + "; ".join(f"{k}: {_fmt(v)}" for k, v in nom["final_params"].items()), "",
               "![horizon](horizon.png)", "", "![overlay](overlay.png)", "",
               f"Run time: {nom['seconds']:.0f} s"]

@@ -12,9 +12,11 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.scoring import score
+from deform.diagnose.scoring import bootstrap_ci, score
 from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
 from deform.diagnose.spec import Inputs
 from deform.diagnose.terms import LIBRARY, make_term
@@ -53,6 +55,31 @@ def _nominal_from_model(path: str) -> Nominal:
     return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()), float(m.damping))
 
 
+def contact_height(loc: dict) -> float | None:
+    """The height below which localisation found errors growing (a plane the rod may touch), if any."""
+    h = loc.get("by_height") or {}
+    return h.get("low_threshold") if h.get("low_vs_rest_ratio", 0.0) > 1.5 else None
+
+
+def equivalence_class(name: str, e_win, e_ref, others: list[tuple[str, object]],
+                      confidence: float = 0.90) -> dict:
+    """The significant candidates that marker motion cannot tell apart from the chosen one.
+
+    Per check recording, the difference of relative errors ``(e_other - e_win) / e_ref``; if its
+    bootstrap interval over recordings holds 0, the two explanations fit the held-out data equally
+    well and the report names both (an identifiability statement, not a choice by noise).
+    -> {"equivalence_class": [name, ...], "equivalence_why": str}"""
+    members, why = [name], []
+    for other, e in others:
+        d = (np.asarray(e) - np.asarray(e_win)) / np.asarray(e_ref)
+        lo, hi = bootstrap_ci(d, confidence)
+        if lo <= 0.0:
+            members.append(other)
+            why.append(f"{other}: check error {d.mean() * 100:+.1f} % of the reference relative to {name}, "
+                       f"{confidence * 100:.0f} % interval [{lo * 100:+.1f}, {hi * 100:+.1f}] % holds 0")
+    return {"equivalence_class": members, "equivalence_why": why}
+
+
 def fit_and_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None,
                   hidden: int = 0):
     """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
@@ -78,7 +105,8 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[: budget.localization_recordings]
     res = short_rollout_residuals(sim, loc_recs)
     loc = localize(res, s)
-    context = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit), "peak_s": loc["peak_s"]}
+    context = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit), "peak_s": loc["peak_s"],
+               "contact_z": contact_height(loc)}
     selected: list = []
     selected_names: list[str] = []
     base_nominal, base_err, base_sim = nominal, e_nom, sim
@@ -107,6 +135,10 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
         if not sig:
             break
         name, term, csim, e, sc = max(sig, key=lambda r: r[4].improvement)
+        cls = equivalence_class(name, e, e_ref, [(r[0], r[3]) for r in sig if r[0] != name])
+        for c in candidates_out:
+            if c["name"] == name and c["round"] == rnd + 1:
+                c.update(cls)
         selected.append(term)
         selected_names.append(name)
         base_nominal, base_err, base_sim = csim.nominal, e, csim

@@ -174,6 +174,17 @@ class GroundContact(Term):
 
     def init_from_data(self, context):
         self.h0.fill_(float(context.get("lowest_z", 0.0)) + 0.002)
+        self.contact_z = context.get("contact_z")  # localisation: the height below which errors grow
+
+    def grid(self):
+        """Plane heights from the lowest point reached (-0.5 to +2 cm) and, when localisation found
+        errors growing below some height, that height; each with a soft and a stiff contact. Started
+        at one height only, a contact fit can stay where the plane touches nothing (no gradient)."""
+        offsets = [-0.005, 0.0, 0.005, 0.01, 0.02]
+        if getattr(self, "contact_z", None) is not None:
+            offsets.append(float(self.contact_z) - float(self.h0))
+        return [{"raw_h": dz / 0.02, "log_k": math.log(k)} for dz in offsets if abs(dz) <= 0.1
+                for k in (2000.0, 10000.0)]
 
     @property
     def height(self) -> Tensor:
