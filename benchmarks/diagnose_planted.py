@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 
@@ -67,7 +68,10 @@ TOOL_VERSION = 2  # bump when the tool changes: rows of an older tool are never 
 
 
 def _config(args) -> dict:
-    return {"quick": args.quick, "fit": args.fit, "check": args.check, "frames": args.frames, "tool": TOOL_VERSION}
+    cfg = {"quick": args.quick, "fit": args.fit, "check": args.check, "frames": args.frames, "tool": TOOL_VERSION}
+    if getattr(args, "simulator", "own") != "own":
+        cfg["simulator"] = args.simulator
+    return cfg
 
 
 def load_runs(path: Path, config: dict) -> dict[str, dict]:
@@ -108,6 +112,81 @@ def oracle_check(spec, nominal_params: dict, effect, truth, inputs, quick: bool)
     sim = Simulator(spec, nom, [term])
     fit(sim, inputs.fit, dataclasses.replace(budget(quick).candidate, progress=False), desc="oracle")
     return float(per_recording_l1(sim.predict(inputs.check), inputs.check).mean())
+
+
+ELASTICA_SOURCES = {"light": "DLO1", "stiff": "DLO3"}  # real gripper motions driving each rod kind
+
+
+def as_user_inputs(spec: RodSpec, fit: list, check: list) -> Inputs:
+    """The recordings written to files and read back with ROD.json as a user gives them
+    (`deform diagnose --rod --fit --check`): the tool's own input checks and conventions apply
+    (a rope longer than its marker span is simulated over the span, with a warning)."""
+    import tempfile
+
+    from deform.diagnose.spec import load_inputs
+    from deform.io import save_recording
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for name, recs in (("fit", fit), ("check", check)):
+            (tmp / name).mkdir()
+            for i, r in enumerate(recs):
+                save_recording(tmp / name / f"{i:02d}.pkl", r.positions)
+        (tmp / "rod.json").write_text(json.dumps(spec.model_dump()))
+        return load_inputs(tmp / "rod.json", tmp / "fit", tmp / "check")
+
+
+def equivalence_of(rep: dict) -> list[str]:
+    """The equivalence class of the first selected term (itself alone when the data tell it apart)."""
+    if not rep["selected"]:
+        return []
+    first = next((c for c in rep["candidates"] if c["name"] == rep["selected"][0] and c["round"] == 1), {})
+    return first.get("equivalence_class", rep["selected"][:1])
+
+
+def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
+    """Effects planted by PyElastica (benchmarks/elastica_planted.py), a simulator we did not write,
+    on a light and a stiff rod, each driven by real gripper motions; inputs go through the user path."""
+    from elastica_planted import ROD_KINDS, detectability, generate_elastica
+
+    data = find_data_root()
+    controls: dict = {}
+    for kind, effect, seed in jobs:
+        key = f"elastica:{kind}:{effect or 'none'}:{seed}"
+        rod = ELASTICA_SOURCES[kind]
+        sources = load_recordings(data / rod / "train")
+        L, M, n = RODS[rod]
+        spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+        pick = np.random.default_rng(seed).choice(len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check)
+        src = [sources[i] for i in pick]
+        if key in done:
+            continue
+        t0 = time.perf_counter()
+        recs, truth = generate_elastica(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+        t_sim = time.perf_counter() - t0
+        if effect is None:
+            controls[(kind, seed)] = recs
+        pair = controls.get((kind, seed))
+        if pair is None and effect is not None:
+            pair, _ = generate_elastica(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+            controls[(kind, seed)] = pair
+        inputs = as_user_inputs(spec, recs[:args.fit], recs[args.fit:])
+        rep = diagnose(inputs, budget(args.quick)).report
+        found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
+        row = {"key": key, "config": _config(args), "kind": "planted", "simulator": "elastica", "rod_kind": kind,
+               "effect": effect or "none", "seed": seed, "selected": rep["selected"],
+               "equivalence_class": equivalence_of(rep), "truth": truth, "found_round1": found,
+               "found_selected": rep["nominal"]["final_params"].get(effect, {}) if effect else {},
+               "param_rel_error": {}, "warnings": rep["nominal"]["warnings"],
+               "detectability_l1_m": detectability(recs, pair) if effect is not None else 0.0,
+               "nominal_params": rep["nominal"]["params"],
+               "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
+               "candidates": rep["candidates"], "findings": rep["localization"]["findings"],
+               "seconds_simulate": t_sim, "seconds": time.perf_counter() - t0, "oracle_check_l1_m": None}
+        append_run(runs_path, row)
+        done[key] = row
+        print(json.dumps({k: row[k] for k in ("key", "selected", "equivalence_class", "detectability_l1_m",
+                                              "nominal_check_l1_m", "final_check_l1_m", "seconds")}), flush=True)
 
 
 def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
@@ -203,6 +282,11 @@ def apply_rules(planted: list[dict], real: list[dict], alpha: float) -> dict:
                                               "min_gain_values_in_rows": ran}}
 
 
+def _pair(r: dict):
+    """The control a dataset is paired with: same seed (same motions), same rod kind."""
+    return (r.get("rod_kind"), r["seed"])
+
+
 def _gaps(r: dict, floor: dict, final: float) -> dict:
     out = {}
     if r["effect"] == "none":
@@ -212,15 +296,15 @@ def _gaps(r: dict, floor: dict, final: float) -> dict:
         gap = r["nominal_check_l1_m"] - o
         out["gap_oracle_m"] = gap
         out["gap_closed_oracle"] = (r["nominal_check_l1_m"] - final) / gap if gap > 1e-5 else None
-    if r["seed"] in floor:
-        gap = r["nominal_check_l1_m"] - floor[r["seed"]]
+    if _pair(r) in floor:
+        gap = r["nominal_check_l1_m"] - floor[_pair(r)]
         out["gap_control_m"] = gap
         out["gap_closed_control"] = (r["nominal_check_l1_m"] - final) / gap if gap > 1e-5 else None
     return out
 
 
 def summarise(rows: list[dict], rule: str) -> dict:
-    floor = {r["seed"]: r["nominal_check_l1_m"] for r in rows if r["effect"] == "none"}
+    floor = {_pair(r): r["nominal_check_l1_m"] for r in rows if r["effect"] == "none"}
     out = {}
     for eff in sorted({r["effect"] for r in rows}, key=lambda e: (e != "none", e)):
         rs = [r for r in rows if r["effect"] == eff and rule in r]
@@ -233,7 +317,11 @@ def summarise(rows: list[dict], rule: str) -> dict:
         go = [x["gap_closed_oracle"] for x in g if x.get("gap_closed_oracle") is not None]
         gc = [x["gap_closed_control"] for x in g if x.get("gap_closed_control") is not None]
         perr = [float(np.mean(list(r["param_rel_error"].values()))) for r in rs if r["param_rel_error"]]
+        in_class = [eff in r.get("equivalence_class", []) for r in rs] if eff != "none" else right
+        detect = [r["detectability_l1_m"] for r in rs if r.get("detectability_l1_m") is not None]
         out[eff] = {"runs": len(rs), "named_correctly": int(sum(right)), "rate": float(np.mean(right)),
+                    "named_in_class": int(sum(in_class)) if rule == "as_run" else None,
+                    "detectability_cm": (float(np.median(detect)) * 100) if detect and eff != "none" else None,
                     "selected": [s or ["none"] for s in sel],
                     "nominal_check_cm": float(np.mean([r["nominal_check_l1_m"] for r in rs]) * 100),
                     "final_check_cm": float(np.mean(finals) * 100),
@@ -249,10 +337,12 @@ def _fmt(x, pct=True):
     return "-" if x is None else (f"{x * 100:.0f} %" if pct else f"{x:.3f}")
 
 
-def write(result: dict) -> None:
+def write(result: dict, stem: str = "diagnose") -> None:
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "diagnose.json").write_text(json.dumps(result, indent=2))
-    lines = ["# deform diagnose: planted-effect benchmark", "",
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    title = ("planted-effect benchmark, recordings from PyElastica (an independent simulator)"
+             if result.get("simulator") == "elastica" else "planted-effect benchmark")
+    lines = [f"# deform diagnose: {title}", "",
              f"Run: `{result['command']}` on {result['machine']}; {result['seconds_total_runs']:.0f} s of "
              f"dataset runs (sum over the rows in `diagnose.runs.jsonl`).", "", f"Budget: {result['budget']}", ""]
     cal = result["rules"]["calibration"]
@@ -270,12 +360,16 @@ def write(result: dict) -> None:
             continue
         tot = sum(s["runs"] for k, s in summ.items() if k != "none")
         ok = sum(s["named_correctly"] for k, s in summ.items() if k != "none")
-        lines += [f"## {title}", "", f"Planted effects named first: {ok}/{tot}; controls `none`: "
-                  f"{summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}.", "",
-                  "| planted effect | runs | named correctly | check nominal [cm] | after [cm] | oracle [cm] | gap closed vs oracle (median) | vs control (median) | param rel. error (median) |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+        in_class = sum(s["named_in_class"] or 0 for k, s in summ.items() if k != "none")
+        lines += [f"## {title}", "", f"Planted effects named first: {ok}/{tot}"
+                  + (f" (the truth in the named equivalence class: {in_class}/{tot})" if rule == "as_run" else "")
+                  + f"; controls `none`: {summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}.", "",
+                  "| planted effect | runs | named correctly | in class | marker L1 vs control [cm] | check nominal [cm] | after [cm] | oracle [cm] | gap closed vs oracle (median) | vs control (median) | param rel. error (median) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for eff, s in summ.items():
-            lines.append(f"| {eff} | {s['runs']} | {s['named_correctly']}/{s['runs']} | {s['nominal_check_cm']:.3f} | "
+            lines.append(f"| {eff} | {s['runs']} | {s['named_correctly']}/{s['runs']} | "
+                         f"{'-' if s.get('named_in_class') is None else str(s['named_in_class']) + '/' + str(s['runs'])} | "
+                         f"{'-' if s.get('detectability_cm') is None else format(s['detectability_cm'], '.2f')} | {s['nominal_check_cm']:.3f} | "
                          f"{s['final_check_cm']:.3f} | {_fmt(s['oracle_check_cm'] and s['oracle_check_cm'] / 100 * 100, False) if s['oracle_check_cm'] is not None else '-'} | "
                          f"{_fmt(s['gap_closed_oracle_median'])} | {_fmt(s['gap_closed_control_median'])} | "
                          f"{_fmt(s['param_rel_error_median'])} |")
@@ -283,7 +377,11 @@ def write(result: dict) -> None:
     lines += ["## Per run", ""]
     for r in result["planted"]:
         cal_sel = r.get("calibrated", {}).get("selected")
-        lines.append(f"- {r['effect']} seed {r['seed']}: as run {r['selected'] or ['none']}, calibrated "
+        lines.append(f"- {r.get('rod_kind', '') + ' ' if r.get('rod_kind') else ''}{r['effect']} seed {r['seed']}: "
+                     f"as run {r['selected'] or ['none']}"
+                     + (f" (class {r['equivalence_class']})" if len(r.get('equivalence_class', [])) > 1 else "")
+                     + (f", marker L1 vs control {r['detectability_l1_m'] * 100:.2f} cm" if r.get('detectability_l1_m') else "")
+                     + ", calibrated "
                      f"{(cal_sel or ['none']) if cal_sel is not None else '-'}; {r['nominal_check_l1_m'] * 100:.3f} -> "
                      f"{r['final_check_l1_m'] * 100:.3f} cm (oracle {_fmt(r.get('oracle_check_l1_m') and r['oracle_check_l1_m'] * 100, False)}); "
                      f"params {json.dumps({k: round(v, 4) for k, v in (r['found_selected'] or r['found_round1']).items()})} "
@@ -300,7 +398,7 @@ def write(result: dict) -> None:
                          f"{r['final_check_l1_m'] * 100:.3f} | "
                          + ", ".join(f"{c['name']} {c['improvement'] * 100:+.1f} %" for c in top)
                          + f" | {r['seconds']:.0f} |")
-    (RESULTS / "diagnose.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
 
 
 def _sources(seed: int, count: int):
@@ -411,7 +509,10 @@ def main() -> None:
     p.add_argument("--check", type=int, default=4)
     p.add_argument("--frames", type=int, default=500)
     p.add_argument("--alpha", type=float, default=0.05, help="family-wise false-positive rate of the calibrated rule")
-    p.add_argument("--runs", default=str(RESULTS / "diagnose.runs.jsonl"), help="incremental results (resumed)")
+    p.add_argument("--simulator", choices=("own", "elastica"), default="own",
+                   help="who plants the effects: this project's simulator, or PyElastica (pip install '.[bench]')")
+    p.add_argument("--rod-kinds", nargs="*", default=list(ELASTICA_SOURCES), help="elastica: light (DLO1 motions), stiff (DLO3)")
+    p.add_argument("--runs", default=None, help="incremental results (resumed); default benchmarks/results/<stem>.runs.jsonl")
     p.add_argument("--summary-only", action="store_true", help="only rebuild diagnose.{json,md} from the runs file")
     p.add_argument("--mass-equivalence", type=int, nargs="*", default=None, metavar="SEED",
                    help="only measure how much of the planted marker mass is a uniform factor (prints JSON)")
@@ -435,22 +536,37 @@ def main() -> None:
     if args.smoke:
         args.quick = "smoke"
     torch.set_num_threads(1)
-    runs_path = Path(args.runs)
+    stem = "diagnose" if args.simulator == "own" else f"diagnose.{args.simulator}"
+    runs_path = Path(args.runs or RESULTS / f"{stem}.runs.jsonl")
     runs_path.parent.mkdir(exist_ok=True)
     done = load_runs(runs_path, _config(args))
-    effects = [e for e in (args.effects or EFFECTS) if e != "none"]
-    # controls first (they calibrate the rule), then each seed through all effects, then the real rods
-    jobs = [(None, s) for s in range(args.control_seeds)] + [(e, s) for s in range(args.seeds) for e in effects]
-    if not args.summary_only:
-        run_planted(jobs, args, runs_path, done)
-        run_real(args.real, args, runs_path, done)
+    if args.simulator == "elastica":
+        sys.path.insert(0, str(ROOT))
+        from elastica_planted import EFFECTS as ELASTICA_EFFECTS
+        effects = [e for e in (args.effects or ELASTICA_EFFECTS) if e != "none"]
+        # per rod kind and seed: the control first (it is also the effects' pair), then the effects
+        jobs = [(k, e, s) for k in args.rod_kinds for s in range(max(args.seeds, args.control_seeds))
+                for e in ([None] if s < args.control_seeds else []) + (effects if s < args.seeds else [])]
+        if not args.summary_only:
+            run_elastica(jobs, args, runs_path, done)
+    else:
+        effects = [e for e in (args.effects or EFFECTS) if e != "none"]
+        # controls first (they calibrate the rule), then each seed through all effects, then the real rods
+        jobs = [(None, s) for s in range(args.control_seeds)] + [(e, s) for s in range(args.seeds) for e in effects]
+        if not args.summary_only:
+            run_planted(jobs, args, runs_path, done)
+            run_real(args.real, args, runs_path, done)
     planted = [r for r in done.values() if r["kind"] == "planted"]
     planted.sort(key=lambda r: (r["effect"] != "none", r["effect"], r["seed"]))
     real = sorted((r for r in done.values() if r["kind"] == "real"), key=lambda r: r["rod"])
     rules = apply_rules(planted, real, args.alpha)
     b = budget(args.quick)
+    import platform
+    import subprocess
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
     result = {"command": "python benchmarks/diagnose_planted.py " + " ".join(a for a in sys.argv[1:] if a != "--summary-only"),
-              "machine": "2 CPU cores shared with other jobs (a training run, service benchmarks), torch 1 thread",
+              "simulator": args.simulator, "commit": commit,
+              "machine": f"{platform.node()}: {os.cpu_count()} CPU cores (shared with other jobs), torch 1 thread",
               "budget": (f"nominal {b.nominal_iterations} Adam iterations, candidates {b.candidate.iterations} iterations "
                          f"of {b.candidate.batch} windows x {b.candidate.horizon} steps, {b.max_rounds} rounds; "
                          f"{args.fit} fit + {args.check} check recordings of {args.frames} frames per planted dataset "
@@ -459,7 +575,7 @@ def main() -> None:
               "rules": rules,
               "summary": {"as_run": summarise(planted, "as_run"), "calibrated": summarise(planted, "calibrated")},
               "planted": planted, "real": real}
-    write(result)
+    write(result, stem)
 
 
 if __name__ == "__main__":

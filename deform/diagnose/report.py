@@ -103,6 +103,10 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
               "## Result", "",
               f"Selected: **{', '.join(rep['selected']) or 'none'}**", ""]
     for c in rep["candidates"]:
+        if "fit_noise" in c:
+            lines += [f"{c['name']} (round {c['round']}) fitted again on other windows: improvement "
+                      f"{c['fit_noise']['improvement_refit'] * 100:+.1f} % (first fit {c['improvement'] * 100:+.1f} %; "
+                      f"the fit's own noise about {c['fit_noise']['noise'] * 100:.1f} %).", ""]
         if len(c.get("equivalence_class", [])) > 1:
             lines += [f"Marker motion cannot tell **{c['name']}** apart from "
                       f"{', '.join(n for n in c['equivalence_class'] if n != c['name'])} (round {c['round']}): "

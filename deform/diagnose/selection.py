@@ -17,7 +17,7 @@ import numpy as np
 from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
 from deform.diagnose.scoring import bootstrap_ci, score
-from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
+from deform.diagnose.simulator import MATERIAL_DAMPING_MAX, Nominal, Simulator, arclength_of, per_recording_l1
 from deform.diagnose.spec import Inputs
 from deform.diagnose.terms import LIBRARY, make_term
 
@@ -52,7 +52,8 @@ def _nominal_from_model(path: str) -> Nominal:
     from deform.model import DeformModel
 
     m = DeformModel.load(path)
-    return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()), float(m.damping))
+    return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()),
+                   min(float(m.damping), MATERIAL_DAMPING_MAX))
 
 
 def contact_height(loc: dict) -> float | None:
@@ -80,6 +81,19 @@ def equivalence_class(name: str, e_win, e_ref, others: list[tuple[str, object]],
     return {"equivalence_class": members, "equivalence_why": why}
 
 
+def fit_noise(spec, nominal, selected, name, s, context, inputs: Inputs, budget: FitBudget,
+              improvement: float) -> dict:
+    """The chosen candidate and its reference fitted again on other windows of fit/ (another seed):
+    how much of the improvement is the fit's own noise. -> {"improvement_refit", "noise"}"""
+    other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
+    _, e_ref = fit_and_check(spec, nominal, [copy.deepcopy(t) for t in selected], inputs, other, "refit: reference")
+    term = make_term(name, spec.n_vertices, s, context)
+    _, e = fit_and_check(spec, nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, other,
+                         f"refit: {name}", new_term=term)
+    again = float(((e_ref - e) / e_ref).mean())
+    return {"improvement_refit": again, "noise": abs(again - improvement)}
+
+
 def fit_and_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None,
                   hidden: int = 0):
     """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
@@ -105,6 +119,10 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[: budget.localization_recordings]
     res = short_rollout_residuals(sim, loc_recs)
     loc = localize(res, s)
+    if sim.nominal.at_damping_bound():
+        loc["findings"].insert(0, f"the nominal fit wants more velocity damping than a rope's material damping "
+                                  f"(held at its bound, {sim.nominal.damping_max:g} /s): external dissipation, "
+                                  "such as air drag or contact friction, or strong internal damping")
     context = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit), "peak_s": loc["peak_s"],
                "contact_z": contact_height(loc)}
     selected: list = []
@@ -136,6 +154,7 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
             break
         name, term, csim, e, sc = max(sig, key=lambda r: r[4].improvement)
         cls = equivalence_class(name, e, e_ref, [(r[0], r[3]) for r in sig if r[0] != name])
+        cls["fit_noise"] = fit_noise(spec, base_nominal, selected, name, s, context, inputs, cb, sc.improvement)
         for c in candidates_out:
             if c["name"] == name and c["round"] == rnd + 1:
                 c.update(cls)
