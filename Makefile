@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 # g++: scikit-sparse is built from source, and torch.compile (deform/compiled.py) compiles C++
 APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1 g++
 
-.PHONY: install demo test bench clean sysdeps
+.PHONY: install demo test test-fast bench clean sysdeps
 
 sysdeps:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -37,6 +37,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q -x tests
+
+# the quick loop (under a minute on two cores): no dataset, no compiling, nothing marked slow
+# (markers: pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -x -m "not slow and not compile and not needs_data" tests
 
 bench: $(STAMP)
 	$(PY) benchmarks/speed.py

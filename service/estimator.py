@@ -10,6 +10,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -43,8 +44,10 @@ class Cloud:
 
 
 class Estimator:
-    def __init__(self, cfg: ServiceConfig, model, tracker=None, stats: Stats | None = None):
+    def __init__(self, cfg: ServiceConfig, model, tracker=None, stats: Stats | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.cfg, self.model = cfg, model
+        self.clock = clock  # wall time (s) for arrivals, ages and the cloud rate limit; tests pass a fake
         self.tracker = tracker if tracker is not None else make_tracker(model)
         self.stats = stats or Stats(cfg.namespace)
         self.lock = threading.RLock()
@@ -56,7 +59,7 @@ class Estimator:
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.camera_pose = np.asarray(cfg.camera.pose, dtype=float)
         self.last_cloud_ns: int | None = None
-        self.last_cloud_arrival = time.monotonic()
+        self.last_cloud_arrival = self.clock()
         self.cloud_tokens = 3.0
         self.pending: list[Cloud] = []          # message clock: clouds waiting for their tick
         self.arrived: dict[str, float] = {}     # input -> arrival (wall monotonic or message time, s)
@@ -81,10 +84,10 @@ class Estimator:
 
     # ----- time --------------------------------------------------------------------------------
     def now(self) -> float:
-        return self.clock_s if self.message_clock else time.monotonic()
+        return self.clock_s if self.message_clock else self.clock()
 
     def _arrive(self, key: str, stamp_ns: int) -> None:
-        self.arrived[key] = stamp_ns / NS if self.message_clock else time.monotonic()
+        self.arrived[key] = stamp_ns / NS if self.message_clock else self.clock()
 
     def _check_stamp(self, topic: str, stamp: int, last: int | None) -> None:
         if last is not None and stamp <= last:
@@ -150,7 +153,7 @@ class Estimator:
             return False
         if not self.message_clock:
             # token bucket: bursts of a few clouds (transport jitter) pass, a sustained flood does not
-            now, rate = time.monotonic(), self.cfg.limits.max_cloud_rate_hz
+            now, rate = self.clock(), self.cfg.limits.max_cloud_rate_hz
             self.cloud_tokens = min(3.0, self.cloud_tokens + (now - self.last_cloud_arrival) * rate)
             self.last_cloud_arrival = now
             if self.cloud_tokens < 1.0:

@@ -53,6 +53,7 @@ class FusionWorker(threading.Thread):
         self._can_clone = True
         self.yield_to = yield_to  # set while a predict runs: the next fusion waits (see _yield)
         self.max_yield_s = max_yield_s
+        self.clock, self.sleep = time.monotonic, time.sleep  # _yield's wall time; tests swap in fakes
 
     def _yield(self) -> None:
         """Wait (at most ``max_yield_s``) while ``yield_to`` is set. On 2 cores a fusion (decode,
@@ -61,10 +62,10 @@ class FusionWorker(threading.Thread):
         supersedes it) and the estimate runs open-loop for those ticks."""
         if self.yield_to is None or self.max_yield_s <= 0 or not self.yield_to.is_set():
             return
-        deadline = time.monotonic() + self.max_yield_s
+        deadline = self.clock() + self.max_yield_s
         self.est.stats.count("fusion_deferred")
-        while self.yield_to.is_set() and time.monotonic() < deadline and not self._stop_event.is_set():
-            time.sleep(0.002)
+        while self.yield_to.is_set() and self.clock() < deadline and not self._stop_event.is_set():
+            self.sleep(0.002)
 
     def submit(self, raw: bytes) -> None:
         if not self.est.admit_cloud(raw):

@@ -1,6 +1,10 @@
 """The ahead-of-time step gives the torch.compile one-graph step's values, is built once per model
 and reused from disk, never runs with weights the model no longer has, and falls back to
-torch.compile when it cannot be built."""
+torch.compile when it cannot be built. Packages go to the session's own ``$DEFORM_CACHE`` (see
+tests/conftest.py), so the first test builds one: nothing is reused from, or left in, the user's cache."""
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -9,6 +13,8 @@ from deform import generate_recording, gripped_indices, load_model
 from deform.compiled import RolloutStep, rollout
 
 BRANCH_FREE = (2, 2)
+
+pytestmark = [pytest.mark.compile, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +48,16 @@ def test_same_values_as_the_compiled_one_graph_step(model, start, built):
     assert torch.equal(out, compiled)  # the same graph and kernels, only entered differently
     assert (out - eager).abs().max() < 1e-6
     assert step.redone == 0, "the fast graph must have run (else the comparison proves nothing)"
+
+
+def test_packages_are_kept_in_the_sessions_cache_not_the_users(built):
+    step, _ = built
+    (aot_step,) = step.fast._aot.values()
+    cache = Path(os.environ["DEFORM_CACHE"])
+    assert cache.name.startswith("deform-cache")  # the session's directory (tests/conftest.py)
+    assert aot_step.path.parent == aot.cache_dir() == cache / "aot"
+    assert aot_step.path.is_file()
+    assert Path.home() / ".cache" / "deform" not in aot_step.path.parents
 
 
 def test_a_second_step_loads_the_package_without_compiling(model, start, built, monkeypatch):

@@ -1,5 +1,6 @@
 """The compiled inference step gives the eager step's values (it is only faster), pads batches to
-bucket sizes without changing results, and falls back to eager when compilation fails."""
+bucket sizes without changing results, and falls back to eager when compilation fails. Tests that
+compile are marked ``compile`` (skipped without a C++ compiler, see tests/conftest.py)."""
 import math
 
 import pytest
@@ -29,6 +30,7 @@ def test_bucket_sizes():
     assert [bucket_size(b) for b in (1, 3, 64, 65, 1024, 2000)] == [1, 4, 64, 128, 1024, 2000]
 
 
+@pytest.mark.compile
 def test_compiled_rollout_matches_eager(model, start):
     state, grips = start
     eager = rollout(model, state, grips)
@@ -40,6 +42,7 @@ def test_compiled_rollout_matches_eager(model, start):
     assert (compiled - eager).abs().max() < 1e-6
 
 
+@pytest.mark.compile
 def test_one_graph_step_matches_eager_per_rod(model, start):
     """The real-time loop's step (one graph, masked iterations, eager redo of unconverged rods)
     gives each rod what the eager step gives it alone."""
@@ -76,6 +79,7 @@ def test_unconverged_flags_only_rods_off_tolerance(model, start):
     assert model.unconverged(state, twisted).tolist() == [False, False, True]
 
 
+@pytest.mark.compile
 def test_sudden_jump_is_redone_eagerly(model, start):
     """A grip that jumps 5 cm in one step needs more projection sweeps than the compiled step
     makes: that rod is stepped again by the checked eager loop and the result stays within tol."""
@@ -94,6 +98,7 @@ def test_sudden_jump_is_redone_eagerly(model, start):
     assert not model.unconverged(state, out).any()
 
 
+@pytest.mark.compile
 def test_rollout_step_one_graph_while_converged(model, start):
     """Predict's rollout: steps that converge in the one-graph step keep it, and each rod then
     gets what the eager step gives it alone."""
@@ -107,6 +112,7 @@ def test_rollout_step_one_graph_while_converged(model, start):
         assert (out[r] - alone[0]).abs().max() < 1e-6
 
 
+@pytest.mark.compile
 def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, start):
     """A grip jumping 5 cm needs more sweeps than the one graph holds: that step is the checked
     compiled step's (whole batch), not the unconverged one-graph result, and the following steps
@@ -126,6 +132,7 @@ def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, st
     assert (out - ref).abs().max() < 5e-4
 
 
+@pytest.mark.compile
 def test_rollout_step_pauses_the_fast_graph_after_misses_in_a_row(model, start, monkeypatch):
     """A batch that keeps needing more than the one graph stops paying for the wasted attempts:
     after ``max_misses`` in a row the fast graph pauses for 1, 2, 4, ... steps, so it is tried a
@@ -144,6 +151,7 @@ def test_rollout_step_pauses_the_fast_graph_after_misses_in_a_row(model, start, 
     assert (out - ref).abs().max() < 1e-6
 
 
+@pytest.mark.compile
 def test_rollout_step_does_not_redo_an_overstretched_rod(model, start):
     """A rod pulled farther apart than it is long has no shape that meets its lengths: the fast
     graph's result stands (the checked step would only sweep longer without converging), while
@@ -161,6 +169,7 @@ def test_rollout_step_does_not_redo_an_overstretched_rod(model, start):
         assert (out[r] - alone[0]).abs().max() < 1e-6
 
 
+@pytest.mark.compile
 def test_solver_flags_agree_with_a_recomputed_check(model, start):
     """The one-graph step's convergence read from the solvers' own flags flags the same rods as a
     second evaluation (``DeformModel.unconverged``): none on a plain step, the jerked rod on a jump."""

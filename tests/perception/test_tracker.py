@@ -4,7 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from deform import find_data_root, load_model, load_recording, gripped_indices
+from deform import gripped_indices, load_model, load_recording
 from perception import Camera, Tracker, load_config, render_recording
 from tests.perception.conftest import occluded_config, swung
 
@@ -148,10 +148,8 @@ def test_uninitialised_tracker_does_not_raise(model, grip_idx):
     assert np.all(np.isfinite(x)) and not observed.any()
 
 
-@pytest.mark.skipif(find_data_root() is None, reason="DEFORM recordings not available")
-def test_real_recording_camera_tracking_beats_open_loop_and_baseline():
-    root = find_data_root()
-    path = sorted((root / "DLO1" / "eval").glob("*.pkl"))[0]
+def test_real_recording_camera_tracking_beats_open_loop_and_baseline(data_root):
+    path = sorted((data_root / "DLO1" / "eval").glob("*.pkl"))[0]
     p = load_recording(path).positions[:150]
     model = load_model("DLO1")
     gi = gripped_indices(model.n)

@@ -38,3 +38,28 @@ def make_config(endpoint=None, connect=None, **over):
     over.setdefault("workers", {"compile_predict": False})
     over.setdefault("compile_step", False)
     return load_config(zenoh=z, **over)
+
+
+class FakeClock:
+    """Stands in for ``time.monotonic`` (call it) and ``time.sleep`` (``sleep`` advances it): time
+    moves only when a test says so, so rate limits and timeouts are checked exactly."""
+
+    def __init__(self, t: float = 1000.0):
+        self.t, self.sleeps, self._due = t, 0, []
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+        for item in [d for d in self._due if d[0] <= self.t]:
+            self._due.remove(item)
+            item[1]()
+
+    def sleep(self, dt: float) -> None:
+        self.sleeps += 1
+        self.advance(dt)
+
+    def call_at(self, t: float, fn) -> None:
+        """Run ``fn`` once the clock reaches ``t`` (as another thread would, during a sleep)."""
+        self._due.append((t, fn))

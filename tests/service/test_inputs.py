@@ -1,5 +1,6 @@
-"""Bad inputs are rejected with a counter and the loop goes on; modes follow the inputs."""
-import time
+"""Bad inputs are rejected with a counter and the loop goes on; modes follow the inputs. Wall time is a
+fake clock throughout: nothing here depends on how fast the machine is."""
+import threading
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ from service import messages as M
 from service.estimator import Estimator
 from service.fusion import FusionWorker
 from service.tracking import OpenLoopTracker
-from tests.service.conftest import make_config
+from tests.service.conftest import FakeClock, make_config
 
 GOOD = np.array([[-0.4, 0, 0.5, 0, 0, 0, 1], [0.4, 0, 0.5, 0, 0, 1, 0]], dtype=float)
 T0 = 1_700_000_000 * 10**9
@@ -16,7 +17,8 @@ T0 = 1_700_000_000 * 10**9
 
 @pytest.fixture
 def est(model):
-    return Estimator(make_config(), model, OpenLoopTracker(model, settle_steps=20))
+    """An estimator on a fake wall clock (``est.clock``)."""
+    return Estimator(make_config(), model, OpenLoopTracker(model, settle_steps=20), clock=FakeClock())
 
 
 def test_bad_poses_counted_and_loop_continues(est):
@@ -59,26 +61,48 @@ def test_bad_clouds_rejected(est):
 
 
 def test_cloud_flood_rejected(est):
+    """Token bucket at ``max_cloud_rate_hz`` (60), burst of 3: exact counts on a fake clock."""
     worker = FusionWorker(est)   # not started: nothing consumes the slot
     raw = M.point_cloud(T0, np.zeros((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8))
-    for _ in range(20):
+    rate = est.cfg.limits.max_cloud_rate_hz
+    assert rate == 60
+
+    def flooded():
+        return est.status()["rejected"].get("points:flood", 0)
+
+    for _ in range(20):          # all at one instant: the burst of 3 passes, the rest is refused
         worker.submit(raw)
-    st = est.status()
-    assert st["rejected"].get("points:flood", 0) >= 16  # 60 Hz limit: a burst of 3 passes, then a trickle
+    assert flooded() == 17
+    assert est.status()["dropped"]["cloud_superseded"] == 2   # the burst replaced each other in the slot
+    est.clock.advance(1.5 / rate)  # a token and a half: one more cloud, not two
+    worker.submit(raw)
+    worker.submit(raw)
+    assert flooded() == 18
+    est.clock.advance(10.0)      # a long pause refills only up to the burst
+    for _ in range(4):
+        worker.submit(raw)
+    assert flooded() == 19
 
 
 def test_modes_follow_inputs(model):
     cfg = make_config(timeouts={"pose_s": 0.3, "cloud_s": 0.5, "stale_s": 1.0})
-    est = Estimator(cfg, model, OpenLoopTracker(model, settle_steps=20))
+    clock = FakeClock()
+    est = Estimator(cfg, model, OpenLoopTracker(model, settle_steps=20), clock=clock)
     assert est.mode() == "waiting"
     est.on_poses(M.pose_array(T0, GOOD))
     est.tick(T0)
     assert est.mode() == "open-loop"        # poses, no clouds
     est.fused_at = est.now()
     assert est.mode() == "tracking"
-    time.sleep(0.4)                          # poses stop
+    clock.advance(0.25)                      # poses and the cloud still within their timeouts
+    assert est.mode() == "tracking"
+    clock.advance(0.15)                      # poses stop: 0.4 s > pose_s
     assert est.mode() == "waiting"
-    assert est.status()["input_age_s"]["ee_poses"] >= 0.3
+    assert est.status()["input_age_s"]["ee_poses"] == pytest.approx(0.4)
+    est.on_poses(M.pose_array(T0 + 4 * 10**8, GOOD))   # poses again; the last cloud is 0.4 s old
+    assert est.mode() == "tracking"
+    clock.advance(0.2)                       # the cloud is 0.6 s old (> cloud_s), the poses 0.2 s
+    assert est.mode() == "open-loop"
 
 
 def test_fused_tracker_keeps_the_compiled_step(est, model):
@@ -98,22 +122,28 @@ def test_fused_tracker_keeps_the_compiled_step(est, model):
 
 def test_fusion_defers_to_a_running_predict_for_a_bounded_time(est):
     """While a predict runs the next fusion waits (counted), at most ``max_yield_s``, and goes on
-    as soon as the predict ends; without a running predict it does not wait at all."""
-    import threading
-    import time
-
+    as soon as the predict ends; without a running predict it does not wait at all. (Fake clock:
+    the bounds are exact, whatever the machine's load.)"""
     busy = threading.Event()
     worker = FusionWorker(est, yield_to=busy, max_yield_s=0.15)
-    t = time.perf_counter()
+    clock = FakeClock()
+    worker.clock, worker.sleep = clock, clock.sleep
+    poll = 0.002  # _yield's polling period: the wait ends at most one period after its cause
     worker._yield()
-    assert time.perf_counter() - t < 0.05 and "fusion_deferred" not in est.stats.snapshot()["counts"]
+    assert clock.sleeps == 0 and "fusion_deferred" not in est.stats.snapshot()["counts"]
     busy.set()
-    t = time.perf_counter()
+    t = clock()
     worker._yield()  # the predict never ends: bounded
-    assert 0.15 <= time.perf_counter() - t < 1.0
+    assert 0.15 <= clock() - t < 0.15 + poll + 1e-9
     worker.max_yield_s = 2.0
-    threading.Timer(0.03, busy.clear).start()
-    t = time.perf_counter()
-    worker._yield()  # the predict ends after 30 ms: fusion goes on then, long before the bound
-    assert 0.02 <= time.perf_counter() - t < 1.0
+    t = clock()
+    clock.call_at(t + 0.03, busy.clear)  # the predict ends after 30 ms
+    worker._yield()  # fusion goes on then, long before the bound
+    assert 0.03 <= clock() - t < 0.03 + poll + 1e-9
+    assert not busy.is_set()
     assert est.stats.snapshot()["counts"]["fusion_deferred"] == 2
+    worker.stop()
+    busy.set()
+    t = clock()
+    worker._yield()  # a stopping worker does not wait
+    assert clock() == t

@@ -10,6 +10,8 @@ from .conftest import SPEC, tiny_budget
 
 CANDIDATES = ("external_force", "aerodynamic_drag", "point_mass")
 
+pytestmark = pytest.mark.slow  # whole diagnoses on the tiny rod: about 25 s on two cores
+
 
 def _inputs(effect, sources):
     recs, truth = generate_planted(effect, sources, SPEC, n_frames=80, refine=2, substeps=2, settle_s=0.5, seed=1)

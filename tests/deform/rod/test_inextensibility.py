@@ -53,6 +53,23 @@ def test_projection_is_differentiable():
     assert torch.isfinite(g).all() and g.abs().sum() > 0
 
 
+@pytest.mark.parametrize("method", ["projection", "gauss_seidel"])
+def test_projection_gradient_matches_finite_differences(method):
+    """Training backpropagates through the projection: its autograd gradient with respect to the
+    predicted positions, the rest lengths and the inverse masses equals central finite differences
+    (float64, small rod, a gripped vertex). ``tol=0`` makes the sweep count fixed, so the function is
+    smooth; with a tolerance a perturbation could change the number of sweeps (a jump of order tol)."""
+    _, xp, rest, mass = _perturbed(4, batch=2, n=5)
+    inv = 1.0 / mass
+    inv[:, 0] = 0.0  # held: must not move, and gets no gradient through its (zero) weight
+    xp, rest, inv = (t.clone().requires_grad_(True) for t in (xp, rest, inv))
+
+    def project(xp, rest, inv):
+        return enforce_inextensibility(xp, inv, rest, tol=0.0, max_sweeps=3, method=method)
+
+    assert torch.autograd.gradcheck(project, (xp, rest, inv), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
 
 def test_branch_free_sweeps_stop_each_rod_by_the_checked_rule():
     """Sync-free sweeps (for compiled code) stop each rod once its own error is below tol: with
