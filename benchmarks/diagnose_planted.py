@@ -189,6 +189,42 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
                                               "nominal_check_l1_m", "final_check_l1_m", "seconds")}), flush=True)
 
 
+def calibrate_damping(args) -> dict:
+    """The nominal model's damping bound from controls only (no effect planted): the linear damping
+    a free nominal fit gives on independent-simulator controls (light and stiff rod, small material
+    damping) and on this project's own controls (stored rows), and the bound = 2x the largest. The
+    factor leaves room for ropes damped more than these; drag and contact have measured 5-10x."""
+    from deform.diagnose.fitting import coarse_nominal, fit
+    from deform.diagnose.simulator import Nominal, Simulator
+    from elastica_planted import generate_elastica
+
+    data = find_data_root()
+    b = budget(args.quick)
+    fitted = []
+    for kind in args.rod_kinds:
+        rod = ELASTICA_SOURCES[kind]
+        sources = load_recordings(data / rod / "train")
+        L, M, n = RODS[rod]
+        spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+        for seed in range(args.control_seeds):
+            pick = np.random.default_rng(seed).choice(len(sources), args.fit + args.check, replace=False)
+            recs, _ = generate_elastica(None, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+            inputs = as_user_inputs(spec, recs[:args.fit], recs[args.fit:])
+            sim = Simulator(inputs.spec, Nominal(damping_max=20.0))
+            coarse_nominal(sim, inputs.fit)
+            fit(sim, inputs.fit, dataclasses.replace(b.candidate, iterations=b.nominal_iterations, progress=False))
+            fitted.append({"simulator": "elastica", "rod_kind": kind, "seed": seed, **sim.nominal.params()})
+            print(json.dumps(fitted[-1]), flush=True)
+    own = load_runs(RESULTS / "diagnose.runs.jsonl", {"quick": True, "fit": 6, "check": 4, "frames": 300, "tool": 2})
+    fitted += [{"simulator": "own", "seed": r["seed"], **r["nominal_params"]} for r in own.values()
+               if r["kind"] == "planted" and r["effect"] == "none"]
+    worst = max(f["damping_1_per_s"] for f in fitted)
+    out = {"command": "python benchmarks/diagnose_planted.py --calibrate-damping " + " ".join(args.rod_kinds),
+           "controls": fitted, "largest_1_per_s": worst, "bound_1_per_s": round(2 * worst, 2)}
+    (RESULTS / "diagnose.damping_bound.json").write_text(json.dumps(out, indent=2))
+    return out
+
+
 def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
     data = find_data_root()
     sources = load_recordings(data / "DLO2" / "train")
@@ -520,7 +556,14 @@ def main() -> None:
                    help="only sweep the internal-damping term on planted data with fixed nominal parameters")
     p.add_argument("--hidden-nodes", type=int, nargs="*", default=None, metavar="SEED",
                    help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)")
+    p.add_argument("--calibrate-damping", action="store_true",
+                   help="only fit the nominal model on independent-simulator controls and derive its damping bound")
     args = p.parse_args()
+    if args.calibrate_damping:
+        torch.set_num_threads(1)
+        sys.path.insert(0, str(ROOT))
+        print(json.dumps(calibrate_damping(args)))
+        return
     if args.hidden_nodes is not None:
         torch.set_num_threads(1)
         for seed in args.hidden_nodes:
