@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from deform.compiled import COMPILE_OPTIONS, branch_free_step, rod_at_rest
+from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 from deform.model import DeformModel, RodState
 
 log = logging.getLogger("deform.aot")

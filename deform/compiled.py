@@ -20,7 +20,9 @@ import threading
 import torch
 from torch import Tensor
 
+from deform.aot import AheadOfTimeStep
 from deform.model import DeformModel, RodState, overstretched
+from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 
 log = logging.getLogger("deform.compiled")
 
@@ -31,30 +33,6 @@ BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 # Newton step; a rope pulled nearly taut) need more. Converged rods are masked but the iterations
 # still run and enlarge the compiled code, so the rare harder steps are redone eagerly instead.
 LOOP_BRANCH_FREE = (12, 6)
-# a C++ wrapper calls the kernels without a Python frame each (a step is ~30 kernels); memory
-# planning takes a step's ~370 intermediate buffers from one allocation instead of one each (0.90x
-# per one-graph step at B = 1, 0.93-0.95x at B = 64 and per predict rollout, interleaved scratch
-# A/Bs of 2026-11-23; the same first-time compile, 110-125 s per graph)
-COMPILE_OPTIONS = {"cpp_wrapper": True, "memory_planning": True}
-
-
-def branch_free_step(model: DeformModel, state: RodState, grip_next: Tensor | None,
-                     branch_free: tuple[int, int]) -> tuple[RodState, Tensor]:
-    """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
-    own flags): what the one-graph step computes, compiled or ahead of time."""
-    report: dict = {}
-    new = model.step(state, grip_next, branch_free=branch_free, report=report)
-    return new, model.unconverged_from_report(report)
-
-
-def rod_at_rest(model: DeformModel, batch: int, dtype: torch.dtype) -> tuple[RodState, Tensor]:
-    """``batch`` straight rods at rest and their gripped vertices: inputs to compile a step for
-    (only shapes and dtype matter)."""
-    n, rest = model.n, model.rest_lengths().to(dtype)
-    x = torch.zeros(n, 3, dtype=dtype)
-    x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
-    state = model.static_state(x.expand(batch, n, 3).clone(), rest=rest.expand(batch, -1).clone())
-    return state, state.x[:, [0, 1, n - 2, n - 1]].clone()
 
 
 def bucket_size(batch: int) -> int:
@@ -130,7 +108,6 @@ class CompiledStep:
             return None
         fn = self._aot.get((size, dtype))
         if fn is None:
-            from deform.aot import AheadOfTimeStep
             try:
                 fn = self._aot[(size, dtype)] = AheadOfTimeStep(self.model, self.branch_free, size, dtype)
             except Exception as exc:  # noqa: BLE001 - no AOTInductor here: the torch.compile step

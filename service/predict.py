@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import time
-import weakref
 
 import numpy as np
 import orjson
@@ -91,9 +90,9 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
                               option=orjson.OPT_SERIALIZE_NUMPY), None, None
 
 
-def handle(est: Estimator, body: bytes, worker=None) -> tuple[bool, bytes]:
+def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
     """-> (ok, JSON reply). Errors are counted under ``predict:<reason>``. The rollout runs in
-    ``worker`` (see :mod:`service.workers`) or, without one, in this thread."""
+    ``worker`` (:mod:`service.workers`: a child process, or ``InlineWorker`` for this thread)."""
     try:
         if len(body) > est.cfg.limits.max_request_bytes:  # before copying it anywhere
             raise InputError("too_large", f"{len(body)} bytes > {est.cfg.limits.max_request_bytes}")
@@ -101,8 +100,6 @@ def handle(est: Estimator, body: bytes, worker=None) -> tuple[bool, bytes]:
     except InputError as exc:
         est.stats.reject("predict", exc.reason, str(exc))
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
-    if worker is None:  # no service around it (tests, scripts): run here
-        worker = _inline_worker(est)
     t0 = time.perf_counter()
     ok, reply, reason, detail, compute_s, redone = worker.call("predict", body, base, stamp,
                                                                timeout=est.cfg.workers.predict_timeout_s)
@@ -114,13 +111,3 @@ def handle(est: Estimator, body: bytes, worker=None) -> tuple[bool, bytes]:
     else:
         est.stats.reject("predict", reason, detail)
     return ok, reply
-
-
-_INLINE: "weakref.WeakKeyDictionary[Estimator, object]" = weakref.WeakKeyDictionary()
-
-
-def _inline_worker(est: Estimator):
-    from service.workers import InlineWorker
-    if est not in _INLINE:
-        _INLINE[est] = InlineWorker(est.model, est.cfg)
-    return _INLINE[est]

@@ -26,6 +26,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 
 from deform.compiled import CompiledStep
+from service import predict
 
 log = logging.getLogger("deform.service")
 
@@ -115,7 +116,6 @@ def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
     """-> ``predict.answer``'s (ok, reply, reason, detail), the seconds it took in here, and the
     rollout steps its one-graph step left unconverged (redone with the checked step; they double a
     step's cost, so status counts them)."""
-    from service import predict
     t0 = time.perf_counter()
     redone0 = getattr(ctx.step, "redone", 0)
     out = predict.answer(ctx, body, base, stamp_ns)

@@ -23,6 +23,16 @@ def est(model):
     return e
 
 
+_WORKERS: dict = {}
+
+
+def handle(est, raw):
+    """``predict.handle`` with an inline worker (the rollout in this thread), one per estimator."""
+    from service.workers import InlineWorker
+    worker = _WORKERS.setdefault(id(est), InlineWorker(est.model, est.cfg))
+    return predict.handle(est, raw, worker)
+
+
 def body(plans, **extra):
     return json.dumps({"plans": np.asarray(plans).tolist(), **extra}).encode()
 
@@ -43,7 +53,7 @@ def body(plans, **extra):
 ])
 def test_invalid_requests_rejected(est, raw, reason):
     before = dict(est.stats.rejected)
-    ok, reply = predict.handle(est, raw)
+    ok, reply = handle(est, raw)
     assert not ok and json.loads(reply)["error"] == reason
     assert est.stats.rejected[f"predict:{reason}"] == before.get(f"predict:{reason}", 0) + 1
 
@@ -52,7 +62,7 @@ def test_prediction_batched_and_state_untouched(est):
     x_before = est.tracker.state.x.clone()
     plans = np.tile(GOOD, (3, 5, 1, 1))
     plans[1, :, :, 2] -= np.linspace(0, 0.05, 5)[:, None]   # plan 1 lowers both grippers
-    ok, reply = predict.handle(est, body(plans, dt=0.01))
+    ok, reply = handle(est, body(plans, dt=0.01))
     assert ok
     out = json.loads(reply)
     v = np.array(out["vertices"])
@@ -61,13 +71,13 @@ def test_prediction_batched_and_state_untouched(est):
     np.testing.assert_allclose(v[0], v[2], atol=1e-5)            # same plan, same answer
     assert v[1, -1, 0, 2] == pytest.approx(0.45, abs=1e-4)       # the gripped vertex follows the plan
     # one plan alone gives the same as within the batch
-    ok, single = predict.handle(est, body(plans[1:2]))
+    ok, single = handle(est, body(plans[1:2]))
     np.testing.assert_allclose(np.array(json.loads(single)["vertices"])[0], v[1], atol=2e-5)
 
 
 def test_no_estimate_yet(model):
     e = Estimator(make_config(), model, OpenLoopTracker(model))
-    ok, reply = predict.handle(e, body(np.tile(GOOD, (1, 1, 1, 1))))
+    ok, reply = handle(e, body(np.tile(GOOD, (1, 1, 1, 1))))
     assert not ok and json.loads(reply)["error"] == "no_estimate"
 
 
@@ -78,7 +88,7 @@ def test_overstretched_plans_flagged(est, model):
     plans = np.tile(GOOD, (2, 5, 1, 1))
     gap = np.linalg.norm(GOOD[1, :3] - GOOD[0, :3])  # the poses; the gripped vertices sit inside them
     plans[1, :, 1, 0] += np.linspace(0, free - gap + 0.2, 5)  # the second gripper pulled out along x
-    ok, reply = predict.handle(est, body(plans))
+    ok, reply = handle(est, body(plans))
     assert ok and json.loads(reply)["overstretched"] == [False, True]
 
 
@@ -95,5 +105,5 @@ def test_redone_rollout_steps_counted(est, monkeypatch):
 
     monkeypatch.setattr(RolloutStep, "rollout", rollout_redoing_three)
     before = est.status()["counts"].get("predict_steps_redone", 0)
-    ok, _ = predict.handle(est, body(np.tile(GOOD, (2, 3, 1, 1))))
+    ok, _ = handle(est, body(np.tile(GOOD, (2, 3, 1, 1))))
     assert ok and est.status()["counts"]["predict_steps_redone"] == before + 3

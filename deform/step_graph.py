@@ -1,0 +1,36 @@
+"""The one-graph step shared by the compiled step (:mod:`deform.compiled`) and the ahead-of-time
+package (:mod:`deform.aot`): what both trace, the inputs they trace it with, and inductor's options.
+
+Its own module so that ``compiled`` can use ``aot`` without ``aot`` importing ``compiled`` back.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from deform.model import DeformModel, RodState
+
+# a C++ wrapper calls the kernels without a Python frame each (a step is ~30 kernels); memory
+# planning takes a step's ~370 intermediate buffers from one allocation instead of one each (0.90x
+# per one-graph step at B = 1, 0.93-0.95x at B = 64 and per predict rollout, in interleaved A/B
+# runs; the same first-time compile, 110-125 s per graph)
+COMPILE_OPTIONS = {"cpp_wrapper": True, "memory_planning": True}
+
+
+def branch_free_step(model: DeformModel, state: RodState, grip_next: Tensor | None,
+                     branch_free: tuple[int, int]) -> tuple[RodState, Tensor]:
+    """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
+    own flags): what the one-graph step computes, compiled or ahead of time."""
+    report: dict = {}
+    new = model.step(state, grip_next, branch_free=branch_free, report=report)
+    return new, model.unconverged_from_report(report)
+
+
+def rod_at_rest(model: DeformModel, batch: int, dtype: torch.dtype) -> tuple[RodState, Tensor]:
+    """``batch`` straight rods at rest and their gripped vertices: inputs to compile a step for
+    (only shapes and dtype matter)."""
+    n, rest = model.n, model.rest_lengths().to(dtype)
+    x = torch.zeros(n, 3, dtype=dtype)
+    x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
+    state = model.static_state(x.expand(batch, n, 3).clone(), rest=rest.expand(batch, -1).clone())
+    return state, state.x[:, [0, 1, n - 2, n - 1]].clone()
