@@ -32,6 +32,7 @@ from deform.diagnose.terms import LIBRARY
 from deform.diagnose.selection import DiagnoseBudget, diagnose
 from deform.diagnose.spec import Inputs, RodSpec
 from deform.io.recordings import find_data_root, load_recordings
+from deform.model import gripped_indices
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"
@@ -457,7 +458,7 @@ def mass_equivalence(seed: int, args) -> dict:
     e = np.linalg.norm(np.diff(X0, axis=0), axis=-1)
     m = spec.mass_kg * np.concatenate([[e[0] / 2], (e[:-1] + e[1:]) / 2, [e[-1] / 2]]) / e.sum()
     free = np.ones(len(X0), bool)
-    free[[0, 1, -2, -1]] = False
+    free[gripped_indices(len(X0))] = False
     s = (m[free].sum() + truth["marker_mass_kg"] * np.isin(np.arange(len(X0)), ids)[free].sum()) / m[free].sum()
     eq, _ = generate_planted(None, src, spec, n_frames=args.frames, seed=seed, ei=3e-3 / s, gj=2e-3 / s)
     diff = lambda a, b: float(np.mean([np.abs(x.positions[:, 2:-2] - y.positions[:, 2:-2]).mean() for x, y in zip(a, b)]))

@@ -26,6 +26,22 @@ class RolloutResult:
     step_seconds: np.ndarray  # (S,) wall time per step (batch of one)
 
 
+def batches_by_horizon(recordings: list[Recording], steps: int | None = 500) -> dict[int, list[int]]:
+    """Indices of the recordings grouped by how many steps each is predicted over (``steps``, or all
+    its frames after the first two when None or shorter): one batched rollout per group."""
+    groups: dict[int, list[int]] = {}
+    for i, r in enumerate(recordings):
+        groups.setdefault(r.n_frames - 2 if steps is None else min(steps, r.n_frames - 2), []).append(i)
+    return groups
+
+
+def paper_l1(prediction: np.ndarray, truth: np.ndarray, nan_as: float | None = None) -> float:
+    """The paper's metric for one recording: mean |prediction - truth| over steps, vertices and axes.
+    ``nan_as``: the error counted for a coordinate of a diverged (NaN) prediction, instead of NaN."""
+    err = np.abs(prediction - truth)
+    return float((err if nan_as is None else np.nan_to_num(err, nan=nan_as)).mean())
+
+
 def predict_recordings(model, recordings: list[Recording], steps: int = 500,
                        batched: bool = True) -> list[RolloutResult]:
     """Roll out every recording open-loop, in input order. ``model`` is anything with ``n``,
@@ -33,13 +49,7 @@ def predict_recordings(model, recordings: list[Recording], steps: int = 500,
     number of steps share one batch; otherwise one rollout each (the timing of a single rollout)."""
     idx = gripped_indices(model.n)
     horizon = [min(steps, r.n_frames - 2) for r in recordings]
-    if batched:
-        batches: dict[int, list[int]] = {}
-        for i, h in enumerate(horizon):
-            batches.setdefault(h, []).append(i)
-        groups = list(batches.values())
-    else:
-        groups = [[i] for i in range(len(recordings))]
+    groups = list(batches_by_horizon(recordings, steps).values()) if batched else [[i] for i in range(len(recordings))]
     results: list[RolloutResult | None] = [None] * len(recordings)
     with torch.no_grad():
         for members in groups:
@@ -66,7 +76,7 @@ def metrics(results: list[RolloutResult]) -> dict:
     vdist = []
     for r in results:
         err = np.abs(r.prediction - r.truth)  # (S, n, 3)
-        per_rec.append(float(err.mean()))
+        per_rec.append(paper_l1(r.prediction, r.truth))
         interior = np.linalg.norm(r.prediction[:, 2:-2] - r.truth[:, 2:-2], axis=-1)
         vdist.append(float(interior.mean()))
         for h in HORIZONS:

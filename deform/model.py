@@ -92,7 +92,8 @@ class ModelOptions:
     theta_solver: str = "newton"  # or "theseus" (reference; slow)
 
 
-def _inv_softplus(y: float) -> float:
+def inv_softplus(y: float) -> float:
+    """``x`` with ``softplus(x) = y``: the raw value of a parameter kept positive by softplus."""
     y = max(y, 1e-9)  # softplus never reaches 0: a massless marker is the smallest representable one
     return y + math.log(-math.expm1(-y))
 
@@ -109,7 +110,7 @@ class DeformModel(nn.Module):
         self.log_gamma = nn.Parameter(torch.full((n - 2,), math.log(cfg.twist_stiffness)))
         self.wbar = nn.Parameter(torch.zeros(n - 2, 2, 2))
         # extra point masses (markers) in grams through a softplus; rod mass is fixed from the config
-        self.extra_mass_raw = nn.Parameter(torch.full((n,), _inv_softplus(cfg.marker_mass_kg * 1e3)))
+        self.extra_mass_raw = nn.Parameter(torch.full((n,), inv_softplus(cfg.marker_mass_kg * 1e3)))
         self.log_damping = nn.Parameter(torch.tensor(math.log(max(cfg.damping, 1e-4))))
         self.log_drag = nn.Parameter(torch.tensor(math.log(max(cfg.drag, 1e-4))))
         self.residual = ResidualGNN(n)
@@ -179,9 +180,7 @@ class DeformModel(nn.Module):
     def drag_acceleration(self, x: Tensor, v: Tensor) -> Tensor:
         """Air drag: linear damping ``-c v`` plus quadratic drag on the normal velocity
         ``-k |v_n| v_n`` (``v_n`` = velocity across the rod; a rope whipping at a few m/s feels it)."""
-        tangent = G.normalize(torch.cat([x[..., 1:2, :] - x[..., :1, :], x[..., 2:, :] - x[..., :-2, :],
-                                         x[..., -1:, :] - x[..., -2:-1, :]], dim=-2))
-        v_n = v - G.dot(v, tangent).unsqueeze(-1) * tangent
+        v_n = G.normal_velocity(x, v)
         return -self.damping.to(x.dtype) * v - self.drag.to(x.dtype) * v_n.norm(dim=-1, keepdim=True) * v_n
 
     # ----- state ------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from deform.model import DeformModel, RodState
+from deform.model import DeformModel, RodState, gripped_indices
 
 # a C++ wrapper calls the kernels without a Python frame each (a step is ~30 kernels); memory
 # planning takes a step's ~370 intermediate buffers from one allocation instead of one each (0.90x
@@ -33,4 +33,4 @@ def rod_at_rest(model: DeformModel, batch: int, dtype: torch.dtype) -> tuple[Rod
     x = torch.zeros(n, 3, dtype=dtype)
     x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])
     state = model.static_state(x.expand(batch, n, 3).clone(), rest=rest.expand(batch, -1).clone())
-    return state, state.x[:, [0, 1, n - 2, n - 1]].clone()
+    return state, state.x[:, gripped_indices(n)].clone()

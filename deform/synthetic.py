@@ -13,6 +13,7 @@ import torch
 
 from deform.config import RodConfig
 from deform.io.recordings import Recording
+from deform.model import gripped_indices
 
 
 def _rotation_z(angle: np.ndarray) -> np.ndarray:
@@ -49,7 +50,7 @@ def gripper_trajectory(cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: 
     rng = np.random.default_rng(seed)
     t = np.arange(n_frames) * cfg.dt
     n = cfg.n_vertices
-    ends = x_rest[[0, 1, n - 2, n - 1]]
+    ends = x_rest[gripped_indices(n)]
     out = np.empty((n_frames, 4, 3))
     for side, sign in ((0, 1.0), (1, -1.0)):
         pair = ends[2 * side: 2 * side + 2]

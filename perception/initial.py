@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from deform import gripped_indices
+
 
 def _parabola_length(chord: float, sag: float, samples: int = 64) -> float:
     s = np.linspace(0, 1, samples)
@@ -62,7 +64,7 @@ def initial_guess(grip: np.ndarray, rest: np.ndarray, points: np.ndarray | None 
         if cost < best_cost:
             best, best_cost = curve, cost
     x = np.empty((n, 3))
-    x[[0, 1, n - 2, n - 1]] = grip
+    x[gripped_indices(n)] = grip
     x[1:n - 1] = place_by_arclength(best, inner)
     x[1], x[n - 2] = grip[1], grip[2]
     return x

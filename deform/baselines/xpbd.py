@@ -31,6 +31,7 @@ import torch
 
 from deform.baselines import WEIGHT_DIR, MissingWeightsError
 from deform.config import load_rod_config
+from deform.model import gripped_indices
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -76,7 +77,7 @@ class XPBDRope:
         self.mass_kg = mass_kg
         self.marker_mass_kg = marker_mass_kg
         self.params = params or XPBDParams()
-        self.grip = np.array([0, 1, n - 2, n - 1])
+        self.grip = np.array(gripped_indices(n))
         free = np.ones(n)
         free[self.grip] = 0.0
         self.free = free

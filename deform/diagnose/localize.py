@@ -84,7 +84,7 @@ def localize(res: dict, arclength: np.ndarray) -> dict:
     """Summaries and findings in words."""
     err = res["error"]
     free = np.ones(err.shape[1], bool)
-    free[[0, 1, -2, -1]] = False
+    free[gripped_indices(err.shape[1])] = False
     e = err[:, free]
     s_free = arclength[free]
     profile = e.mean(0)

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from deform.config import RodConfig
+from deform.evaluate import batches_by_horizon, paper_l1
 from deform.model import DeformModel, ModelOptions, gripped_indices
 from deform.diagnose.spec import RodSpec
 from deform.diagnose.terms import Term
@@ -249,12 +250,9 @@ class Simulator:
         """Full open-loop predictions (paper's protocol) of recordings, batched by length."""
         self.sync()
         out: dict[int, np.ndarray] = {}
-        groups: dict[int, list[int]] = {}
-        for i, r in enumerate(recordings):
-            groups.setdefault(r.n_frames, []).append(i)
         with torch.no_grad():
-            for T, ids in groups.items():
-                s = T - 2 if steps is None else min(steps, T - 2)
+            for full, ids in batches_by_horizon(recordings, None).items():  # same length: one batch
+                s = full if steps is None else min(steps, full)
                 X = torch.tensor(np.stack([recordings[i].positions for i in ids]), dtype=torch.float64)
                 P = self.rollout(X, s).numpy()
                 for j, i in enumerate(ids):
@@ -264,5 +262,4 @@ class Simulator:
 
 def per_recording_l1(predictions: list[np.ndarray], recordings) -> np.ndarray:
     """Paper's metric per recording: mean |pred - truth| over steps, vertices and axes."""
-    return np.array([float(np.nan_to_num(np.abs(p - r.positions[2:2 + len(p)]), nan=1.0).mean())
-                     for p, r in zip(predictions, recordings)])
+    return np.array([paper_l1(p, r.positions[2:2 + len(p)], nan_as=1.0) for p, r in zip(predictions, recordings)])

@@ -22,20 +22,12 @@ import torch
 from torch import Tensor, nn
 from torch.nn.functional import softplus
 
-
-def _inv_softplus(y: float) -> float:
-    return y + math.log(-math.expm1(-y))
+from deform.model import inv_softplus
+from deform.rod.geometry import normal_velocity
 
 
 def _logit(p: float) -> float:
     return math.log(p / (1 - p))
-
-
-def _normal_velocity(x: Tensor, v: Tensor) -> Tensor:
-    """Velocity across the rod (central-difference tangents)."""
-    t = torch.cat([x[..., 1:2, :] - x[..., :1, :], x[..., 2:, :] - x[..., :-2, :], x[..., -1:, :] - x[..., -2:-1, :]], -2)
-    t = t / t.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return v - (v * t).sum(-1, keepdim=True) * t
 
 
 class Term(nn.Module):
@@ -77,7 +69,7 @@ class AerodynamicDrag(Term):
         self.log_quad = nn.Parameter(torch.tensor(math.log(0.02), dtype=torch.float64))
 
     def acceleration(self, x, v, mass, rest):
-        vn = _normal_velocity(x, v)
+        vn = normal_velocity(x, v)
         return -(self.log_lin.exp() + self.log_quad.exp() * vn.norm(dim=-1, keepdim=True)) * vn
 
     def grid(self):
@@ -211,14 +203,14 @@ class PointMass(Term):
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
         self.raw_pos = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
-        self.raw_g = nn.Parameter(torch.tensor(_inv_softplus(0.5), dtype=torch.float64))
+        self.raw_g = nn.Parameter(torch.tensor(inv_softplus(0.5), dtype=torch.float64))
         self.sigma = 0.5 / (n - 1)
 
     def init_from_data(self, context):
         self.raw_pos.fill_(_logit(min(max(context.get("peak_s", 0.5), 0.1), 0.9)))
 
     def grid(self):  # five positions along the rod, 5 g
-        return [{"raw_pos": _logit(p), "raw_g": _inv_softplus(1.0)} for p in (0.2, 0.35, 0.5, 0.65, 0.8)]
+        return [{"raw_pos": _logit(p), "raw_g": inv_softplus(1.0)} for p in (0.2, 0.35, 0.5, 0.65, 0.8)]
 
     def mass(self, mass):
         pos = torch.sigmoid(self.raw_pos)
@@ -290,7 +282,7 @@ class MassScale(Term):
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
-        self.raw_g = nn.Parameter(torch.tensor(_inv_softplus(0.2), dtype=torch.float64))
+        self.raw_g = nn.Parameter(torch.tensor(inv_softplus(0.2), dtype=torch.float64))
         self.register_buffer("on_marker", torch.ones(n, dtype=torch.float64))
         self.rod_mass_kg = 0.0  # unknown: the grid leaves the stiffness alone
 
@@ -314,7 +306,7 @@ class MassScale(Term):
         free = float(self.on_marker[2:-2].sum())
         points = []
         for g in (0.2, 1.0, 3.0, 10.0):
-            point = {"raw_g": _inv_softplus(g)}
+            point = {"raw_g": inv_softplus(g)}
             if self.rod_mass_kg > 0:
                 heavier = math.log1p(free * g * 1e-3 / self.rod_mass_kg)
                 point.update({"nominal:log_ei": heavier, "nominal:log_gj": heavier})

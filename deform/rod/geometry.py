@@ -29,6 +29,14 @@ def dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(-1)
 
 
+def normal_velocity(x: Tensor, v: Tensor) -> Tensor:
+    """(..., n, 3) vertex velocity across the rod: ``v - (v . t) t`` with central-difference unit
+    tangents ``t`` (one-sided at the ends). What air drag acts on."""
+    t = normalize(torch.cat([x[..., 1:2, :] - x[..., :1, :], x[..., 2:, :] - x[..., :-2, :],
+                             x[..., -1:, :] - x[..., -2:-1, :]], dim=-2))
+    return v - dot(v, t).unsqueeze(-1) * t
+
+
 def normalize(u: Tensor, eps: float = 1e-12) -> Tensor:
     return u / u.norm(dim=-1, keepdim=True).clamp_min(eps)
 
