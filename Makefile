@@ -1,5 +1,5 @@
 # Two entry points: `make demo` and `make test`. Each installs what is missing into .venv first.
-# Heavy pieces have pinned install steps (see DEVELOPERS.md): torch 2.13.0 is the CPU wheel on disk,
+# Heavy pieces have pinned install steps (see README.md, section Install): torch 2.13.0 is the CPU wheel on disk,
 # theseus-ai is an sdist that needs SuiteSparse headers and scikit-sparse 0.4.16.
 SHELL := /bin/bash
 PYTHON ?= python3
@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 # g++: scikit-sparse is built from source, and torch.compile (deform/compiled.py) compiles C++
 APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1 g++
 
-.PHONY: install demo test test-fast bench clean sysdeps
+.PHONY: install demo test test-fast bench results clean sysdeps
 
 sysdeps:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -45,6 +45,10 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/speed.py
+
+# docs/results.md from the stored results in benchmarks/results/*.json (runs no benchmark)
+results: $(STAMP)
+	$(PY) scripts/make_results.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
