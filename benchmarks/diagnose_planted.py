@@ -64,8 +64,9 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
     return out
 
 
-TOOL_VERSION = 2  # bump when the tool changes: rows of an older tool are never reused (v2: transported window
-# frames, discretisation-independent internal damping)
+TOOL_VERSION = 3  # bump when the tool changes: rows of an older tool are never reused (v2: transported window
+# frames, discretisation-independent internal damping; v3: dissipative candidates started with the nominal damping at the material level, contact height grid,
+# equivalence classes, refit noise, ROD.json length beyond the markers)
 
 
 def _config(args) -> dict:
@@ -190,11 +191,21 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
                                               "nominal_check_l1_m", "final_check_l1_m", "seconds")}), flush=True)
 
 
+def provenance() -> dict:
+    """The commit and machine a result comes from (stored with it)."""
+    import platform
+    import subprocess
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    return {"commit": commit, "machine": f"{platform.node()}: {os.cpu_count()} CPU cores (shared with other jobs), "
+                                         "torch 1 thread"}
+
+
 def calibrate_damping(args) -> dict:
-    """The nominal model's damping bound from controls only (no effect planted): the linear damping
-    a free nominal fit gives on independent-simulator controls (light and stiff rod, small material
-    damping) and on this project's own controls (stored rows), and the bound = 2x the largest. The
-    factor leaves room for ropes damped more than these; drag and contact have measured 5-10x."""
+    """The nominal model's material damping level (deform.diagnose.terms.MATERIAL_DAMPING_LEVEL) from
+    controls only (no effect planted): the linear damping a free nominal fit gives on
+    independent-simulator controls (light and stiff rod, small material damping) and on this
+    project's own controls (stored rows); the level = 2x the largest. The factor leaves room for
+    ropes damped more than these; drag and contact have measured 5-10x."""
     from deform.diagnose.fitting import coarse_nominal, fit
     from deform.diagnose.simulator import Nominal, Simulator
     from elastica_planted import generate_elastica
@@ -221,8 +232,9 @@ def calibrate_damping(args) -> dict:
                if r["kind"] == "planted" and r["effect"] == "none"]
     worst = max(f["damping_1_per_s"] for f in fitted)
     out = {"command": "python benchmarks/diagnose_planted.py --calibrate-damping " + " ".join(args.rod_kinds),
-           "controls": fitted, "largest_1_per_s": worst, "bound_1_per_s": round(2 * worst, 2)}
-    (RESULTS / "diagnose.damping_bound.json").write_text(json.dumps(out, indent=2))
+           **provenance(),
+           "controls": fitted, "largest_1_per_s": worst, "level_1_per_s": round(2 * worst, 2)}
+    (RESULTS / "diagnose.damping_level.json").write_text(json.dumps(out, indent=2))
     return out
 
 
@@ -558,7 +570,7 @@ def main() -> None:
     p.add_argument("--hidden-nodes", type=int, nargs="*", default=None, metavar="SEED",
                    help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)")
     p.add_argument("--calibrate-damping", action="store_true",
-                   help="only fit the nominal model on independent-simulator controls and derive its damping bound")
+                   help="only fit the nominal model on independent-simulator controls and derive its material damping level")
     args = p.parse_args()
     if args.calibrate_damping:
         torch.set_num_threads(1)
@@ -605,12 +617,8 @@ def main() -> None:
     real = sorted((r for r in done.values() if r["kind"] == "real"), key=lambda r: r["rod"])
     rules = apply_rules(planted, real, args.alpha)
     b = budget(args.quick)
-    import platform
-    import subprocess
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
     result = {"command": "python benchmarks/diagnose_planted.py " + " ".join(a for a in sys.argv[1:] if a != "--summary-only"),
-              "simulator": args.simulator, "commit": commit,
-              "machine": f"{platform.node()}: {os.cpu_count()} CPU cores (shared with other jobs), torch 1 thread",
+              "simulator": args.simulator, **provenance(),
               "budget": (f"nominal {b.nominal_iterations} Adam iterations, candidates {b.candidate.iterations} iterations "
                          f"of {b.candidate.batch} windows x {b.candidate.horizon} steps, {b.max_rounds} rounds; "
                          f"{args.fit} fit + {args.check} check recordings of {args.frames} frames per planted dataset "

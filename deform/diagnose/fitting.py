@@ -60,8 +60,9 @@ def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph
 def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitBudget) -> dict | None:
     """Try the term's current raw values and each point of ``term.grid()`` on one fixed batch of
     windows (forward rollouts only); keep the best. A grid key ``"nominal:NAME"`` adds its value to
-    the nominal parameter NAME (a log): a term that takes over part of what the nominal model did
-    (drag vs linear damping) is tried together with the nominal share it replaces.
+    the nominal parameter NAME (a log), ``"nominal=NAME"`` sets it: a term that takes over part of
+    what the nominal model did (drag vs linear damping) is tried together with the nominal share it
+    replaces.
     -> {"grid_loss_m": ..., "chosen": ...} or None."""
     points = term.grid()
     if not points:
@@ -70,6 +71,7 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
                            budget.transported)
     named = {k: p for k, p in term.named_parameters()}
     named.update({f"nominal:{k}": p for k, p in sim.nominal.named_parameters()})
+    named.update({f"nominal={k}": p for k, p in sim.nominal.named_parameters()})
     current = {k: named[k].detach().clone() for k in {k for p in points for k in p}}
 
     def apply(point):
@@ -78,6 +80,8 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
         for k, v in (point or {}).items():
             if k.startswith("nominal:"):
                 named[k].add_(v)
+            elif k.startswith("nominal="):
+                named[k].fill_(min(v, float(named[k])))  # brought down to, never raised to
             elif isinstance(v, (list, tuple)):
                 named[k].copy_(torch.tensor(v, dtype=named[k].dtype))
             else:
@@ -141,7 +145,7 @@ def coarse_nominal(sim: Simulator, recordings: list[Recording], steps: int = 150
     best = (math.inf, None)
     nom = sim.nominal
     for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2):
-        for c in sorted({min(c, nom.damping_max) for c in (0.3, 1.0, 3.0)}):
+        for c in (0.3, 1.0, 3.0):
             with torch.no_grad():
                 nom.log_ei.fill_(math.log(ei))
                 nom.log_gj.fill_(math.log(0.7 * ei))

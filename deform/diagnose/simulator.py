@@ -17,20 +17,13 @@ from deform.config import RodConfig
 from deform.evaluate import batches_by_horizon, paper_l1
 from deform.model import DeformModel, ModelOptions, gripped_indices
 from deform.diagnose.spec import RodSpec
-from deform.diagnose.terms import Term
+from deform.diagnose.terms import MATERIAL_DAMPING_LEVEL, Term
 
 NEGLIGIBLE_MASS_RAW = -12.0  # softplus(-12) g: no marker mass in the plain model
 NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
 
 
-# Upper bound of the nominal model's linear velocity damping when it is fitted [1/s]. A damping of
-# absolute velocity is, physically, an external drag: in the nominal model it may only stand in for
-# the small material damping every rope has, or it absorbs air drag and contact friction and no
-# candidate is left anything to explain (measured: 5.1-5.3 /s on a stiff rope with drag or a table
-# against 0.7 /s on its control). Calibrated on control recordings of an independent simulator
-# (docs/diagnose.md), never on the cases the benchmark scores. Dissipation beyond it must be named
-# by a candidate (aerodynamic_drag, ground_contact, internal_damping).
-MATERIAL_DAMPING_MAX = 20.0
+MATERIAL_DAMPING_MAX = 20.0  # numerical bound of the fit
 
 
 class Nominal(nn.Module):
@@ -56,9 +49,9 @@ class Nominal(nn.Module):
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(self.damping_max))
 
-    def at_damping_bound(self) -> bool:
-        """The fit wants more absolute damping than a rope's material damping is allowed to give."""
-        return float(self.log_damping.exp()) >= 0.98 * self.damping_max
+    def damping_beyond_material(self) -> float:
+        """Fitted damping over the material level (> 2: external dissipation is likely absorbed)."""
+        return float(self.log_damping.exp()) / MATERIAL_DAMPING_LEVEL
 
 
 def arclength_of(recordings) -> np.ndarray:
