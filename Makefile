@@ -27,7 +27,7 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q "numpy<2.3" scipy cython "scikit-sparse==0.4.16"
 	$(PIP) install -q --no-build-isolation theseus-ai==0.2.3
-	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -q -e ".[dev,bench]"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -1,0 +1,598 @@
+"""Recordings with one planted effect, made by an independent rod simulator (PyElastica).
+
+Why: ``deform.diagnose.planted`` plants effects into data made by *our own* discrete-elastic-rod
+code, so the discrepancy tool is tested against its own discretisation, its own contact model and
+its own damping law. Here the truth comes from PyElastica (Gazzola et al. 2018), a Cosserat-rod code
+written by others, and nothing of ours is inside the simulation:
+
+* discretisation: a shearable, extensible Cosserat rod (positions + element director frames,
+  bending/twist couples on Voronoi regions, explicit position-Verlet with a sub-millisecond step)
+  instead of our inextensible Kirchhoff DER with an implicit step at the frame rate; the rod is the
+  rope's real length with free tails beyond the outer markers, and the markers are points of the
+  centreline at fixed material arc length, interpolated between nodes (not nodes);
+* gripping: the two gripped end portions (outer marker to second marker, snapped outwards to the
+  node grid) are held rigidly, position and director frame, by a kinematic PyElastica constraint
+  that follows the recorded gripper poses (interpolated between frames, the frame's roll carried
+  by parallel transport);
+* damping: every case has a small material (Kelvin-Voigt-like) damping, a 4th-difference filter of
+  the nodal velocities and element angular velocities (PyElastica's Laplace dissipation filter of
+  order 2, with a tunable weight); ``internal_damping`` makes it strong (and shortens the time step
+  if needed to keep the filter weight at most 1). There is no linear velocity (air) damping at all,
+  unlike our nominal model;
+* contact: PyElastica's rod-plane contact (a spring-dashpot on the rod's surface, radius included)
+  with its Coulomb friction (static and kinetic, axial and rolling), not our penalty plane;
+* air drag: a quadratic normal-velocity drag forcing; wind: PyElastica's GravityForces with a
+  horizontal acceleration; rest curvature: PyElastica's rest_kappa; a clip: extra nodal mass;
+  a stiff segment: the bend matrix scaled over a stretch.
+
+Each source recording gives the gripper motion of one output recording, over a window of
+``n_frames`` frames at a seeded offset. The grippers that drive the rod move as the recorded ones
+with mocap spikes and jitter filtered out (real grippers move smoothly), and a 0.2 s lead-in in
+which they accelerate from rest to their first velocity (no velocity jump). The rod starts as a
+spline through the first frame's markers with its material length, settles under gravity for
+``SETTLE_S`` with the grips held (and extra settling damping), then the grips move and the markers
+are read at 100 Hz. The gripped markers are then set to the recorded (raw) inputs and 0.3 mm of
+Gaussian motion-capture noise is added to every marker.
+
+Rope beyond the markers: the rod has the rope's real length; the part beyond the marker span is
+split into two equal free tails past the outer markers (5.7 cm for DLO1, 1.3 cm for DLO3), which
+hang from the grippers. The markers' material positions are the median marker spacings.
+
+    python benchmarks/elastica_planted.py [--sources 8] [--frames 300]   # detectability table
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+
+import numpy as np
+
+from deform.diagnose.spec import RodSpec
+from deform.io.recordings import Recording
+from deform.model import gripped_indices
+
+EFFECTS = ("aerodynamic_drag", "ground_contact", "point_mass", "stiffness_variation", "external_force",
+           "internal_damping", "rest_curvature", "actuation_delay")
+
+# Material of the two reference rods. The rod simulated takes its length and mass from the RodSpec
+# passed in (these lengths / masses are the references the values were chosen for); radius, bending
+# stiffness and damping come from here. Young's modulus is EI / (pi r^4 / 4) (a solid round section);
+# the shear modulus is E / 3 (incompressible). The radius sets the stretch stiffness EA = 4 EI / r^2:
+# it is a compromise of near-inextensibility and the explicit time step (the rotational shear mode
+# limits dt to about 1.5x the step used). Measured largest element strain per frame (8 sources, 300
+# frames): 99th percentile 0.6 % (light) / 0.3 % (stiff), brief local peaks at a gripper 1.4 / 0.6 %.
+ROD_KINDS = {
+    # like DLO1 (1.152 m, 34.5 g), a soft cable: 8 mm thick, E 5.0 MPa, EA 250 N, 600 kg/m^3
+    "light": {"length_m": 1.152, "mass_kg": 0.0345, "radius_m": 0.004, "bend_stiffness_Nm2": 1.0e-3,
+              "material_damping_m4_per_s": 2e-6, "n_elements": 48, "dt_s": 5e-5},
+    # like DLO3 (0.998 m, 96.8 g), the stiffest of the five: 12 mm thick, E 11.8 MPa, EA 1330 N, 860 kg/m^3
+    "stiff": {"length_m": 0.998, "mass_kg": 0.0968, "radius_m": 0.006, "bend_stiffness_Nm2": 1.2e-2,
+              "material_damping_m4_per_s": 2e-6, "n_elements": 42, "dt_s": 5e-5},
+}
+SETTLE_S = 1.0            # settling time before the first recorded frame [s]
+SETTLE_DAMPING = 10.0     # extra velocity damping while settling [1/s]
+LEAD_FRAMES = 20          # grips ramp from rest to their first recorded velocity over this lead-in
+GRAVITY = 9.81
+
+# Planted parameters at strength 1 per rod kind, and what ``strength`` scales. The sizes are tuned
+# (seed 0, 8 DLO1 / DLO3 train sources, 300 frames: see the module's __main__) so that each effect
+# moves the markers by about 0.5-2 cm (L1) from its paired control; the stiff, heavy rod needs a
+# stronger wind and a stronger internal damping than the light one to show them as much.
+# Measured L1 vs the paired control [cm], light / stiff: drag 1.35 / 0.83, ground 1.40 / 1.41,
+# clip 1.35 / 1.72, stiff segment 1.30 / 1.48, wind 0.83 / 0.77, internal damping 0.63 / 0.65,
+# rest curvature 0.78 / 1.28, delay 0.84 / 0.70. Internal damping above dx^4 / (16 dt) shortens dt.
+_COMMON = {
+    "aerodynamic_drag": {"quadratic_1_per_m": 3.0},                       # x strength
+    "ground_contact": {"stiffness_1_per_s2": 1.0e4, "friction": 0.5},     # friction x strength (<= 1.5)
+    "point_mass": {"mass_fraction": 0.20, "position_s": 0.35},            # mass x strength
+    "stiffness_variation": {"stiffness_ratio": 5.0, "start_s": 0.30, "end_s": 0.55},  # (ratio - 1) x strength
+    "rest_curvature": {"kappa1_per_m": 2.0, "kappa2_per_m": 0.0},         # x strength (radius 0.5 m)
+    "actuation_delay": {"delay_frames": 2.0},                             # x strength
+}
+DEFAULTS = {
+    "light": {**_COMMON,
+              "external_force": {"ax_m_per_s2": 1.2, "ay_m_per_s2": 0.75},        # x strength
+              "internal_damping": {"bending_rate_damping_m4_per_s": 2e-4},        # x strength
+              "rest_curvature": {"kappa1_per_m": 3.0, "kappa2_per_m": 0.0},       # radius 0.33 m
+              "actuation_delay": {"delay_frames": 3.0}},
+    "stiff": {**_COMMON,
+              "external_force": {"ax_m_per_s2": 3.2, "ay_m_per_s2": 2.0},
+              "internal_damping": {"bending_rate_damping_m4_per_s": 1e-3}},
+}
+
+
+def _elastica():
+    import elastica as ea  # imported lazily: an optional dependency (the `bench` extra)
+    return ea
+
+
+# ----------------------------------------------------------------------------------------------
+# geometry: material layout of markers, nodes and grips
+# ----------------------------------------------------------------------------------------------
+
+def marker_layout(sources: list[Recording], length_m: float) -> tuple[np.ndarray, float]:
+    """Material arc length [m] of each marker on the rod, and the tail beyond each outer marker.
+
+    Marker spacings are the median edge lengths over the sources; the rope's length beyond the
+    marker span is split evenly into two free tails (the grippers hold the rope between its two end
+    markers; what runs past the outer marker hangs free)."""
+    edges = np.concatenate([np.linalg.norm(np.diff(r.positions[::25], axis=1), axis=-1) for r in sources])
+    spacing = np.median(edges, axis=0)
+    span = float(spacing.sum())
+    if span > length_m:  # markers spanning more than the rope: shrink them onto it, no tails
+        spacing *= length_m / span
+        span = length_m
+    tail = 0.5 * (length_m - span)
+    return tail + np.concatenate([[0.0], np.cumsum(spacing)]), tail
+
+
+def _held_nodes(s_nodes: np.ndarray, s_a: float, s_b: float) -> np.ndarray:
+    """Node ids covering the material interval [s_a, s_b] (snapped outwards to the node grid)."""
+    dx = s_nodes[1] - s_nodes[0]
+    lo = int(math.floor(s_a / dx + 1e-9))
+    hi = int(math.ceil(s_b / dx - 1e-9))
+    return np.arange(max(lo, 0), min(hi, len(s_nodes) - 1) + 1)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _transport(d1: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Parallel transport of normal(s) ``d1`` onto tangent(s) ``t`` (projection, then unit)."""
+    return _unit(d1 - np.sum(d1 * t, axis=-1, keepdims=True) * t)
+
+
+def _frames(t: np.ndarray, d1: np.ndarray) -> np.ndarray:
+    """Director matrices (..., 3, 3), rows d1, d2 = t x d1, d3 = t (PyElastica's convention)."""
+    return np.stack([d1, np.cross(t, d1), t], axis=-2)
+
+
+def _curve_length(c: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(c, axis=0), axis=-1).sum())
+
+
+def _initial_curve(markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray,
+                   held_b: np.ndarray) -> np.ndarray:
+    """(N, 3) node positions of the rod at the start of settling, segments all ``dx`` long.
+
+    Held portions and tails lie on the first frame's grip lines. Between the grips: a cubic spline
+    through the first frame's interior markers, tangent to the grip lines, given the rod's material
+    length by adding a downward sag (if too short) or blending towards the straight chord (if too
+    long), and resampled at equal arc length."""
+    from scipy.interpolate import CubicSpline
+
+    t_a = _unit(markers0[1] - markers0[0])
+    u_b = _unit(markers0[-2] - markers0[-1])
+    x = np.empty((len(s_nodes), 3))
+    lo, hi = held_a[-1], held_b[0]
+    x[:lo + 1] = markers0[0] + t_a * (s_nodes[:lo + 1] - s_markers[0])[:, None]
+    x[hi:] = markers0[-1] + u_b * (s_markers[-1] - s_nodes[hi:])[:, None]
+    inner = [k for k in range(len(s_markers)) if s_nodes[lo] + 1e-3 < s_markers[k] < s_nodes[hi] - 1e-3]
+    pts = np.concatenate([x[lo][None], markers0[inner], x[hi][None]])
+    chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=-1))])
+    spline = CubicSpline(chord, pts, bc_type=((1, t_a), (1, -u_b)))
+    u = np.linspace(0.0, chord[-1], 2001)
+    base = spline(u)
+    line = x[lo] + (u / chord[-1])[:, None] * (x[hi] - x[lo])
+    sag = (4 * (u / chord[-1]) * (1 - u / chord[-1]))[:, None] * np.array([0.0, 0.0, -1.0])
+    target = (hi - lo) * (s_nodes[1] - s_nodes[0])
+    grow = _curve_length(base) < target  # too short: sag it; too long: straighten it
+    shape = (lambda c: base + c * sag) if grow else (lambda c: (1 - c) * base + c * line)
+    a, b = 0.0, (2.0 * target if grow else 1.0)
+    for _ in range(60):  # bisection: the length is monotone in c on this bracket
+        c = 0.5 * (a + b)
+        if (_curve_length(shape(c)) < target) == grow:
+            a = c
+        else:
+            b = c
+    curve = shape(0.5 * (a + b))
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=-1))])
+    want = np.linspace(0.0, arc[-1], hi - lo + 1)
+    x[lo:hi + 1] = np.stack([np.interp(want, arc, curve[:, c]) for c in range(3)], axis=1)
+    return x
+
+
+def _driving_grips(grips: np.ndarray, lead: int = LEAD_FRAMES) -> np.ndarray:
+    """The gripper trajectory (T, 4, 3) the rod is driven with, from the recorded one: the true
+    grippers move smoothly, so single-frame mocap spikes (median of 5) and jitter (Gaussian, 1 frame)
+    are filtered out; then ``lead`` frames are prepended in which the grippers accelerate uniformly
+    from rest to their first velocity (no velocity jump when the motion starts)."""
+    from scipy.ndimage import gaussian_filter1d, median_filter
+
+    g = gaussian_filter1d(median_filter(grips, size=(5, 1, 1), mode="nearest"), 1.0, axis=0, mode="nearest")
+    v0 = g[1] - g[0]  # per frame
+    k = np.arange(-lead, 0, dtype=float)[:, None, None]
+    before = g[0] - v0 * (-k - k ** 2 / (2 * lead))  # displacement of a linear velocity ramp
+    return np.concatenate([before, g])
+
+
+def _grip_tracks(grips: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray,
+                 held_b: np.ndarray, d1_a: np.ndarray, d1_b: np.ndarray, frame_dt: float):
+    """Per-frame targets of the held nodes and elements, from the recorded grips (T, 4, 3).
+
+    -> P (T, 3, nh) positions, V (T, 3, nh) velocities to the next frame, Q (T, 3, 3, ne) directors,
+    W (T, 3, ne) material-frame angular velocities to the next frame, node ids, element ids."""
+    T = len(grips)
+    p_a, t_a = grips[:, 0], _unit(grips[:, 1] - grips[:, 0])        # outer marker, inward edge
+    p_b, u_b = grips[:, 3], _unit(grips[:, 2] - grips[:, 3])
+    pos_a = p_a[:, None] + t_a[:, None] * (s_nodes[held_a] - s_markers[0])[None, :, None]
+    pos_b = p_b[:, None] + u_b[:, None] * (s_markers[-1] - s_nodes[held_b])[None, :, None]
+    tang = {"a": t_a, "b": -u_b}  # element tangents point along increasing material s
+    d1 = {"a": [d1_a], "b": [d1_b]}
+    for k in range(1, T):
+        for e in "ab":
+            d1[e].append(_transport(d1[e][-1], tang[e][k]))
+    Q_a, Q_b = _frames(t_a, np.array(d1["a"])), _frames(-u_b, np.array(d1["b"]))
+    omega = {}
+    for e, Q in (("a", Q_a), ("b", Q_b)):
+        t = tang[e]
+        w = np.zeros((T, 3))
+        w[:-1] = np.cross(t[:-1], t[1:] - t[:-1]) / frame_dt  # minimal rotation: no spin about t
+        omega[e] = np.einsum("tij,tj->ti", Q, w)
+    el_a, el_b = held_a[:-1], held_b[:-1]
+    P = np.concatenate([pos_a, pos_b], axis=1).transpose(0, 2, 1)
+    V = np.zeros_like(P)
+    V[:-1] = np.diff(P, axis=0) / frame_dt
+    Q = np.concatenate([np.repeat(Q_a[..., None], len(el_a), -1), np.repeat(Q_b[..., None], len(el_b), -1)], -1)
+    W = np.concatenate([np.repeat(omega["a"][..., None], len(el_a), -1),
+                        np.repeat(omega["b"][..., None], len(el_b), -1)], -1)
+    return (np.ascontiguousarray(P), np.ascontiguousarray(V), np.ascontiguousarray(Q), np.ascontiguousarray(W),
+            np.concatenate([held_a, held_b]).astype(np.int64), np.concatenate([el_a, el_b]).astype(np.int64))
+
+
+# ----------------------------------------------------------------------------------------------
+# numba kernels (numba comes with PyElastica)
+# ----------------------------------------------------------------------------------------------
+
+def _kernels():
+    from numba import njit
+
+    @njit(cache=True)
+    def grip_values(tau, P, Q, nodes, elems, pos, dirs):
+        T = P.shape[0]
+        f = min(max(tau, 0.0), T - 1.0)
+        i = min(int(f), T - 2)
+        a = f - i
+        for c in range(3):
+            for j in range(nodes.shape[0]):
+                pos[c, nodes[j]] = (1 - a) * P[i, c, j] + a * P[i + 1, c, j]
+            for r in range(3):
+                for j in range(elems.shape[0]):
+                    dirs[r, c, elems[j]] = (1 - a) * Q[i, r, c, j] + a * Q[i + 1, r, c, j]
+
+    @njit(cache=True)
+    def grip_rates(tau, V, W, nodes, elems, vel, omega):
+        T = V.shape[0]
+        inside = 0.0 <= tau < T - 1.0
+        i = min(max(int(tau), 0), T - 2)
+        for c in range(3):
+            for j in range(nodes.shape[0]):
+                vel[c, nodes[j]] = V[i, c, j] if inside else 0.0
+            for j in range(elems.shape[0]):
+                omega[c, elems[j]] = W[i, c, j] if inside else 0.0
+
+    @njit(cache=True)
+    def fourth_difference_damp(rate, weight):
+        # rate -= weight * (D4 rate) / 16: PyElastica's order-2 Laplace filter with a weight; the
+        # two end values are left untouched (and the filter term at them is zero), as in PyElastica
+        n = rate.shape[1]
+        lap = np.zeros_like(rate)
+        for c in range(3):
+            for k in range(1, n - 1):
+                lap[c, k] = 0.25 * (2.0 * rate[c, k] - rate[c, k - 1] - rate[c, k + 1])
+        for c in range(3):
+            for k in range(1, n - 1):
+                rate[c, k] -= weight * 0.25 * (2.0 * lap[c, k] - lap[c, k - 1] - lap[c, k + 1])
+
+    @njit(cache=True)
+    def quadratic_drag(coef, mass, vel, tangents, forces):
+        n = vel.shape[1]
+        for k in range(n):  # node tangent: mean of the adjacent element tangents
+            a, b = max(k - 1, 0), min(k, n - 2)
+            t0 = tangents[0, a] + tangents[0, b]
+            t1 = tangents[1, a] + tangents[1, b]
+            t2 = tangents[2, a] + tangents[2, b]
+            norm = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            t0, t1, t2 = t0 / norm, t1 / norm, t2 / norm
+            vt = vel[0, k] * t0 + vel[1, k] * t1 + vel[2, k] * t2
+            n0, n1, n2 = vel[0, k] - vt * t0, vel[1, k] - vt * t1, vel[2, k] - vt * t2
+            c = coef * mass[k] * math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            forces[0, k] -= c * n0
+            forces[1, k] -= c * n1
+            forces[2, k] -= c * n2
+
+    return grip_values, grip_rates, fourth_difference_damp, quadratic_drag
+
+
+# ----------------------------------------------------------------------------------------------
+# the PyElastica system
+# ----------------------------------------------------------------------------------------------
+
+def _features(ea, kernels):
+    """PyElastica feature classes (defined here so that importing this module needs no PyElastica)."""
+    grip_values, grip_rates, fourth_difference_damp, quadratic_drag = kernels
+
+    class Sim(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.Damping, ea.Contact):
+        pass
+
+    class GripTracks(ea.ConstraintBase):
+        """Both gripped end portions follow the recorded gripper poses (fractional frame
+        ``(t - settle) / frame_dt - delay``; the first frame's pose before that)."""
+
+        def __init__(self, tracks, settle_s, frame_dt, delay_frames, **kwargs):
+            super().__init__(**kwargs)
+            self.P, self.V, self.Q, self.W, self.nodes, self.elems = tracks
+            self.settle_s, self.frame_dt, self.delay = settle_s, frame_dt, delay_frames
+
+        def _tau(self, time):
+            return (float(time) - self.settle_s) / self.frame_dt - self.delay
+
+        def constrain_values(self, system, time):
+            grip_values(self._tau(time), self.P, self.Q, self.nodes, self.elems,
+                        system.position_collection, system.director_collection)
+
+        def constrain_rates(self, system, time):
+            grip_rates(self._tau(time), self.V, self.W, self.nodes, self.elems,
+                       system.velocity_collection, system.omega_collection)
+
+    class MaterialDamping(ea.DamperBase):
+        """Kelvin-Voigt-like damping: a weighted 4th-difference (order-2 Laplace) filter of the nodal
+        velocities and the element angular velocities, every step. Continuum equivalent: a bending
+        rate damping dv/dt = -nu d4v/ds4 with nu = weight dx^4 / (16 dt) [m^4/s]."""
+
+        def __init__(self, weight, **kwargs):
+            super().__init__(**kwargs)
+            self.weight = float(weight)
+
+        def dampen_rates(self, system, time):
+            fourth_difference_damp(system.velocity_collection, self.weight)
+            fourth_difference_damp(system.omega_collection, self.weight)
+
+    class SettleDamping(ea.DamperBase):
+        """Uniform velocity damping while the rod settles (before the first recorded frame)."""
+
+        def __init__(self, rate, until_s, time_step, **kwargs):
+            super().__init__(**kwargs)
+            self.factor, self.until = math.exp(-rate * time_step), until_s
+
+        def dampen_rates(self, system, time):
+            if time < self.until:
+                system.velocity_collection *= self.factor
+                system.omega_collection *= self.factor
+
+    class QuadraticDrag(ea.NoForces):
+        """Air drag quadratic in the normal velocity: f = -c m |v_n| v_n at every node."""
+
+        def __init__(self, coef):
+            super().__init__()
+            self.coef = float(coef)
+
+        def apply_forces(self, system, time=0.0):
+            quadratic_drag(self.coef, system.mass, system.velocity_collection, system.tangents,
+                           system.external_forces)
+
+    return Sim, GripTracks, MaterialDamping, SettleDamping, QuadraticDrag
+
+
+def planted_truth(effect: str | None, rod_kind: str = "light", strength: float = 1.0, lowest_z: float = 0.0,
+                  spec: RodSpec | None = None) -> dict:
+    """Planted parameters (``DEFAULTS[rod_kind]`` scaled by ``strength``) in the tool's conventions."""
+    if effect is None:
+        return {}
+    d = dict(DEFAULTS[rod_kind][effect])
+    s = float(strength)
+    if effect == "aerodynamic_drag":
+        d = {"linear_1_per_s": 0.0, "quadratic_1_per_m": d["quadratic_1_per_m"] * s}
+    elif effect == "ground_contact":
+        d = {"height_m": lowest_z, "stiffness_1_per_s2": d["stiffness_1_per_s2"],
+             "friction": min(d["friction"] * s, 1.5)}
+    elif effect == "point_mass":
+        d = {"mass_kg": d["mass_fraction"] * s * (spec.mass_kg if spec else 1.0), "position_s": d["position_s"]}
+    elif effect == "stiffness_variation":
+        d["stiffness_ratio"] = 1.0 + (d["stiffness_ratio"] - 1.0) * s
+    elif effect == "external_force":
+        d = {"ax_m_per_s2": d["ax_m_per_s2"] * s, "ay_m_per_s2": d["ay_m_per_s2"] * s}
+    elif effect == "internal_damping":
+        d["bending_rate_damping_m4_per_s"] *= s
+    elif effect == "rest_curvature":
+        d = {"kappa1_per_m": d["kappa1_per_m"] * s, "kappa2_per_m": d["kappa2_per_m"] * s}
+    elif effect == "actuation_delay":
+        d["delay_frames"] *= s
+    return d
+
+
+def _marker_weights(s_markers: np.ndarray, dx: float, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Node index and weight of the linear interpolation of each marker between two nodes."""
+    f = s_markers / dx
+    j = np.clip(np.floor(f).astype(int), 0, n_nodes - 2)
+    return j, f - j
+
+
+def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpec, rod_kind: str = "light",
+                      n_frames: int = 300, seed: int = 0, noise_m: float = 3e-4,
+                      strength: float = 1.0) -> tuple[list[Recording], dict]:
+    """-> (recordings, truth). One output recording per source: the source's gripper motion over a
+    window of ``n_frames`` at a seeded offset, replayed on a PyElastica rod with one planted
+    ``effect`` (None: a control) of size ``strength`` (1 = ``DEFAULTS``). ``truth`` holds the
+    planted parameters plus "effect", "rod_kind", the rod's material and the numerics."""
+    if effect is not None and effect not in EFFECTS:
+        raise ValueError(f"unknown effect {effect!r}; expected one of {EFFECTS}")
+    if rod_kind not in ROD_KINDS:
+        raise ValueError(f"unknown rod kind {rod_kind!r}; expected one of {tuple(ROD_KINDS)}")
+    ea = _elastica()
+    Sim, GripTracks, MaterialDamping, SettleDamping, QuadraticDrag = _features(ea, _kernels())
+    kind = ROD_KINDS[rod_kind]
+    rng = np.random.default_rng(seed)
+    n = spec.n_vertices
+    if any(r.n_vertices != n for r in sources):
+        raise ValueError(f"sources must have {n} markers")
+    frame_dt = spec.dt
+    L, n_el, dt = spec.length_m, int(kind["n_elements"]), float(kind["dt_s"])
+    r0, ei = kind["radius_m"], kind["bend_stiffness_Nm2"]
+    area = math.pi * r0 ** 2
+    youngs = ei / (math.pi * r0 ** 4 / 4)
+    density = spec.mass_kg / (L * area)
+    dx = L / n_el
+    s_nodes = np.arange(n_el + 1) * dx
+    s_markers, tail = marker_layout(sources, L)
+    span = s_markers[-1] - s_markers[0]
+    held_a = _held_nodes(s_nodes, s_markers[0], s_markers[1])
+    held_b = _held_nodes(s_nodes, s_markers[-2], s_markers[-1])
+
+    starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
+    # a table just above the lowest points most recordings reach: the rope touches it in most of them
+    lowest = float(np.percentile([r.positions[s:s + n_frames, 2:-2, 2].min() for r, s in zip(sources, starts)], 80))
+    truth = planted_truth(effect, rod_kind, strength, lowest, spec)
+    nu = kind["material_damping_m4_per_s"] + truth.get("bending_rate_damping_m4_per_s", 0.0)
+    dt = min(dt, frame_dt / math.ceil(frame_dt / (dx ** 4 / (16 * nu))))  # filter weight <= 1, whole steps per frame
+    delay = truth.get("delay_frames", 0.0)
+
+    grips_rec = np.stack([r.positions[s:s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)])
+    sim = Sim()
+    rods = []
+    for i, (r, st) in enumerate(zip(sources, starts)):
+        drive = _driving_grips(grips_rec[i])
+        markers0 = r.positions[st].copy()
+        markers0[gripped_indices(n)] = drive[0]  # the grips where settling starts
+        x0 = _initial_curve(markers0, s_markers, s_nodes, held_a, held_b)
+        t = _unit(np.diff(x0, axis=0))
+        up = np.array([0.0, 0.0, 1.0]) if abs(t[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        d1 = [_transport(up, t[0])]
+        for k in range(1, len(t)):
+            d1.append(_transport(d1[-1], t[k]))
+        directors = _frames(t, np.array(d1)).transpose(1, 2, 0).copy()
+        rod = ea.CosseratRod.straight_rod(n_el, np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 0, 1.0]), L, r0,
+                                          density, youngs_modulus=youngs, shear_modulus=youngs / 3.0)
+        rod.position_collection[:] = x0.T
+        rod.director_collection[:] = directors
+        s_vor = s_nodes[1:-1]  # Voronoi regions (between elements) sit on the interior nodes
+        u_vor = (s_vor - s_markers[0]) / span  # normalised position along the marker span
+        if effect == "point_mass":  # a clip: extra mass shared by the two nodes around it
+            s_clip = s_markers[0] + truth["position_s"] * span
+            j = int(s_clip // dx)
+            a = s_clip / dx - j
+            rod.mass[j] += (1 - a) * truth["mass_kg"]
+            rod.mass[j + 1] += a * truth["mass_kg"]
+        elif effect == "stiffness_variation":
+            inside = (u_vor >= truth["start_s"]) & (u_vor <= truth["end_s"])
+            rod.bend_matrix[0, 0, inside] *= truth["stiffness_ratio"]
+            rod.bend_matrix[1, 1, inside] *= truth["stiffness_ratio"]
+        elif effect == "rest_curvature":
+            rod.rest_kappa[0, :] = truth["kappa1_per_m"]
+            rod.rest_kappa[1, :] = truth["kappa2_per_m"]
+        sim.append(rod)
+        rods.append(rod)
+        tracks = _grip_tracks(drive, s_markers, s_nodes, held_a, held_b,
+                              directors[0, :, held_a[0]], directors[0, :, held_b[-1] - 1], frame_dt)
+        sim.constrain(rod).using(GripTracks, tracks=tracks, settle_s=SETTLE_S, frame_dt=frame_dt,
+                                 delay_frames=delay)
+        sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array([0.0, 0.0, -GRAVITY]))
+        if effect == "external_force":
+            sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array(
+                [truth["ax_m_per_s2"], truth["ay_m_per_s2"], 0.0]))
+        elif effect == "aerodynamic_drag":
+            sim.add_forcing_to(rod).using(QuadraticDrag, coef=truth["quadratic_1_per_m"])
+        elif effect == "ground_contact":
+            if i == 0:
+                plane = ea.Plane(plane_origin=np.array([0.0, 0.0, lowest - r0]), plane_normal=np.array([0.0, 0, 1]))
+                sim.append(plane)
+            m_el = spec.mass_kg / n_el
+            k_c = truth["stiffness_1_per_s2"] * m_el
+            sim.detect_contact_between(rod, plane).using(
+                ea.RodPlaneContactWithAnisotropicFriction, k=k_c, nu=2.0 * math.sqrt(k_c * m_el),
+                slip_velocity_tol=1e-4, static_mu_array=np.full(3, truth["friction"]),
+                kinetic_mu_array=np.full(3, truth["friction"]))
+        sim.dampen(rod).using(MaterialDamping, weight=16.0 * nu * dt / dx ** 4)
+        sim.dampen(rod).using(SettleDamping, rate=SETTLE_DAMPING, until_s=SETTLE_S, time_step=dt)
+    sim.finalize()
+    stepper = ea.PositionVerlet()
+    jm, am = _marker_weights(s_markers, dx, n_el + 1)
+    out = np.empty((len(sources), n_frames, n, 3))
+    strain = []  # per frame and rod: the largest element strain |dilatation - 1|
+
+    def read(k):
+        for i, rod in enumerate(rods):
+            x = rod.position_collection
+            if not np.all(np.isfinite(x)) or np.abs(x).max() > 100.0:
+                raise RuntimeError(f"elastica {effect}: the simulation diverged (rod {i}, frame {k})")
+            out[i, k] = ((1 - am) * x[:, jm] + am * x[:, jm + 1]).T
+            strain.append(float(np.abs(rod.dilatation - 1).max()))
+
+    t_sim = 0.0
+    settle_steps = int(round(SETTLE_S / dt))
+    per_frame = int(round(frame_dt / dt))
+    for _ in range(settle_steps):
+        t_sim = stepper.step(sim, t_sim, dt)
+    t_sim = SETTLE_S  # exact frame times (PyElastica accumulates float time)
+    for k in range(-LEAD_FRAMES, n_frames):
+        if k > -LEAD_FRAMES:
+            for _ in range(per_frame):
+                t_sim = stepper.step(sim, t_sim, dt)
+            t_sim = SETTLE_S + (k + LEAD_FRAMES) * frame_dt
+        if k >= 0:
+            read(k)
+    out[:, :, gripped_indices(n)] = grips_rec  # the recorded inputs (the rod's ends lag them by `delay`)
+    out = out + rng.normal(0.0, noise_m, out.shape)
+    if not np.all(np.isfinite(out)):
+        raise RuntimeError(f"elastica {effect}: the simulation diverged")
+    recs = [Recording(name=f"elastica_{rod_kind}_{effect or 'control'}_{seed}_{i}", positions=out[i], dt=frame_dt)
+            for i in range(len(sources))]
+    truth.update({
+        "effect": effect, "rod_kind": rod_kind, "strength": float(strength),
+        "rod": {"length_m": L, "mass_kg": spec.mass_kg, "radius_m": r0, "youngs_modulus_Pa": youngs,
+                "shear_modulus_Pa": youngs / 3.0, "bend_stiffness_Nm2": ei, "stretch_stiffness_N": youngs * area,
+                "material_damping_m4_per_s": kind["material_damping_m4_per_s"], "tail_m": tail,
+                "marker_s_m": s_markers.tolist()},
+        "numerics": {"n_elements": n_el, "dt_s": dt, "settle_s": SETTLE_S, "max_stretch": max(strain),
+                     "p99_stretch": float(np.percentile(strain, 99)),
+                     "starts": starts},
+    })
+    return recs, truth
+
+
+def detectability(effect_recs: list[Recording], control_recs: list[Recording]) -> float:
+    """Marker L1 [m] between a case and its paired control (same seed, motions and noise): mean
+    |a - b| over frames, non-gripped markers and xyz."""
+    diffs = []
+    for a, b in zip(effect_recs, control_recs, strict=True):
+        n = a.positions.shape[1]
+        inner = [k for k in range(n) if k not in gripped_indices(n)]
+        diffs.append(np.abs(a.positions[:, inner] - b.positions[:, inner]).ravel())
+    return float(np.concatenate(diffs).mean())
+
+
+def _main() -> None:
+    import argparse
+    from deform.io.recordings import find_data_root, load_recordings
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sources", type=int, default=8)
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--kinds", nargs="*", default=list(ROD_KINDS))
+    ap.add_argument("--effects", nargs="*", default=list(EFFECTS))
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    root = find_data_root()
+    rods = {"light": ("DLO1", 1.152, 0.0345, 13), "stiff": ("DLO3", 0.998, 0.0968, 12)}
+    for kind in args.kinds:
+        name, length, mass, nv = rods[kind]
+        sources = load_recordings(root / name / "train")[:args.sources]
+        spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)
+        t0 = _time.perf_counter()
+        control, truth = generate_elastica(None, sources, spec, kind, args.frames, args.seed)
+        tc = _time.perf_counter() - t0
+        real = np.mean([np.abs(c.positions[:, 2:-2] - r.positions[s:s + args.frames, 2:-2]).mean()
+                        for c, r, s in zip(control, sources, truth["numerics"]["starts"])])
+        print(f"{kind} ({name}): control {tc:.1f} s, element strain max {truth['numerics']['max_stretch'] * 100:.2f} % "
+              f"p99 {truth['numerics']['p99_stretch'] * 100:.2f} %, "
+              f"L1 vs real {real * 100:.2f} cm", flush=True)
+        for effect in args.effects:
+            t0 = _time.perf_counter()
+            recs, truth = generate_elastica(effect, sources, spec, kind, args.frames, args.seed)
+            print(f"  {effect:20s} {detectability(recs, control) * 100:5.2f} cm  "
+                  f"({_time.perf_counter() - t0:.1f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    _main()
