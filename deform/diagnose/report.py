@@ -8,6 +8,7 @@ import numpy as np
 
 from deform.diagnose.localize import plot_localization
 from deform.diagnose.selection import Diagnosis
+from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import Recording
 
 
@@ -111,6 +112,11 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
             lines += [f"Marker motion cannot tell **{c['name']}** apart from "
                       f"{', '.join(n for n in c['equivalence_class'] if n != c['name'])} (round {c['round']}): "
                       "either explains the held-out recordings as well; " + "; ".join(c["equivalence_why"]) + ".", ""]
+    known = [(name, cls.cannot_tell_from) for name, cls in LIBRARY.items() if cls.cannot_tell_from]
+    if known:
+        lines += ["### What marker motion cannot tell apart", ""]
+        lines += [f"- **{name}** from {why}." for name, why in known]
+        lines += [""]
     lines += [f"Check error: {nom['check_l1_m'] * 100:.3f} cm (nominal) -> **{rep['final_check_l1_m'] * 100:.3f} cm**", "",
               "Final parameters: " + "; ".join(f"{k}: {_fmt(v)}" for k, v in nom["final_params"].items()), "",
               "![horizon](horizon.png)", "", "![overlay](overlay.png)", "",

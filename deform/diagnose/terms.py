@@ -53,6 +53,9 @@ class Term(nn.Module):
 
     name = "term"
     description = ""
+    # what marker motion cannot tell this term apart from, and why (None: nothing known); the report
+    # names these classes instead of pretending to a choice
+    cannot_tell_from: str | None = None
 
     def __init__(self, n: int, arclength: np.ndarray):
         super().__init__()
@@ -80,6 +83,9 @@ class Term(nn.Module):
 class AerodynamicDrag(Term):
     name = "aerodynamic_drag"
     description = "air drag on the velocity across the rod, linear and quadratic in speed"
+    cannot_tell_from = ("the nominal linear damping, for its linear part: both take a force proportional to "
+                        "the velocity; only the quadratic part, or more than a rope's material damping, is "
+                        "drag by itself")
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -118,6 +124,8 @@ class InternalDamping(Term):
 
     name = "internal_damping"
     description = "damping of the bending rate (Kelvin-Voigt internal friction of the rod's curvature)"
+    cannot_tell_from = ("the nominal linear damping, where the motion is mostly one slow bending mode: "
+                        "damping that mode's rate and damping the velocity look the same at the markers")
     scale = 1e-5  # m^4/s per exp(raw): about 0.1 /s in units of a 10 cm marker spacing
 
     def __init__(self, n, arclength):
@@ -275,6 +283,7 @@ class StiffnessVariation(Term):
 class ExternalForce(Term):
     name = "external_force"
     description = "a uniform horizontal force field per unit mass (wind); a vertical one is only a gravity error"
+    cannot_tell_from = "a tilt of the gravity vector (a mis-levelled motion-capture frame): the same force per mass"
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -298,6 +307,8 @@ class MassScale(Term):
 
     name = "mass_scale"
     description = "mass of the markers (a point mass at every marker); a uniform mass factor is not observable"
+    cannot_tell_from = ("a stiffness scale: at marker resolution a mass on every marker is a uniform mass "
+                        "factor, and the motion depends on EI / mass only, so the fitted EI and GJ absorb it")
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)

@@ -47,3 +47,18 @@ def test_control_gives_none(sources):
     rep = diagnose(inputs, tiny_budget(CANDIDATES)).report
     assert rep["selected"] == []
     assert rep["final_check_l1_m"] == pytest.approx(rep["nominal"]["check_l1_m"])
+
+
+def test_report_files_name_what_cannot_be_told_apart(wind, sources, tmp_path):
+    from deform.diagnose.report import write_report
+
+    diag, _ = wind
+    inputs, _ = _inputs("external_force", sources)
+    write_report(diag, inputs.check, tmp_path)
+    md = (tmp_path / "report.md").read_text()
+    assert (tmp_path / "report.json").is_file() and (tmp_path / "localization.png").is_file()
+    assert "Selected: **external_force**" in md
+    assert "What marker motion cannot tell apart" in md and "**mass_scale** from a stiffness scale" in md
+    assert "fitted again on other windows" in md   # the selected term's own fit noise
+    chosen = next(c for c in diag.report["candidates"] if c["name"] == "external_force")
+    assert chosen["equivalence_class"][0] == "external_force" and "noise" in chosen["fit_noise"]
