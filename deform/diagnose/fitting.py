@@ -145,7 +145,7 @@ def coarse_nominal(sim: Simulator, recordings: list[Recording], steps: int = 150
     best = (math.inf, None)
     nom = sim.nominal
     for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2):
-        for c in (0.3, 1.0, 3.0):
+        for c in sorted({min(c, nom.damping_max) for c in (0.3, 1.0, 3.0)}):
             with torch.no_grad():
                 nom.log_ei.fill_(math.log(ei))
                 nom.log_gj.fill_(math.log(0.7 * ei))

@@ -17,7 +17,7 @@ import numpy as np
 from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
 from deform.diagnose.scoring import bootstrap_ci, score
-from deform.diagnose.simulator import MATERIAL_DAMPING_LEVEL, MATERIAL_DAMPING_MAX, Nominal, Simulator, arclength_of, per_recording_l1
+from deform.diagnose.simulator import MATERIAL_DAMPING_MAX, Nominal, Simulator, arclength_of, per_recording_l1
 from deform.diagnose.spec import Inputs
 from deform.diagnose.terms import LIBRARY, make_term
 
@@ -119,12 +119,10 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[: budget.localization_recordings]
     res = short_rollout_residuals(sim, loc_recs)
     loc = localize(res, s)
-    beyond = sim.nominal.damping_beyond_material()
-    if beyond > 2.0:
-        loc["findings"].insert(0, f"the nominal fit's velocity damping ({beyond * MATERIAL_DAMPING_LEVEL:.2f} /s) is "
-                                  f"{beyond:.1f}x what a rope's material damping gives on controls "
-                                  f"({MATERIAL_DAMPING_LEVEL:g} /s): it absorbs external dissipation (air drag, contact "
-                                  "friction) or strong internal damping; dissipative candidates start without it")
+    if sim.nominal.at_damping_bound():
+        loc["findings"].insert(0, f"the nominal fit wants more velocity damping than a rope's material damping gives "
+                                  f"(held at {sim.nominal.damping_max:g} /s, 2x the controls'): external dissipation "
+                                  "(air drag, contact friction) or strong internal damping")
     context = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit), "peak_s": loc["peak_s"],
                "contact_z": contact_height(loc)}
     selected: list = []

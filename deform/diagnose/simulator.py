@@ -23,7 +23,7 @@ NEGLIGIBLE_MASS_RAW = -12.0  # softplus(-12) g: no marker mass in the plain mode
 NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
 
 
-MATERIAL_DAMPING_MAX = 20.0  # numerical bound of the fit
+MATERIAL_DAMPING_MAX = MATERIAL_DAMPING_LEVEL  # the nominal fit's bound (see terms.MATERIAL_DAMPING_LEVEL)
 
 
 class Nominal(nn.Module):
@@ -49,9 +49,9 @@ class Nominal(nn.Module):
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(self.damping_max))
 
-    def damping_beyond_material(self) -> float:
-        """Fitted damping over the material level (> 2: external dissipation is likely absorbed)."""
-        return float(self.log_damping.exp()) / MATERIAL_DAMPING_LEVEL
+    def at_damping_bound(self) -> bool:
+        """The fit wants more velocity damping than a rope's material damping gives."""
+        return float(self.log_damping.detach().exp()) >= 0.98 * self.damping_max
 
 
 def arclength_of(recordings) -> np.ndarray:

@@ -26,16 +26,17 @@ from deform.model import inv_softplus
 from deform.rod.geometry import normal_velocity
 
 
-# The linear velocity damping a nominal fit gives when nothing but a rope's own material damping (and
-# the model's discretisation) dissipates [1/s]. A damping of absolute velocity is, physically, an
-# external drag: far above this level the nominal damping is absorbing air drag, contact friction or
-# strong internal damping (measured: 5.1-5.3 /s on a stiff rope with drag or a table against 0.7 /s
-# on its control), so the report says so and the dissipative candidates are also started with the
-# nominal damping brought back to this level. Not a hard bound: a coarse model of a finer rod needs
-# numerical damping of its own (an 8-vertex model of a 15-node truth fitted 2.7 /s on a control).
-# 2x the largest free fit on 11 controls, PyElastica's light and stiff rods and this project's own
-# planted controls (`python benchmarks/diagnose_planted.py --calibrate-damping`: 0.13-0.16 and
-# 0.32-0.52 /s), never on the cases a benchmark scores.
+# The most linear velocity damping the nominal model may hold [1/s]: what a nominal fit gives when
+# nothing but a rope's own material damping (and the model's discretisation) dissipates. A damping of
+# absolute velocity is, physically, an external drag: beyond this level the nominal damping would
+# absorb air drag, contact friction or strong internal damping (measured: 1.8-2.1 /s with PyElastica's
+# drag against 0.15 /s on the paired controls; 5.1-5.3 /s against 0.7 /s on another simulator's stiff
+# rope) and leave no candidate anything to explain, so the nominal fit is bounded here and what is
+# left must be named. 2x the largest free fit on 11 controls, PyElastica's light and stiff rods and
+# this project's own planted controls (`python benchmarks/diagnose_planted.py --calibrate-damping`:
+# 0.13-0.16 and 0.32-0.52 /s), never on the cases a benchmark scores. Known limit: a coarse model of
+# a much finer, violently moved rod needs numerical damping of its own (an 8-vertex model of a
+# 15-node truth at 0.3 m/s per frame wanted 2.7 /s on a control), which the bound then withholds.
 MATERIAL_DAMPING_LEVEL = 1.03
 
 # How much of the nominal linear damping a dissipative candidate (drag, contact friction, internal
