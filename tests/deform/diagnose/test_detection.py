@@ -13,8 +13,15 @@ CANDIDATES = ("external_force", "aerodynamic_drag", "point_mass")
 pytestmark = pytest.mark.slow  # whole diagnoses on the tiny rod: about 25 s on two cores
 
 
+# the truth's linear damping at a rope's material level (under the nominal model's bound), and a strong
+# wind: the tiny coarse model needs about 1 /s of numerical damping of its own, which the bound
+# withholds, so a weak wind (0.8, 0.5 m/s^2) scores +6 % against its 7.7 % threshold here
+WIND = {"ax_m_per_s2": 1.6, "ay_m_per_s2": 1.0}
+
+
 def _inputs(effect, sources):
-    recs, truth = generate_planted(effect, sources, SPEC, n_frames=80, refine=2, substeps=2, settle_s=0.5, seed=1)
+    recs, truth = generate_planted(effect, sources, SPEC, n_frames=80, refine=2, substeps=2, settle_s=0.5, seed=1,
+                                   damping=0.2, truth_override=WIND if effect == "external_force" else None)
     return Inputs(spec=SPEC, fit=recs[:3], check=recs[3:]), truth
 
 
@@ -30,7 +37,7 @@ def test_strong_wind_is_named_and_improves_the_check_error(wind):
     assert rep["selected"] == ["external_force"]
     assert rep["final_check_l1_m"] < 0.9 * rep["nominal"]["check_l1_m"]  # 0.85 before transported window frames
     found = next(c for c in rep["candidates"] if c["name"] == "external_force")["params"]
-    assert found["ax_m_per_s2"] > 0.2  # right direction (truth 0.8)
+    assert found["ax_m_per_s2"] > 0.4  # right direction (truth 1.6)
 
 
 def test_report_has_the_issue_schema(wind):
