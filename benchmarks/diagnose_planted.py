@@ -282,10 +282,15 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
         L, M, n = RODS[rod]
         recs = load_recordings(data / rod / "train")
         spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=rod)
-        inputs = Inputs(spec=spec, fit=recs[:args.fit], check=recs[args.fit:args.fit + args.check])
+        # fit on train, check on eval where the rod has eval recordings (DLO1-DLO3), else on later
+        # train recordings; through the user path (ROD.json with the rope's real length)
+        held = load_recordings(data / rod / "eval")[:args.check] if (data / rod / "eval").is_dir() else []
+        inputs = as_user_inputs(spec, recs[:args.fit], held or recs[args.fit:args.fit + args.check])
         t0 = time.perf_counter()
         rep = diagnose(inputs, budget(args.quick)).report
         row = {"key": key, "config": _config(args), "kind": "real", "rod": rod, "selected": rep["selected"],
+               "check_split": "eval" if held else "train", "equivalence_class": equivalence_of(rep),
+               "warnings": rep["nominal"]["warnings"],
                "n_frames": [r.n_frames for r in inputs.fit + inputs.check],
                "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
                "findings": rep["localization"]["findings"], "nominal_params": rep["nominal"]["params"],
@@ -569,6 +574,7 @@ def main() -> None:
                    help="only sweep the internal-damping term on planted data with fixed nominal parameters")
     p.add_argument("--hidden-nodes", type=int, nargs="*", default=None, metavar="SEED",
                    help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)")
+    p.add_argument("--stem", default=None, help="name of the result files (default diagnose, diagnose.elastica)")
     p.add_argument("--calibrate-damping", action="store_true",
                    help="only fit the nominal model on independent-simulator controls and derive its material damping level")
     args = p.parse_args()
@@ -592,7 +598,7 @@ def main() -> None:
     if args.smoke:
         args.quick = "smoke"
     torch.set_num_threads(1)
-    stem = "diagnose" if args.simulator == "own" else f"diagnose.{args.simulator}"
+    stem = args.stem or ("diagnose" if args.simulator == "own" else f"diagnose.{args.simulator}")
     runs_path = Path(args.runs or RESULTS / f"{stem}.runs.jsonl")
     runs_path.parent.mkdir(exist_ok=True)
     done = load_runs(runs_path, _config(args))
