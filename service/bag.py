@@ -117,7 +117,7 @@ def replay(session: zenoh.Session, namespace: str, messages: list[Message], fast
             delay = (m.log_time - t0_log) / 1e9 / speed - (time.perf_counter() - t0_wall)
             if delay > 0:
                 time.sleep(delay)
-        pubs[m.name].put(m.data, attachment=encode_order(stream, seq))
+        pubs[m.name].put(m.data, attachment=encode_order(stream, seq, last=seq == len(messages) - 1))
     for p in pubs.values():
         p.undeclare()
     return len(messages)

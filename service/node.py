@@ -288,16 +288,19 @@ class Service:
             try:
                 name, raw, seq = self.inbox.get(timeout=0.05)
                 last_message = time.perf_counter()
-                ready, taken = order.push((name, raw, seq is not None), seq, last_message), True
+                ready, taken = order.push((name, raw, seq is not None, bool(seq and seq.last)), seq, last_message), True
                 ready += order.expire(last_message)
             except queue.Empty:
                 taken = False
                 ready = order.expire(time.perf_counter())
                 # idle for as long as a cloud may lag the poses: nothing is in transit any more
-                # (a shorter wait made replays on a loaded machine depend on scheduling)
-                if not ready and not order.holding() and time.perf_counter() - last_message >= self.cfg.timeouts.reorder_s:
+                # (a shorter wait made replays on a loaded machine depend on scheduling); a replay in
+                # send order marks its last sample, so its poses wait ten times longer (a sender
+                # that died) and a pause of the sender does not tick a pose before its cloud
+                patience = self.cfg.timeouts.reorder_s * (10 if poses and poses[-1][2] else 1)
+                if not ready and not order.holding() and time.perf_counter() - last_message >= patience:
                     self._advance(poses, flush=True)
-            for name, raw, ordered in ready:
+            for name, raw, ordered, last in ready:
                 try:
                     if name == "ee_poses":
                         parsed = est.parse_poses(raw, last_pose)
@@ -306,7 +309,7 @@ class Service:
                             last_pose = parsed[0]
                     else:
                         handlers[name](raw)
-                    self._advance(poses, window=window)
+                    self._advance(poses, window=window, flush=last)  # the replay's last sample: tick all
                 except Exception:
                     log.exception("message %s failed", name)
                     self.stats.count("tick_errors")

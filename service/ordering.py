@@ -8,18 +8,29 @@ by all its publishers (a Zenoh attachment); the message clock releases samples i
 order, whatever order they arrive in. Samples without the attachment (any other publisher) are
 released as they arrive.
 
-Attachment layout (17 bytes): ``b"DFSQ"``, version ``1`` (one byte), stream id (8 bytes, random per
-replay), sequence number (uint64 little-endian, 0 for a stream's first sample).
+Attachment layout (18 bytes): ``b"DFSQ"``, version ``1`` (one byte), flags (one byte; bit 0: the
+stream's last sample), stream id (8 bytes, random per replay), sequence number (uint64
+little-endian, 0 for a stream's first sample). The last-sample flag lets the service tick the final
+poses at once instead of waiting for the input to go idle (which would make the result depend on
+how long the sender paused).
 """
 from __future__ import annotations
 
 import os
 import struct
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 MAGIC = b"DFSQ"
 VERSION = 1
-_LAYOUT = struct.Struct("<4sB8sQ")
+_LAYOUT = struct.Struct("<4sBB8sQ")
+LAST = 1
+
+
+class Order(NamedTuple):
+    stream: bytes
+    seq: int
+    last: bool = False
 
 
 def new_stream_id() -> bytes:
@@ -27,19 +38,19 @@ def new_stream_id() -> bytes:
     return os.urandom(8)
 
 
-def encode_order(stream: bytes, seq: int) -> bytes:
+def encode_order(stream: bytes, seq: int, last: bool = False) -> bytes:
     """The attachment of the ``seq``-th sample (from 0) of replay ``stream``."""
-    return _LAYOUT.pack(MAGIC, VERSION, stream, seq)
+    return _LAYOUT.pack(MAGIC, VERSION, LAST if last else 0, stream, seq)
 
 
-def decode_order(attachment: bytes | None) -> tuple[bytes, int] | None:
-    """``(stream, seq)`` of an attachment written by :func:`encode_order`, else None (unordered)."""
+def decode_order(attachment: bytes | None) -> Order | None:
+    """The :class:`Order` of an attachment written by :func:`encode_order`, else None (unordered)."""
     if attachment is None or len(attachment) != _LAYOUT.size:
         return None
-    magic, version, stream, seq = _LAYOUT.unpack(attachment)
+    magic, version, flags, stream, seq = _LAYOUT.unpack(attachment)
     if magic != MAGIC or version != VERSION:
         return None
-    return stream, seq
+    return Order(stream, seq, bool(flags & LAST))
 
 
 @dataclass
@@ -62,10 +73,10 @@ class SequenceBuffer:
         self._streams: dict[bytes, _Stream] = {}
         self.gaps = 0  # sequence numbers given up on
 
-    def push(self, item, order: tuple[bytes, int] | None, now: float) -> list:
+    def push(self, item, order: Order | tuple[bytes, int] | None, now: float) -> list:
         if order is None:
             return [item]
-        stream_id, seq = order
+        stream_id, seq = order[0], order[1]
         st = self._streams.setdefault(stream_id, _Stream())
         if seq < st.expected:  # a duplicate or one already given up on: too late to keep the order
             return [item]

@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 from service.node import Service
-from service.ordering import SequenceBuffer, decode_order, encode_order, new_stream_id
+from service.ordering import Order, SequenceBuffer, decode_order, encode_order, new_stream_id
 from tests.service.conftest import make_config
 
 
 def test_attachment_round_trip_and_foreign_attachments_ignored():
     sid = new_stream_id()
-    assert decode_order(encode_order(sid, 12345)) == (sid, 12345)
+    assert decode_order(encode_order(sid, 12345)) == Order(sid, 12345, False)
+    assert decode_order(encode_order(sid, 7, last=True)) == Order(sid, 7, True)
     assert decode_order(None) is None
     assert decode_order(b"") is None
     assert decode_order(b"XXXX" + encode_order(sid, 1)[4:]) is None   # another protocol's 17 bytes
@@ -44,8 +45,10 @@ def test_buffer_gives_up_on_a_lost_sample_after_patience():
     assert buf.push(4, (s, 4), 1.6) == [4]
 
 
-def _run_message_clock(model, inbox_items):
-    """A message-clock service fed ``inbox_items`` as the transport would; -> published estimates."""
+def _run_message_clock(model, inbox_items, pause_after: int | None = None):
+    """A message-clock service fed ``inbox_items`` as the transport would; -> published estimates.
+    ``pause_after``: the sender stops for longer than ``reorder_s`` after that many items."""
+    import time
     from service import messages as M
     cfg = make_config(clock="message", timeouts={"reorder_s": 0.3},
                       workers={"processes": False, "compile_predict": False})
@@ -55,9 +58,14 @@ def _run_message_clock(model, inbox_items):
     loop = threading.Thread(target=svc._message_loop, daemon=True)
     loop.start()
     try:
-        for item in inbox_items:
+        for k, item in enumerate(inbox_items):
             svc._idle = False
             svc.inbox.put(item)
+            if k == pause_after:   # once the loop has caught up, the sender stops for a while
+                deadline = time.monotonic() + 30
+                while svc.inbox.unfinished_tasks and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                time.sleep(0.5)    # the pause itself (a loaded machine): not a wait for anything
         assert svc.drain(30.0)
     finally:
         svc._stop.set()
@@ -73,7 +81,7 @@ def test_message_clock_is_bit_exact_under_reordered_delivery(model, sim_stream):
     _, stream = sim_stream
     stream = stream[:2 + 4 * 20]                             # camera_info, camera_pose, ~20 ticks
     sid = new_stream_id()
-    items = [(m.name, m.data, (sid, k)) for k, m in enumerate(stream)]
+    items = [(m.name, m.data, Order(sid, k, k == len(stream) - 1)) for k, m in enumerate(stream)]
     in_order, snap = _run_message_clock(model, items)
     assert snap["counts"]["clouds_fused"] == sum(m.name == "points" for m in stream)
     assert snap["rejected"] == {}
@@ -90,7 +98,9 @@ def test_message_clock_is_bit_exact_under_reordered_delivery(model, sim_stream):
             i = rng.randrange(len(shuffled) - 1)
             shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
         assert shuffled != items
-        got, snap = _run_message_clock(model, shuffled)
+        # trial 1: the sender also pauses right after a pose whose cloud comes next
+        pause = next(k for k in range(10, len(items)) if items[k][0] == "ee_poses" and items[k + 1][0] == "points")
+        got, snap = _run_message_clock(model, shuffled if trial == 0 else items, pause_after=pause if trial else None)
         assert snap["rejected"] == {}
         assert np.array_equal(got, in_order), f"trial {trial}"
 
