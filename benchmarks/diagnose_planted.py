@@ -19,6 +19,7 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -236,6 +237,44 @@ def calibrate_damping(args) -> dict:
            "controls": fitted, "largest_1_per_s": worst, "level_1_per_s": round(2 * worst, 2)}
     (RESULTS / "diagnose.damping_level.json").write_text(json.dumps(out, indent=2))
     return out
+
+
+def full_size_timing(args) -> dict:
+    """Wall time of `deform diagnose` with the default (full) budget on one independent-simulator case
+    of the issue's size (8 + 4 recordings of 500 frames), run as a user runs it: files on disk and
+    the command line. -> the row stored in benchmarks/results/diagnose.timing.json."""
+    import subprocess
+    import tempfile
+
+    from deform.io import save_recording
+    from elastica_planted import generate_elastica
+
+    kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
+    rod = ELASTICA_SOURCES[kind]
+    sources = load_recordings(find_data_root() / rod / "train")
+    L, M, n = RODS[rod]
+    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+    pick = np.random.default_rng(0).choice(len(sources), 12, replace=False)
+    recs, _ = generate_elastica(effect, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=500, seed=0)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for name, part in (("fit", recs[:8]), ("check", recs[8:])):
+            (tmp / name).mkdir()
+            for i, r in enumerate(part):
+                save_recording(tmp / name / f"{i:02d}.pkl", r.positions)
+        (tmp / "rod.json").write_text(json.dumps({"length_m": L, "mass_kg": M, "n_vertices": n, "dt": 0.01}))
+        cmd = [sys.executable, "-m", "deform.cli", "diagnose", "--rod", str(tmp / "rod.json"), "--fit", str(tmp / "fit"),
+               "--check", str(tmp / "check"), "--out", str(tmp / "out"), "--json"]
+        t0 = time.perf_counter()
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT.parent)
+        seconds = time.perf_counter() - t0
+    rep = json.loads(out.stdout) if out.returncode == 0 else {}
+    row = {"command": "python benchmarks/diagnose_planted.py --full-size-timing --rod-kinds " + kind
+           + " --effects " + effect, **provenance(), "case": f"elastica {kind} {effect} seed 0, 8 + 4 recordings x 500 frames",
+           "budget": "full (default)", "seconds_wall": seconds, "returncode": out.returncode,
+           "selected": rep.get("selected"), "stderr_tail": out.stderr[-300:] if out.returncode else ""}
+    (RESULTS / "diagnose.timing.json").write_text(json.dumps(row, indent=2))
+    return row
 
 
 def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
@@ -575,9 +614,15 @@ def main() -> None:
     p.add_argument("--hidden-nodes", type=int, nargs="*", default=None, metavar="SEED",
                    help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)")
     p.add_argument("--stem", default=None, help="name of the result files (default diagnose, diagnose.elastica)")
+    p.add_argument("--full-size-timing", action="store_true",
+                   help="only time `deform diagnose` (full budget) on one elastica case of 8 + 4 x 500 frames")
     p.add_argument("--calibrate-damping", action="store_true",
                    help="only fit the nominal model on independent-simulator controls and derive its material damping level")
     args = p.parse_args()
+    if args.full_size_timing:
+        sys.path.insert(0, str(ROOT))
+        print(json.dumps(full_size_timing(args)))
+        return
     if args.calibrate_damping:
         torch.set_num_threads(1)
         sys.path.insert(0, str(ROOT))
