@@ -410,7 +410,7 @@ def summarise(rows: list[dict], rule: str) -> dict:
         go = [x["gap_closed_oracle"] for x in g if x.get("gap_closed_oracle") is not None]
         gc = [x["gap_closed_control"] for x in g if x.get("gap_closed_control") is not None]
         perr = [float(np.mean(list(r["param_rel_error"].values()))) for r in rs if r["param_rel_error"]]
-        in_class = [eff in r.get("equivalence_class", []) for r in rs] if eff != "none" else right
+        in_class = [eff in r.get("equivalence_class", equivalence_of(r)) for r in rs] if eff != "none" else right
         detect = [r["detectability_l1_m"] for r in rs if r.get("detectability_l1_m") is not None]
         out[eff] = {"runs": len(rs), "named_correctly": int(sum(right)), "rate": float(np.mean(right)),
                     "named_in_class": int(sum(in_class)) if rule == "as_run" else None,
