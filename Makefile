@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 # g++: scikit-sparse is built from source, and torch.compile (deform/compiled.py) compiles C++
 APT_PKGS := libsuitesparse-dev libusb-1.0-0 libgomp1 g++
 
-.PHONY: install demo test test-fast bench results clean sysdeps
+.PHONY: install demo test test-fast lint format bench results clean sysdeps
 
 sysdeps:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -42,6 +42,15 @@ test: $(STAMP)
 # (markers: pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -x -m "not slow and not compile and not needs_data" tests
+
+# ruff, configured in pyproject.toml [tool.ruff]; CI runs `make lint` before the tests
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: $(STAMP)
+	$(VENV)/bin/ruff check --fix .
+	$(VENV)/bin/ruff format .
 
 bench: $(STAMP)
 	$(PY) benchmarks/speed.py

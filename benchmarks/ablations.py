@@ -8,6 +8,7 @@ original (unweighted) inextensibility; single-step training (horizon 1); the ful
 -> runs/ablations/<variant>/<rod>/ and benchmarks/results/ablations.{json,md}. Resumable: a
 finished variant is not trained again.
 """
+
 import argparse
 import json
 from pathlib import Path
@@ -29,7 +30,9 @@ VARIANTS = {
     "full": dict(options=dict(), train=dict()),
 }
 PAPER = {  # paper's Table 1 (DEFORM, DER) in cm; ablation rows are compared against these two
-    "DLO1": {"deform": 1.01, "der": 1.96}, "DLO2": {"deform": 0.97, "der": 1.91}, "DLO3": {"deform": 0.77, "der": 1.86},
+    "DLO1": {"deform": 1.01, "der": 1.96},
+    "DLO2": {"deform": 0.97, "der": 1.91},
+    "DLO3": {"deform": 0.77, "der": 1.86},
 }
 
 
@@ -52,8 +55,14 @@ def run_variant(name: str, rod: str, root: Path, iterations: int, out_root: Path
         model.options = ModelOptions(**spec["options"])
     res = evaluate(model, load_recordings(root / rod / "eval", cfg.n_vertices))
     out.mkdir(parents=True, exist_ok=True)
-    row = {"variant": name, "rod": rod, "iterations": 0 if spec is None else iterations, "batch": batch, "l1_m": res["l1_m"],
-           "step_ms_p50": res["step_ms_p50"]}
+    row = {
+        "variant": name,
+        "rod": rod,
+        "iterations": 0 if spec is None else iterations,
+        "batch": batch,
+        "l1_m": res["l1_m"],
+        "step_ms_p50": res["step_ms_p50"],
+    }
     result_file.write_text(json.dumps(row))
     return row
 
@@ -82,10 +91,16 @@ def main():
     table = {}
     for r in rows:
         table.setdefault(r["variant"], {})[r["rod"]] = r["l1_m"] * 100
-    lines = [f"Each trained variant: {args.iterations} iterations, batch {args.batch}, seed 0, same curriculum.", "",
-             "| variant | " + " | ".join(args.rods) + " |", "|---|" + "---:|" * len(args.rods)]
+    lines = [
+        f"Each trained variant: {args.iterations} iterations, batch {args.batch}, seed 0, same curriculum.",
+        "",
+        "| variant | " + " | ".join(args.rods) + " |",
+        "|---|" + "---:|" * len(args.rods),
+    ]
     for name, vals in table.items():
-        lines.append(f"| {name} | " + " | ".join(f"{vals.get(rod, float('nan')):.3f}" for rod in args.rods) + " |")
+        lines.append(
+            f"| {name} | " + " | ".join(f"{vals.get(rod, float('nan')):.3f}" for rod in args.rods) + " |"
+        )
     lines.append("| paper DER | " + " | ".join(f"{PAPER[r]['der']:.2f}" for r in args.rods) + " |")
     lines.append("| paper DEFORM | " + " | ".join(f"{PAPER[r]['deform']:.2f}" for r in args.rods) + " |")
     (results / "ablations.md").write_text("\n".join(lines) + "\n")

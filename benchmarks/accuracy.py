@@ -3,6 +3,7 @@ fifth of the train recordings of DLO4 and DLO5 (which have no eval split).
 
 `python benchmarks/accuracy.py [--rods DLO1 DLO2] [--model-dir DIR]` -> benchmarks/results/accuracy.{json,md}
 """
+
 import argparse
 import json
 from pathlib import Path
@@ -39,19 +40,31 @@ def main():
         model = DeformModel.load(Path(args.model_dir) / f"{rod}.pt") if args.model_dir else load_model(rod)
         recs, split = test_recordings(root, rod, model.n)
         res = evaluate(model, recs)
-        rows[rod] = {"split": split, **res, "paper_deform_cm": PAPER_DEFORM_CM[rod], "paper_der_cm": PAPER_DER_CM[rod]}
-        print(f"{rod}: {res['l1_m'] * 100:.3f} cm (paper DEFORM {PAPER_DEFORM_CM[rod]}) on {len(recs)} {split} recordings",
-              flush=True)
+        rows[rod] = {
+            "split": split,
+            **res,
+            "paper_deform_cm": PAPER_DEFORM_CM[rod],
+            "paper_der_cm": PAPER_DER_CM[rod],
+        }
+        print(
+            f"{rod}: {res['l1_m'] * 100:.3f} cm (paper DEFORM {PAPER_DEFORM_CM[rod]}) on {len(recs)} {split} recordings",
+            flush=True,
+        )
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
     (out / "accuracy.json").write_text(json.dumps(rows, indent=2))
-    lines = ["| rod | recordings | L1 [cm] | paper DEFORM [cm] | ratio | interior vertex dist [cm] | L1 at 1/10/100/500 steps [cm] |",
-             "|---|---|---:|---:|---:|---:|---|"]
+    lines = [
+        "| rod | recordings | L1 [cm] | paper DEFORM [cm] | ratio | interior vertex dist [cm] | L1 at 1/10/100/500 steps [cm] |",
+        "|---|---|---:|---:|---:|---:|---|",
+    ]
     for rod, r in rows.items():
         h = r["l1_by_horizon_m"]
-        lines.append(f"| {rod} | {r['recordings']} {r['split'].split(' ')[0]} | {r['l1_m'] * 100:.3f} | {r['paper_deform_cm']:.2f} | "
-                     f"{r['l1_m'] * 100 / r['paper_deform_cm']:.2f} | {r['mean_vertex_dist_m'] * 100:.3f} | "
-                     + " / ".join(f"{h[k] * 100:.2f}" for k in ("1", "10", "100", "500")) + " |")
+        lines.append(
+            f"| {rod} | {r['recordings']} {r['split'].split(' ')[0]} | {r['l1_m'] * 100:.3f} | {r['paper_deform_cm']:.2f} | "
+            f"{r['l1_m'] * 100 / r['paper_deform_cm']:.2f} | {r['mean_vertex_dist_m'] * 100:.3f} | "
+            + " / ".join(f"{h[k] * 100:.2f}" for k in ("1", "10", "100", "500"))
+            + " |"
+        )
     (out / "accuracy.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -13,6 +13,7 @@ time per step (median over ``--timing-runs`` runs of the per-step p50, batch of 
 
 -> benchmarks/results/baselines.{json,md} and docs/baselines.md
 """
+
 from __future__ import annotations
 
 import argparse
@@ -72,15 +73,32 @@ def train_missing(rod: str, train, val, retrain: set[str], args) -> dict:
         t0 = time.perf_counter()
         print(f"{rod}: training {method}", flush=True)
         if method == "der_identified":
-            r = D.identify(rod, train, val, ROOT / "runs" / "baselines" / f"der_{rod}", iterations=args.der_iterations,
-                           progress=False)
+            r = D.identify(
+                rod,
+                train,
+                val,
+                ROOT / "runs" / "baselines" / f"der_{rod}",
+                iterations=args.der_iterations,
+                progress=False,
+            )
             info[method] = {"best_val_l1_m": r["best_val_l1_m"], "coarse": r["coarse_identification"]}
         elif method == "xpbd":
             r = X.tune(rod, train)
-            info[method] = {"train_l1_m": r["train_l1_m"], "params": r["params"], "configs_tried": r["configs_tried"]}
+            info[method] = {
+                "train_l1_m": r["train_l1_m"],
+                "params": r["params"],
+                "configs_tried": r["configs_tried"],
+            }
         else:
-            _, r = B.train_bilstm(train, val, n, iterations=args.bilstm_iterations, time_limit_s=args.bilstm_seconds,
-                                  out=B.weight_path(rod), progress=True)
+            _, r = B.train_bilstm(
+                train,
+                val,
+                n,
+                iterations=args.bilstm_iterations,
+                time_limit_s=args.bilstm_seconds,
+                out=B.weight_path(rod),
+                progress=True,
+            )
             info[method] = {k: v for k, v in r.items() if k != "log"}
         info[method]["seconds"] = time.perf_counter() - t0
         print(f"{rod}: {method} trained in {info[method]['seconds']:.0f} s", flush=True)
@@ -94,7 +112,11 @@ def weights_info(method: str, rod: str) -> dict | None:
     path = weight_file(method, rod)
     if method == "xpbd":
         data = json.loads(path.read_text())
-        return {"file": str(path.relative_to(ROOT)), "params": data["params"], "train_l1_m": data["train_l1_m"]}
+        return {
+            "file": str(path.relative_to(ROOT)),
+            "params": data["params"],
+            "train_l1_m": data["train_l1_m"],
+        }
     payload = torch.load(path, map_location="cpu", weights_only=True)
     keys = ("val_l1_m", "best_val_l1_m", "iterations")
     return {"file": str(path.relative_to(ROOT)), **{k: payload[k] for k in keys if k in payload}}
@@ -137,7 +159,10 @@ def table(results: dict, rods) -> list[str]:
 
 
 def step_table(results: dict, rods) -> list[str]:
-    lines = ["| method | " + " | ".join(f"{r} step p50 [ms]" for r in rods) + " |", "|---|" + "---:|" * len(rods)]
+    lines = [
+        "| method | " + " | ".join(f"{r} step p50 [ms]" for r in rods) + " |",
+        "|---|" + "---:|" * len(rods),
+    ]
     for m in METHODS:
         cells = [f"{results[r][m]['step_ms']:.3f}" if m in results.get(r, {}) else "–" for r in rods]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
@@ -149,7 +174,9 @@ def main(argv=None):
     ap.add_argument("--rods", nargs="*", default=list(RODS))
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS)
     ap.add_argument("--retrain", nargs="*", default=[], choices=TRAINABLE)
-    ap.add_argument("--no-train", action="store_true", help="only evaluate; methods without weights are skipped")
+    ap.add_argument(
+        "--no-train", action="store_true", help="only evaluate; methods without weights are skipped"
+    )
     ap.add_argument("--bilstm-iterations", type=int, default=1500)
     ap.add_argument("--bilstm-seconds", type=float, default=240.0, help="time limit per rod")
     ap.add_argument("--der-iterations", type=int, default=100)
@@ -184,7 +211,11 @@ def main(argv=None):
             n = load_rod_config(rod).n_vertices
             _, _, test, split = splits(root, rod, n)
             results[rod]["deform"] = run_one(load_model(rod), "deform", rod, test, split, args.timing_runs)
-            results[rod]["deform"]["model_file"] = str(MODEL_DIR / f"{rod}.pt") if (MODEL_DIR / f"{rod}.pt").is_file() else "config initial parameters (no shipped model)"
+            results[rod]["deform"]["model_file"] = (
+                str(MODEL_DIR / f"{rod}.pt")
+                if (MODEL_DIR / f"{rod}.pt").is_file()
+                else "config initial parameters (no shipped model)"
+            )
     for rod in args.rods:
         r = results[rod]
         if "deform" in r and "bilstm" in r:
@@ -197,28 +228,54 @@ def main(argv=None):
                 for k, model in pair.items():
                     runs[k] += timing_ms(model, test, 2, 0.0)[1:]
             r["deform"]["paired_timing_ms"] = {k: float(np.median(v)) for k, v in runs.items()}
-            r["deform"]["paired_step_ratio_to_bilstm"] = float(np.median(runs["deform"]) / np.median(runs["bilstm"]))
-    machine = {"cpu_count": os.cpu_count(), "threads": 1, "torch": torch.__version__, "python": platform.python_version(),
-               "platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-               "note": "2 cores shared with other jobs (model training running)", "timing_runs": args.timing_runs,
-               "batch": 1}
-    payload = {"command": "python benchmarks/baselines.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-               "machine": machine, "seconds": time.perf_counter() - t_start, "training": training,
-               "results": results, "paper_cm": PAPER_CM, "paper_step_ms": PAPER_STEP_MS}
+            r["deform"]["paired_step_ratio_to_bilstm"] = float(
+                np.median(runs["deform"]) / np.median(runs["bilstm"])
+            )
+    machine = {
+        "cpu_count": os.cpu_count(),
+        "threads": 1,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "note": "2 cores shared with other jobs (model training running)",
+        "timing_runs": args.timing_runs,
+        "batch": 1,
+    }
+    payload = {
+        "command": "python benchmarks/baselines.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "machine": machine,
+        "seconds": time.perf_counter() - t_start,
+        "training": training,
+        "results": results,
+        "paper_cm": PAPER_CM,
+        "paper_step_ms": PAPER_STEP_MS,
+    }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "baselines.json").write_text(json.dumps(payload, indent=2) + "\n")
-    lines = table(results, args.rods) + ["", "Time per step by rod (batch of one, one thread):", ""] + step_table(results, args.rods)
-    ratio = [f"{rod} {d['step_ratio_to_bilstm']:.1f}x ({d['paired_timing_ms']['deform']:.2f} / "
-             f"{d['paired_timing_ms']['bilstm']:.2f} ms interleaved: {d['paired_step_ratio_to_bilstm']:.1f}x)"
-             for rod in args.rods if "step_ratio_to_bilstm" in (d := results[rod].get("deform", {}))]
+    lines = (
+        table(results, args.rods)
+        + ["", "Time per step by rod (batch of one, one thread):", ""]
+        + step_table(results, args.rods)
+    )
+    ratio = [
+        f"{rod} {d['step_ratio_to_bilstm']:.1f}x ({d['paired_timing_ms']['deform']:.2f} / "
+        f"{d['paired_timing_ms']['bilstm']:.2f} ms interleaved: {d['paired_step_ratio_to_bilstm']:.1f}x)"
+        for rod in args.rods
+        if "step_ratio_to_bilstm" in (d := results[rod].get("deform", {}))
+    ]
     extra = []
     if any("no shipped model" in str(results[r].get("deform", {}).get("model_file")) for r in args.rods):
-        extra.append("\\* no trained model shipped for this rod at the time of the run: the untrained model "
-                     "(config's initial parameters, untrained residual network).")
+        extra.append(
+            "\\* no trained model shipped for this rod at the time of the run: the untrained model "
+            "(config's initial parameters, untrained residual network)."
+        )
     if ratio:
-        extra.append(f"DEFORM step time / Bi-LSTM step time, same run: {', '.join(ratio)}; paper: about 9.5 / 0.3 ms "
-                     "= 32x.")
+        extra.append(
+            f"DEFORM step time / Bi-LSTM step time, same run: {', '.join(ratio)}; paper: about 9.5 / 0.3 ms "
+            "= 32x."
+        )
     (out / "baselines.md").write_text("\n".join(lines + [""] + extra) + "\n")
     print("\n".join(lines + [""] + extra))
     write_docs(Path(args.docs), lines, extra, payload, args)
@@ -229,22 +286,33 @@ def run_one(model, method: str, rod: str, test, split: str, timing_runs: int) ->
     res = evaluate(model, test)
     runs = timing_ms(model, test, timing_runs, res["step_ms_p50"])
     res.pop("per_recording_l1_m", None)
-    res.update({"split": split, "step_ms": float(np.median(runs)), "step_ms_runs": runs,
-                "source": getattr(model, "baseline_source", None)})
-    print(f"{rod}: {method:15s} L1 {res['l1_m'] * 100:.3f} cm on {res['recordings']} {split} recordings; "
-          f"step p50 {res['step_ms']:.3f} ms", flush=True)
+    res.update(
+        {
+            "split": split,
+            "step_ms": float(np.median(runs)),
+            "step_ms_runs": runs,
+            "source": getattr(model, "baseline_source", None),
+        }
+    )
+    print(
+        f"{rod}: {method:15s} L1 {res['l1_m'] * 100:.3f} cm on {res['recordings']} {split} recordings; "
+        f"step p50 {res['step_ms']:.3f} ms",
+        flush=True,
+    )
     return res
 
 
 def write_docs(path: Path, lines, extra, payload, args) -> None:
     m = payload["machine"]
-    der_src = {rod: str(payload["results"][rod].get("der_identified", {}).get("source")).replace(str(ROOT) + "/", "")
-               for rod in payload["results"]}
+    der_src = {
+        rod: str(payload["results"][rod].get("der_identified", {}).get("source")).replace(str(ROOT) + "/", "")
+        for rod in payload["results"]
+    }
     text = f"""# Baselines beside DEFORM
 
 Accuracy on the paper's metric (mean absolute coordinate error over 500 open-loop steps from frames
 0 and 1, all vertices, in cm; the paper's Table 1 in brackets) and time per step (median over
-{m['timing_runs']} runs of the per-step p50 of a 200-step rollout, batch of one, one thread; the
+{m["timing_runs"]} runs of the per-step p50 of a 200-step rollout, batch of one, one thread; the
 median over rods is shown). Test data: DLO1..DLO3 eval recordings; DLO4 and DLO5 have no eval
 split, so the held-out fifth of their train recordings (`deform.train.split_validation`), which
 the baselines (like `deform train`) also use to pick their best checkpoint.
@@ -267,16 +335,16 @@ Methods (`deform eval --rod ROD --method NAME`, code in `deform/baselines/`):
   iterations per rod on one core (`weights/bilstm_ROD.pt`).
 - `hold_shape`: frame 1's interior held still, gripped vertices following the inputs.
 
-Command: `.venv/bin/python {payload['command'].split(' ', 1)[1]}` (total {payload['seconds'] / 60:.1f} min,
-training included only for weights that were missing). Machine: {m['cpu_count']} CPU cores ({m['processor']}),
-shared with other jobs (model training running), torch {m['torch']}, one thread, one run for
-accuracy (deterministic), {m['timing_runs']} timing runs. Raw numbers:
+Command: `.venv/bin/python {payload["command"].split(" ", 1)[1]}` (total {payload["seconds"] / 60:.1f} min,
+training included only for weights that were missing). Machine: {m["cpu_count"]} CPU cores ({m["processor"]}),
+shared with other jobs (model training running), torch {m["torch"]}, one thread, one run for
+accuracy (deterministic), {m["timing_runs"]} timing runs. Raw numbers:
 `benchmarks/results/baselines.json`. DER-identified parameter source per rod: {json.dumps(der_src)}.
 """
     # hand-written notes below the marker survive a re-run
     marker = "<!-- notes: kept when benchmarks/baselines.py rewrites this file -->"
     old = path.read_text() if path.is_file() else ""
-    notes = old[old.index(marker):] if marker in old else marker + "\n"
+    notes = old[old.index(marker) :] if marker in old else marker + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text + "\n" + notes)
 

@@ -8,6 +8,7 @@ On a machine whose cores are independent the three agree.
 
     python benchmarks/cpu_interference.py [--repeats 5]
 """
+
 import argparse
 import subprocess
 import sys

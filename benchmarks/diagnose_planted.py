@@ -13,6 +13,7 @@ rerun with the same configuration skips the rows already there (resume after an 
 The significance rule is reported twice: as the tool ran, and calibrated on the controls
 (deform.diagnose.scoring.calibrate_min_gain) and re-applied to the stored candidate scores.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,22 +30,32 @@ import torch
 from deform.diagnose.fitting import FitBudget
 from deform.diagnose.planted import EFFECTS, generate_planted, oracle_term
 from deform.diagnose.scoring import MIN_GAIN, PER_PARAM, calibrate_min_gain, reselect
-from deform.diagnose.terms import LIBRARY
 from deform.diagnose.selection import DiagnoseBudget, diagnose
 from deform.diagnose.spec import Inputs, RodSpec
+from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import find_data_root, load_recordings
 from deform.model import gripped_indices
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"
-RODS = {"DLO1": (1.152, 0.0345, 13), "DLO2": (0.996, 0.0652, 12), "DLO3": (0.998, 0.0968, 12),
-        "DLO4": (0.973, 0.022, 12), "DLO5": (0.988, 0.0192, 12)}
+RODS = {
+    "DLO1": (1.152, 0.0345, 13),
+    "DLO2": (0.996, 0.0652, 12),
+    "DLO3": (0.998, 0.0968, 12),
+    "DLO4": (0.973, 0.022, 12),
+    "DLO5": (0.988, 0.0192, 12),
+}
 
 
 def budget(quick) -> DiagnoseBudget:
     if quick == "smoke":  # pipeline check only (seconds per dataset); numbers meaningless
-        return DiagnoseBudget(nominal_iterations=3, candidate=FitBudget(iterations=2, batch=4, horizon=10),
-                              max_rounds=2, later_round_candidates=2, progress=False)
+        return DiagnoseBudget(
+            nominal_iterations=3,
+            candidate=FitBudget(iterations=2, batch=4, horizon=10),
+            max_rounds=2,
+            later_round_candidates=2,
+            progress=False,
+        )
     if quick:
         return DiagnoseBudget.quick(progress=False)
     return DiagnoseBudget(progress=False)
@@ -71,7 +82,13 @@ TOOL_VERSION = 3  # bump when the tool changes: rows of an older tool are never 
 
 
 def _config(args) -> dict:
-    cfg = {"quick": args.quick, "fit": args.fit, "check": args.check, "frames": args.frames, "tool": TOOL_VERSION}
+    cfg = {
+        "quick": args.quick,
+        "fit": args.fit,
+        "check": args.check,
+        "frames": args.frames,
+        "tool": TOOL_VERSION,
+    }
     if getattr(args, "simulator", "own") != "own":
         cfg["simulator"] = args.simulator
     return cfg
@@ -95,8 +112,13 @@ def append_run(path: Path, row: dict) -> None:
 
 
 def marker_edge(recs) -> float:
-    return float(np.median(np.concatenate([np.linalg.norm(np.diff(r.positions[::25, 1:-1], axis=1), axis=-1).ravel()
-                                           for r in recs])))
+    return float(
+        np.median(
+            np.concatenate(
+                [np.linalg.norm(np.diff(r.positions[::25, 1:-1], axis=1), axis=-1).ravel() for r in recs]
+            )
+        )
+    )
 
 
 def oracle_check(spec, nominal_params: dict, effect, truth, inputs, quick: bool) -> float | None:
@@ -110,8 +132,11 @@ def oracle_check(spec, nominal_params: dict, effect, truth, inputs, quick: bool)
     term = oracle_term(effect, truth, spec.n_vertices, s, edge)
     if term is None:
         return None
-    nom = Nominal(nominal_params["bend_stiffness_Nm2"], nominal_params["twist_stiffness_Nm2"],
-                  nominal_params["damping_1_per_s"])
+    nom = Nominal(
+        nominal_params["bend_stiffness_Nm2"],
+        nominal_params["twist_stiffness_Nm2"],
+        nominal_params["damping_1_per_s"],
+    )
     sim = Simulator(spec, nom, [term])
     fit(sim, inputs.fit, dataclasses.replace(budget(quick).candidate, progress=False), desc="oracle")
     return float(per_recording_l1(sim.predict(inputs.check), inputs.check).mean())
@@ -150,7 +175,7 @@ def equivalence_of(rep: dict) -> list[str]:
 def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
     """Effects planted by PyElastica (benchmarks/elastica_planted.py), a simulator we did not write,
     on a light and a stiff rod, each driven by real gripper motions; inputs go through the user path."""
-    from elastica_planted import ROD_KINDS, detectability, generate_elastica
+    from elastica_planted import detectability, generate_elastica
 
     data = find_data_root()
     controls: dict = {}
@@ -160,7 +185,9 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
         sources = load_recordings(data / rod / "train")
         L, M, n = RODS[rod]
         spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
-        pick = np.random.default_rng(seed).choice(len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check)
+        pick = np.random.default_rng(seed).choice(
+            len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check
+        )
         src = [sources[i] for i in pick]
         if key in done:
             continue
@@ -173,32 +200,67 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
         if pair is None and effect is not None:
             pair, _ = generate_elastica(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
             controls[(kind, seed)] = pair
-        inputs = as_user_inputs(spec, recs[:args.fit], recs[args.fit:])
+        inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
         rep = diagnose(inputs, budget(args.quick)).report
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
-        row = {"key": key, "config": _config(args), "kind": "planted", "simulator": "elastica", "rod_kind": kind,
-               "effect": effect or "none", "seed": seed, "selected": rep["selected"],
-               "equivalence_class": equivalence_of(rep), "truth": truth, "found_round1": found,
-               "found_selected": rep["nominal"]["final_params"].get(effect, {}) if effect else {},
-               "param_rel_error": {}, "warnings": rep["nominal"]["warnings"],
-               "detectability_l1_m": detectability(recs, pair) if effect is not None else 0.0,
-               "nominal_params": rep["nominal"]["params"],
-               "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
-               "candidates": rep["candidates"], "findings": rep["localization"]["findings"],
-               "seconds_simulate": t_sim, "seconds": time.perf_counter() - t0, "oracle_check_l1_m": None}
+        row = {
+            "key": key,
+            "config": _config(args),
+            "kind": "planted",
+            "simulator": "elastica",
+            "rod_kind": kind,
+            "effect": effect or "none",
+            "seed": seed,
+            "selected": rep["selected"],
+            "equivalence_class": equivalence_of(rep),
+            "truth": truth,
+            "found_round1": found,
+            "found_selected": rep["nominal"]["final_params"].get(effect, {}) if effect else {},
+            "param_rel_error": {},
+            "warnings": rep["nominal"]["warnings"],
+            "detectability_l1_m": detectability(recs, pair) if effect is not None else 0.0,
+            "nominal_params": rep["nominal"]["params"],
+            "nominal_check_l1_m": rep["nominal"]["check_l1_m"],
+            "final_check_l1_m": rep["final_check_l1_m"],
+            "candidates": rep["candidates"],
+            "findings": rep["localization"]["findings"],
+            "seconds_simulate": t_sim,
+            "seconds": time.perf_counter() - t0,
+            "oracle_check_l1_m": None,
+        }
         append_run(runs_path, row)
         done[key] = row
-        print(json.dumps({k: row[k] for k in ("key", "selected", "equivalence_class", "detectability_l1_m",
-                                              "nominal_check_l1_m", "final_check_l1_m", "seconds")}), flush=True)
+        print(
+            json.dumps(
+                {
+                    k: row[k]
+                    for k in (
+                        "key",
+                        "selected",
+                        "equivalence_class",
+                        "detectability_l1_m",
+                        "nominal_check_l1_m",
+                        "final_check_l1_m",
+                        "seconds",
+                    )
+                }
+            ),
+            flush=True,
+        )
 
 
 def provenance() -> dict:
     """The commit and machine a result comes from (stored with it)."""
     import platform
     import subprocess
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
-    return {"commit": commit, "machine": f"{platform.node()}: {os.cpu_count()} CPU cores (shared with other jobs), "
-                                         "torch 1 thread"}
+
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
+    ).stdout.strip()
+    return {
+        "commit": commit,
+        "machine": f"{platform.node()}: {os.cpu_count()} CPU cores (shared with other jobs), torch 1 thread",
+    }
 
 
 def calibrate_damping(args) -> dict:
@@ -207,9 +269,10 @@ def calibrate_damping(args) -> dict:
     independent-simulator controls (light and stiff rod, small material damping) and on this
     project's own controls (stored rows); the level = 2x the largest. The factor leaves room for
     ropes damped more than these; drag and contact have measured 5-10x."""
+    from elastica_planted import generate_elastica
+
     from deform.diagnose.fitting import coarse_nominal, fit
     from deform.diagnose.simulator import Nominal, Simulator
-    from elastica_planted import generate_elastica
 
     data = find_data_root()
     b = budget(args.quick)
@@ -221,20 +284,35 @@ def calibrate_damping(args) -> dict:
         spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
         for seed in range(args.control_seeds):
             pick = np.random.default_rng(seed).choice(len(sources), args.fit + args.check, replace=False)
-            recs, _ = generate_elastica(None, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=args.frames, seed=seed)
-            inputs = as_user_inputs(spec, recs[:args.fit], recs[args.fit:])
+            recs, _ = generate_elastica(
+                None, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=args.frames, seed=seed
+            )
+            inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
             sim = Simulator(inputs.spec, Nominal(damping_max=20.0))
             coarse_nominal(sim, inputs.fit)
-            fit(sim, inputs.fit, dataclasses.replace(b.candidate, iterations=b.nominal_iterations, progress=False))
+            fit(
+                sim,
+                inputs.fit,
+                dataclasses.replace(b.candidate, iterations=b.nominal_iterations, progress=False),
+            )
             fitted.append({"simulator": "elastica", "rod_kind": kind, "seed": seed, **sim.nominal.params()})
             print(json.dumps(fitted[-1]), flush=True)
-    own = load_runs(RESULTS / "diagnose.runs.jsonl", {"quick": True, "fit": 6, "check": 4, "frames": 300, "tool": 2})
-    fitted += [{"simulator": "own", "seed": r["seed"], **r["nominal_params"]} for r in own.values()
-               if r["kind"] == "planted" and r["effect"] == "none"]
+    own = load_runs(
+        RESULTS / "diagnose.runs.jsonl", {"quick": True, "fit": 6, "check": 4, "frames": 300, "tool": 2}
+    )
+    fitted += [
+        {"simulator": "own", "seed": r["seed"], **r["nominal_params"]}
+        for r in own.values()
+        if r["kind"] == "planted" and r["effect"] == "none"
+    ]
     worst = max(f["damping_1_per_s"] for f in fitted)
-    out = {"command": "python benchmarks/diagnose_planted.py --calibrate-damping " + " ".join(args.rod_kinds),
-           **provenance(),
-           "controls": fitted, "largest_1_per_s": worst, "level_1_per_s": round(2 * worst, 2)}
+    out = {
+        "command": "python benchmarks/diagnose_planted.py --calibrate-damping " + " ".join(args.rod_kinds),
+        **provenance(),
+        "controls": fitted,
+        "largest_1_per_s": worst,
+        "level_1_per_s": round(2 * worst, 2),
+    }
     (RESULTS / "diagnose.damping_level.json").write_text(json.dumps(out, indent=2))
     return out
 
@@ -246,8 +324,9 @@ def full_size_timing(args) -> dict:
     import subprocess
     import tempfile
 
-    from deform.io import save_recording
     from elastica_planted import generate_elastica
+
+    from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
     rod = ELASTICA_SOURCES[kind]
@@ -263,16 +342,38 @@ def full_size_timing(args) -> dict:
             for i, r in enumerate(part):
                 save_recording(tmp / name / f"{i:02d}.pkl", r.positions)
         (tmp / "rod.json").write_text(json.dumps({"length_m": L, "mass_kg": M, "n_vertices": n, "dt": 0.01}))
-        cmd = [sys.executable, "-m", "deform.cli", "diagnose", "--rod", str(tmp / "rod.json"), "--fit", str(tmp / "fit"),
-               "--check", str(tmp / "check"), "--out", str(tmp / "out"), "--json"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "deform.cli",
+            "diagnose",
+            "--rod",
+            str(tmp / "rod.json"),
+            "--fit",
+            str(tmp / "fit"),
+            "--check",
+            str(tmp / "check"),
+            "--out",
+            str(tmp / "out"),
+            "--json",
+        ]
         t0 = time.perf_counter()
         out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT.parent)
         seconds = time.perf_counter() - t0
     rep = json.loads(out.stdout) if out.returncode == 0 else {}
-    row = {"command": "python benchmarks/diagnose_planted.py --full-size-timing --rod-kinds " + kind
-           + " --effects " + effect, **provenance(), "case": f"elastica {kind} {effect} seed 0, 8 + 4 recordings x 500 frames",
-           "budget": "full (default)", "seconds_wall": seconds, "returncode": out.returncode,
-           "selected": rep.get("selected"), "stderr_tail": out.stderr[-300:] if out.returncode else ""}
+    row = {
+        "command": "python benchmarks/diagnose_planted.py --full-size-timing --rod-kinds "
+        + kind
+        + " --effects "
+        + effect,
+        **provenance(),
+        "case": f"elastica {kind} {effect} seed 0, 8 + 4 recordings x 500 frames",
+        "budget": "full (default)",
+        "seconds_wall": seconds,
+        "returncode": out.returncode,
+        "selected": rep.get("selected"),
+        "stderr_tail": out.stderr[-300:] if out.returncode else "",
+    }
     (RESULTS / "diagnose.timing.json").write_text(json.dumps(row, indent=2))
     return row
 
@@ -291,25 +392,51 @@ def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
         src = [sources[i] for i in pick]
         t0 = time.perf_counter()
         recs, truth = generate_planted(effect, src, spec, n_frames=args.frames, seed=seed)
-        inputs = Inputs(spec=spec, fit=recs[:args.fit], check=recs[args.fit:])
+        inputs = Inputs(spec=spec, fit=recs[: args.fit], check=recs[args.fit :])
         rep = diagnose(inputs, budget(args.quick)).report
         t_diag = time.perf_counter() - t0
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
         fitted = {k: v for k, v in rep["nominal"]["final_params"].items() if k == effect}
-        row = {"key": key, "config": _config(args), "kind": "planted", "effect": effect or "none", "seed": seed,
-               "selected": rep["selected"], "truth": truth, "found_round1": found,
-               "found_selected": fitted.get(effect, {}),
-               "param_rel_error": param_error(fitted.get(effect) or found, truth, marker_edge(inputs.fit)),
-               "nominal_params": rep["nominal"]["params"],
-               "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
-               "candidates": rep["candidates"], "findings": rep["localization"]["findings"],
-               "seconds_diagnose": t_diag}
-        row["oracle_check_l1_m"] = oracle_check(spec, rep["nominal"]["params"], effect, truth, inputs, args.quick)
+        row = {
+            "key": key,
+            "config": _config(args),
+            "kind": "planted",
+            "effect": effect or "none",
+            "seed": seed,
+            "selected": rep["selected"],
+            "truth": truth,
+            "found_round1": found,
+            "found_selected": fitted.get(effect, {}),
+            "param_rel_error": param_error(fitted.get(effect) or found, truth, marker_edge(inputs.fit)),
+            "nominal_params": rep["nominal"]["params"],
+            "nominal_check_l1_m": rep["nominal"]["check_l1_m"],
+            "final_check_l1_m": rep["final_check_l1_m"],
+            "candidates": rep["candidates"],
+            "findings": rep["localization"]["findings"],
+            "seconds_diagnose": t_diag,
+        }
+        row["oracle_check_l1_m"] = oracle_check(
+            spec, rep["nominal"]["params"], effect, truth, inputs, args.quick
+        )
         row["seconds"] = time.perf_counter() - t0
         append_run(runs_path, row)
         done[key] = row
-        print(json.dumps({k: row[k] for k in ("key", "selected", "nominal_check_l1_m", "final_check_l1_m",
-                                              "oracle_check_l1_m", "seconds")}), flush=True)
+        print(
+            json.dumps(
+                {
+                    k: row[k]
+                    for k in (
+                        "key",
+                        "selected",
+                        "nominal_check_l1_m",
+                        "final_check_l1_m",
+                        "oracle_check_l1_m",
+                        "seconds",
+                    )
+                }
+            ),
+            flush=True,
+        )
 
 
 def run_real(rods, args, runs_path: Path, done: dict) -> None:
@@ -323,22 +450,36 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
         spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=rod)
         # fit on train, check on eval where the rod has eval recordings (DLO1-DLO3), else on later
         # train recordings; through the user path (ROD.json with the rope's real length)
-        held = load_recordings(data / rod / "eval")[:args.check] if (data / rod / "eval").is_dir() else []
-        inputs = as_user_inputs(spec, recs[:args.fit], held or recs[args.fit:args.fit + args.check])
+        held = load_recordings(data / rod / "eval")[: args.check] if (data / rod / "eval").is_dir() else []
+        inputs = as_user_inputs(spec, recs[: args.fit], held or recs[args.fit : args.fit + args.check])
         t0 = time.perf_counter()
         rep = diagnose(inputs, budget(args.quick)).report
-        row = {"key": key, "config": _config(args), "kind": "real", "rod": rod, "selected": rep["selected"],
-               "check_split": "eval" if held else "train", "equivalence_class": equivalence_of(rep),
-               "warnings": rep["nominal"]["warnings"],
-               "n_frames": [r.n_frames for r in inputs.fit + inputs.check],
-               "nominal_check_l1_m": rep["nominal"]["check_l1_m"], "final_check_l1_m": rep["final_check_l1_m"],
-               "findings": rep["localization"]["findings"], "nominal_params": rep["nominal"]["params"],
-               "final_params": rep["nominal"]["final_params"], "candidates": rep["candidates"],
-               "seconds": time.perf_counter() - t0}
+        row = {
+            "key": key,
+            "config": _config(args),
+            "kind": "real",
+            "rod": rod,
+            "selected": rep["selected"],
+            "check_split": "eval" if held else "train",
+            "equivalence_class": equivalence_of(rep),
+            "warnings": rep["nominal"]["warnings"],
+            "n_frames": [r.n_frames for r in inputs.fit + inputs.check],
+            "nominal_check_l1_m": rep["nominal"]["check_l1_m"],
+            "final_check_l1_m": rep["final_check_l1_m"],
+            "findings": rep["localization"]["findings"],
+            "nominal_params": rep["nominal"]["params"],
+            "final_params": rep["nominal"]["final_params"],
+            "candidates": rep["candidates"],
+            "seconds": time.perf_counter() - t0,
+        }
         append_run(runs_path, row)
         done[key] = row
-        print(json.dumps({k: row[k] for k in ("key", "selected", "nominal_check_l1_m", "final_check_l1_m", "seconds")}),
-              flush=True)
+        print(
+            json.dumps(
+                {k: row[k] for k in ("key", "selected", "nominal_check_l1_m", "final_check_l1_m", "seconds")}
+            ),
+            flush=True,
+        )
 
 
 def apply_rules(planted: list[dict], real: list[dict], alpha: float) -> dict:
@@ -368,11 +509,26 @@ def apply_rules(planted: list[dict], real: list[dict], alpha: float) -> dict:
             mg = calibrate_min_gain(imp, n_cand, alpha=alpha, per_param=PER_PARAM, n_params=k)["min_gain"]
         else:
             mg = cal["min_gain"]
-        r["calibrated"] = {"min_gain": mg, **reselect(r["candidates"], r["nominal_check_l1_m"], mg, PER_PARAM)}
+        r["calibrated"] = {
+            "min_gain": mg,
+            **reselect(r["candidates"], r["nominal_check_l1_m"], mg, PER_PARAM),
+        }
     # the rule the rows were run with, read back from the stored thresholds (not today's default)
-    ran = sorted({round(c["threshold"] - PER_PARAM * c["n_params"], 6) for r in planted + real for c in r["candidates"]})
-    return {"calibration": cal, "tool_rule": {"min_gain": ran[0] if len(ran) == 1 else MIN_GAIN, "per_param": PER_PARAM,
-                                              "min_gain_values_in_rows": ran}}
+    ran = sorted(
+        {
+            round(c["threshold"] - PER_PARAM * c["n_params"], 6)
+            for r in planted + real
+            for c in r["candidates"]
+        }
+    )
+    return {
+        "calibration": cal,
+        "tool_rule": {
+            "min_gain": ran[0] if len(ran) == 1 else MIN_GAIN,
+            "per_param": PER_PARAM,
+            "min_gain_values_in_rows": ran,
+        },
+    }
 
 
 def _pair(r: dict):
@@ -410,19 +566,28 @@ def summarise(rows: list[dict], rule: str) -> dict:
         go = [x["gap_closed_oracle"] for x in g if x.get("gap_closed_oracle") is not None]
         gc = [x["gap_closed_control"] for x in g if x.get("gap_closed_control") is not None]
         perr = [float(np.mean(list(r["param_rel_error"].values()))) for r in rs if r["param_rel_error"]]
-        in_class = [eff in r.get("equivalence_class", equivalence_of(r)) for r in rs] if eff != "none" else right
+        in_class = (
+            [eff in r.get("equivalence_class", equivalence_of(r)) for r in rs] if eff != "none" else right
+        )
         detect = [r["detectability_l1_m"] for r in rs if r.get("detectability_l1_m") is not None]
-        out[eff] = {"runs": len(rs), "named_correctly": int(sum(right)), "rate": float(np.mean(right)),
-                    "named_in_class": int(sum(in_class)) if rule == "as_run" else None,
-                    "detectability_cm": (float(np.median(detect)) * 100) if detect and eff != "none" else None,
-                    "selected": [s or ["none"] for s in sel],
-                    "nominal_check_cm": float(np.mean([r["nominal_check_l1_m"] for r in rs]) * 100),
-                    "final_check_cm": float(np.mean(finals) * 100),
-                    "oracle_check_cm": (float(np.mean([r["oracle_check_l1_m"] for r in rs]) * 100)
-                                        if all(r.get("oracle_check_l1_m") is not None for r in rs) else None),
-                    "gap_closed_oracle_median": float(np.median(go)) if go else None,
-                    "gap_closed_control_median": float(np.median(gc)) if gc else None,
-                    "param_rel_error_median": float(np.median(perr)) if perr else None}
+        out[eff] = {
+            "runs": len(rs),
+            "named_correctly": int(sum(right)),
+            "rate": float(np.mean(right)),
+            "named_in_class": int(sum(in_class)) if rule == "as_run" else None,
+            "detectability_cm": (float(np.median(detect)) * 100) if detect and eff != "none" else None,
+            "selected": [s or ["none"] for s in sel],
+            "nominal_check_cm": float(np.mean([r["nominal_check_l1_m"] for r in rs]) * 100),
+            "final_check_cm": float(np.mean(finals) * 100),
+            "oracle_check_cm": (
+                float(np.mean([r["oracle_check_l1_m"] for r in rs]) * 100)
+                if all(r.get("oracle_check_l1_m") is not None for r in rs)
+                else None
+            ),
+            "gap_closed_oracle_median": float(np.median(go)) if go else None,
+            "gap_closed_control_median": float(np.median(gc)) if gc else None,
+            "param_rel_error_median": float(np.median(perr)) if perr else None,
+        }
     return out
 
 
@@ -433,64 +598,101 @@ def _fmt(x, pct=True):
 def write(result: dict, stem: str = "diagnose") -> None:
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
-    title = ("planted-effect benchmark, recordings from PyElastica (an independent simulator)"
-             if result.get("simulator") == "elastica" else "planted-effect benchmark")
-    lines = [f"# deform diagnose: {title}", "",
-             f"Run: `{result['command']}` on {result['machine']}; {result['seconds_total_runs']:.0f} s of "
-             f"dataset runs (sum over the rows in `diagnose.runs.jsonl`).", "", f"Budget: {result['budget']}", ""]
+    title = (
+        "planted-effect benchmark, recordings from PyElastica (an independent simulator)"
+        if result.get("simulator") == "elastica"
+        else "planted-effect benchmark"
+    )
+    lines = [
+        f"# deform diagnose: {title}",
+        "",
+        f"Run: `{result['command']}` on {result['machine']}; {result['seconds_total_runs']:.0f} s of "
+        f"dataset runs (sum over the rows in `diagnose.runs.jsonl`).",
+        "",
+        f"Budget: {result['budget']}",
+        "",
+    ]
     cal = result["rules"]["calibration"]
     if cal:
-        lines += [f"Calibrated rule (from {cal['n_null']} round-1 control improvements, parameter penalty "
-                  f"{cal['per_param'] * 100:.0f} %/param removed): mean {cal['mu'] * 100:.2f} %, sd {cal['sd'] * 100:.2f} %, "
-                  f"z = {cal['z']:.2f} (alpha {cal['alpha']} over {len(LIBRARY)} candidates) -> "
-                  f"min gain {cal['min_gain'] * 100:.2f} % + {cal['per_param'] * 100:.0f} %/param, and the 90 % "
-                  f"bootstrap interval above 0. Controls are judged leave-one-control-out.", ""]
-    for rule, title in (("calibrated", "Calibrated rule"), ("as_run", "Rule the tool ran with "
-                        f"({result['rules']['tool_rule']['min_gain'] * 100:.0f} % + "
-                        f"{result['rules']['tool_rule']['per_param'] * 100:.0f} %/param)")):
+        lines += [
+            f"Calibrated rule (from {cal['n_null']} round-1 control improvements, parameter penalty "
+            f"{cal['per_param'] * 100:.0f} %/param removed): mean {cal['mu'] * 100:.2f} %, sd {cal['sd'] * 100:.2f} %, "
+            f"z = {cal['z']:.2f} (alpha {cal['alpha']} over {len(LIBRARY)} candidates) -> "
+            f"min gain {cal['min_gain'] * 100:.2f} % + {cal['per_param'] * 100:.0f} %/param, and the 90 % "
+            f"bootstrap interval above 0. Controls are judged leave-one-control-out.",
+            "",
+        ]
+    for rule, title in (
+        ("calibrated", "Calibrated rule"),
+        (
+            "as_run",
+            "Rule the tool ran with "
+            f"({result['rules']['tool_rule']['min_gain'] * 100:.0f} % + "
+            f"{result['rules']['tool_rule']['per_param'] * 100:.0f} %/param)",
+        ),
+    ):
         summ = result["summary"].get(rule)
         if not summ:
             continue
         tot = sum(s["runs"] for k, s in summ.items() if k != "none")
         ok = sum(s["named_correctly"] for k, s in summ.items() if k != "none")
         in_class = sum(s["named_in_class"] or 0 for k, s in summ.items() if k != "none")
-        lines += [f"## {title}", "", f"Planted effects named first: {ok}/{tot}"
-                  + (f" (the truth in the named equivalence class: {in_class}/{tot})" if rule == "as_run" else "")
-                  + f"; controls `none`: {summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}.", "",
-                  "| planted effect | runs | named correctly | in class | marker L1 vs control [cm] | check nominal [cm] | after [cm] | oracle [cm] | gap closed vs oracle (median) | vs control (median) | param rel. error (median) |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## {title}",
+            "",
+            f"Planted effects named first: {ok}/{tot}"
+            + (f" (the truth in the named equivalence class: {in_class}/{tot})" if rule == "as_run" else "")
+            + f"; controls `none`: {summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}.",
+            "",
+            "| planted effect | runs | named correctly | in class | marker L1 vs control [cm] | check nominal [cm] | after [cm] | oracle [cm] | gap closed vs oracle (median) | vs control (median) | param rel. error (median) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for eff, s in summ.items():
-            lines.append(f"| {eff} | {s['runs']} | {s['named_correctly']}/{s['runs']} | "
-                         f"{'-' if s.get('named_in_class') is None else str(s['named_in_class']) + '/' + str(s['runs'])} | "
-                         f"{'-' if s.get('detectability_cm') is None else format(s['detectability_cm'], '.2f')} | {s['nominal_check_cm']:.3f} | "
-                         f"{s['final_check_cm']:.3f} | {_fmt(s['oracle_check_cm'] and s['oracle_check_cm'] / 100 * 100, False) if s['oracle_check_cm'] is not None else '-'} | "
-                         f"{_fmt(s['gap_closed_oracle_median'])} | {_fmt(s['gap_closed_control_median'])} | "
-                         f"{_fmt(s['param_rel_error_median'])} |")
+            lines.append(
+                f"| {eff} | {s['runs']} | {s['named_correctly']}/{s['runs']} | "
+                f"{'-' if s.get('named_in_class') is None else str(s['named_in_class']) + '/' + str(s['runs'])} | "
+                f"{'-' if s.get('detectability_cm') is None else format(s['detectability_cm'], '.2f')} | {s['nominal_check_cm']:.3f} | "
+                f"{s['final_check_cm']:.3f} | {_fmt(s['oracle_check_cm'] and s['oracle_check_cm'] / 100 * 100, False) if s['oracle_check_cm'] is not None else '-'} | "
+                f"{_fmt(s['gap_closed_oracle_median'])} | {_fmt(s['gap_closed_control_median'])} | "
+                f"{_fmt(s['param_rel_error_median'])} |"
+            )
         lines.append("")
     lines += ["## Per run", ""]
     for r in result["planted"]:
         cal_sel = r.get("calibrated", {}).get("selected")
-        lines.append(f"- {r.get('rod_kind', '') + ' ' if r.get('rod_kind') else ''}{r['effect']} seed {r['seed']}: "
-                     f"as run {r['selected'] or ['none']}"
-                     + (f" (class {r['equivalence_class']})" if len(r.get('equivalence_class', [])) > 1 else "")
-                     + (f", marker L1 vs control {r['detectability_l1_m'] * 100:.2f} cm" if r.get('detectability_l1_m') else "")
-                     + ", calibrated "
-                     f"{(cal_sel or ['none']) if cal_sel is not None else '-'}; {r['nominal_check_l1_m'] * 100:.3f} -> "
-                     f"{r['final_check_l1_m'] * 100:.3f} cm (oracle {_fmt(r.get('oracle_check_l1_m') and r['oracle_check_l1_m'] * 100, False)}); "
-                     f"params {json.dumps({k: round(v, 4) for k, v in (r['found_selected'] or r['found_round1']).items()})} "
-                     f"truth {json.dumps(r['truth'])}; {r['seconds']:.0f} s")
+        lines.append(
+            f"- {r.get('rod_kind', '') + ' ' if r.get('rod_kind') else ''}{r['effect']} seed {r['seed']}: "
+            f"as run {r['selected'] or ['none']}"
+            + (f" (class {r['equivalence_class']})" if len(r.get("equivalence_class", [])) > 1 else "")
+            + (
+                f", marker L1 vs control {r['detectability_l1_m'] * 100:.2f} cm"
+                if r.get("detectability_l1_m")
+                else ""
+            )
+            + ", calibrated "
+            f"{(cal_sel or ['none']) if cal_sel is not None else '-'}; {r['nominal_check_l1_m'] * 100:.3f} -> "
+            f"{r['final_check_l1_m'] * 100:.3f} cm (oracle {_fmt(r.get('oracle_check_l1_m') and r['oracle_check_l1_m'] * 100, False)}); "
+            f"params {json.dumps({k: round(v, 4) for k, v in (r['found_selected'] or r['found_round1']).items()})} "
+            f"truth {json.dumps(r['truth'])}; {r['seconds']:.0f} s"
+        )
     if result["real"]:
-        lines += ["", "## Real recordings against plain DER", "",
-                  "| rod | selected (as run) | selected (calibrated) | check before [cm] | after (as run) [cm] | best round-1 candidates (improvement) | s |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Real recordings against plain DER",
+            "",
+            "| rod | selected (as run) | selected (calibrated) | check before [cm] | after (as run) [cm] | best round-1 candidates (improvement) | s |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for r in result["real"]:
             top = sorted((c for c in r["candidates"] if c["round"] == 1), key=lambda c: -c["improvement"])[:3]
             cs = r.get("calibrated", {}).get("selected")
-            lines.append(f"| {r['rod']} | {', '.join(r['selected']) or 'none'} | "
-                         f"{(', '.join(cs) or 'none') if cs is not None else '-'} | {r['nominal_check_l1_m'] * 100:.3f} | "
-                         f"{r['final_check_l1_m'] * 100:.3f} | "
-                         + ", ".join(f"{c['name']} {c['improvement'] * 100:+.1f} %" for c in top)
-                         + f" | {r['seconds']:.0f} |")
+            lines.append(
+                f"| {r['rod']} | {', '.join(r['selected']) or 'none'} | "
+                f"{(', '.join(cs) or 'none') if cs is not None else '-'} | {r['nominal_check_l1_m'] * 100:.3f} | "
+                f"{r['final_check_l1_m'] * 100:.3f} | "
+                + ", ".join(f"{c['name']} {c['improvement'] * 100:+.1f} %" for c in top)
+                + f" | {r['seconds']:.0f} |"
+            )
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
 
 
@@ -515,10 +717,22 @@ def mass_equivalence(seed: int, args) -> dict:
     m = spec.mass_kg * np.concatenate([[e[0] / 2], (e[:-1] + e[1:]) / 2, [e[-1] / 2]]) / e.sum()
     free = np.ones(len(X0), bool)
     free[gripped_indices(len(X0))] = False
-    s = (m[free].sum() + truth["marker_mass_kg"] * np.isin(np.arange(len(X0)), ids)[free].sum()) / m[free].sum()
+    s = (m[free].sum() + truth["marker_mass_kg"] * np.isin(np.arange(len(X0)), ids)[free].sum()) / m[
+        free
+    ].sum()
     eq, _ = generate_planted(None, src, spec, n_frames=args.frames, seed=seed, ei=3e-3 / s, gj=2e-3 / s)
-    diff = lambda a, b: float(np.mean([np.abs(x.positions[:, 2:-2] - y.positions[:, 2:-2]).mean() for x, y in zip(a, b)]))
-    return {"seed": seed, "scale": float(s), "vs_control_mm": diff(recs, ctrl) * 1e3, "vs_uniform_scale_mm": diff(recs, eq) * 1e3}
+
+    def diff(a, b):
+        return float(
+            np.mean([np.abs(x.positions[:, 2:-2] - y.positions[:, 2:-2]).mean() for x, y in zip(a, b)])
+        )
+
+    return {
+        "seed": seed,
+        "scale": float(s),
+        "vs_control_mm": diff(recs, ctrl) * 1e3,
+        "vs_uniform_scale_mm": diff(recs, eq) * 1e3,
+    }
 
 
 def damping_scan(seed: int, args) -> list[dict]:
@@ -531,7 +745,7 @@ def damping_scan(seed: int, args) -> list[dict]:
 
     src, spec = _sources(seed, args.fit + args.check)
     recs, _ = generate_planted("internal_damping", src, spec, n_frames=args.frames, seed=seed)
-    fit_recs, chk = recs[:args.fit], recs[args.fit:]
+    fit_recs, chk = recs[: args.fit], recs[args.fit :]
     out = []
     for c in (0.4, 0.7):
         for nu in (0.0, 1e-5, 5e-5, 2e-4, 1e-3):
@@ -542,8 +756,13 @@ def damping_scan(seed: int, args) -> list[dict]:
                     t.log_nu.fill_(math.log(nu / t.scale))
                 terms = [t]
             sim = Simulator(spec, Nominal(3.1e-3, 2.0e-3, c), terms)
-            out.append({"damping_1_per_s": c, "nu_m4_per_s": nu,
-                        "check_l1_cm": float(per_recording_l1(sim.predict(chk), chk).mean() * 100)})
+            out.append(
+                {
+                    "damping_1_per_s": c,
+                    "nu_m4_per_s": nu,
+                    "check_l1_cm": float(per_recording_l1(sim.predict(chk), chk).mean() * 100),
+                }
+            )
             print(json.dumps(out[-1]), flush=True)
     return out
 
@@ -564,9 +783,15 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
     cb = dataclasses.replace(quick.candidate, progress=False)
     out = []
     for effect, kg in ((None, 0.0), ("mass_scale", 0.004), ("mass_scale", 0.010)):
-        recs, _ = generate_planted(effect, src, spec, n_frames=args.frames, seed=seed,
-                                   truth_override={"marker_mass_kg": kg} if effect else None)
-        inputs = Inputs(spec=spec, fit=recs[:args.fit], check=recs[args.fit:])
+        recs, _ = generate_planted(
+            effect,
+            src,
+            spec,
+            n_frames=args.frames,
+            seed=seed,
+            truth_override={"marker_mass_kg": kg} if effect else None,
+        )
+        inputs = Inputs(spec=spec, fit=recs[: args.fit], check=recs[args.fit :])
         sim = Simulator(spec, Nominal())
         coarse_nominal(sim, inputs.fit)
         fit(sim, inputs.fit, dataclasses.replace(cb, iterations=quick.nominal_iterations))
@@ -574,16 +799,31 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
         for hidden in (0, 1):
             t0 = time.perf_counter()
             ref, e_ref = fit_and_check(spec, sim.nominal, [], inputs, cb, "reference", hidden=hidden)
-            term = make_term("mass_scale", ref.n, ref.node_arclength(arclength_of(inputs.fit)),
-                             {"rod_mass_kg": spec.mass_kg})
-            _, e = fit_and_check(spec, sim.nominal, [term], inputs, cb, "mass_scale", new_term=term, hidden=hidden)
+            term = make_term(
+                "mass_scale",
+                ref.n,
+                ref.node_arclength(arclength_of(inputs.fit)),
+                {"rod_mass_kg": spec.mass_kg},
+            )
+            _, e = fit_and_check(
+                spec, sim.nominal, [term], inputs, cb, "mass_scale", new_term=term, hidden=hidden
+            )
             sc = score(e_ref, e, term.n_params)
-            out.append({"seed": seed, "marker_mass_kg": kg, "hidden_nodes": hidden,
-                        "nominal_check_cm": float(e_nom.mean() * 100), "reference_check_cm": float(e_ref.mean() * 100),
-                        "mass_scale_check_cm": float(e.mean() * 100), "improvement": sc.improvement,
-                        "ci90": [sc.ci_low, sc.ci_high], "significant": sc.significant,
-                        "fitted_marker_mass_kg": term.params()["marker_mass_kg"],
-                        "seconds": time.perf_counter() - t0})
+            out.append(
+                {
+                    "seed": seed,
+                    "marker_mass_kg": kg,
+                    "hidden_nodes": hidden,
+                    "nominal_check_cm": float(e_nom.mean() * 100),
+                    "reference_check_cm": float(e_ref.mean() * 100),
+                    "mass_scale_check_cm": float(e.mean() * 100),
+                    "improvement": sc.improvement,
+                    "ci90": [sc.ci_low, sc.ci_high],
+                    "significant": sc.significant,
+                    "fitted_marker_mass_kg": term.params()["marker_mass_kg"],
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
             print(json.dumps(out[-1]), flush=True)
     return out
 
@@ -593,7 +833,9 @@ def main() -> None:
 
     p = argparse.ArgumentParser()
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--smoke", action="store_true", help="tiny budget: checks the pipeline, numbers meaningless")
+    p.add_argument(
+        "--smoke", action="store_true", help="tiny budget: checks the pipeline, numbers meaningless"
+    )
     p.add_argument("--seeds", type=int, default=3, help="seeds per planted effect")
     p.add_argument("--control-seeds", type=int, default=5, help="control datasets (no effect)")
     p.add_argument("--effects", nargs="*", default=None)
@@ -601,23 +843,65 @@ def main() -> None:
     p.add_argument("--fit", type=int, default=8)
     p.add_argument("--check", type=int, default=4)
     p.add_argument("--frames", type=int, default=500)
-    p.add_argument("--alpha", type=float, default=0.05, help="family-wise false-positive rate of the calibrated rule")
-    p.add_argument("--simulator", choices=("own", "elastica"), default="own",
-                   help="who plants the effects: this project's simulator, or PyElastica (pip install '.[bench]')")
-    p.add_argument("--rod-kinds", nargs="*", default=list(ELASTICA_SOURCES), help="elastica: light (DLO1 motions), stiff (DLO3)")
-    p.add_argument("--runs", default=None, help="incremental results (resumed); default benchmarks/results/<stem>.runs.jsonl")
-    p.add_argument("--summary-only", action="store_true", help="only rebuild diagnose.{json,md} from the runs file")
-    p.add_argument("--mass-equivalence", type=int, nargs="*", default=None, metavar="SEED",
-                   help="only measure how much of the planted marker mass is a uniform factor (prints JSON)")
-    p.add_argument("--damping-scan", type=int, default=None, metavar="SEED",
-                   help="only sweep the internal-damping term on planted data with fixed nominal parameters")
-    p.add_argument("--hidden-nodes", type=int, nargs="*", default=None, metavar="SEED",
-                   help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)")
-    p.add_argument("--stem", default=None, help="name of the result files (default diagnose, diagnose.elastica)")
-    p.add_argument("--full-size-timing", action="store_true",
-                   help="only time `deform diagnose` (full budget) on one elastica case of 8 + 4 x 500 frames")
-    p.add_argument("--calibrate-damping", action="store_true",
-                   help="only fit the nominal model on independent-simulator controls and derive its material damping level")
+    p.add_argument(
+        "--alpha", type=float, default=0.05, help="family-wise false-positive rate of the calibrated rule"
+    )
+    p.add_argument(
+        "--simulator",
+        choices=("own", "elastica"),
+        default="own",
+        help="who plants the effects: this project's simulator, or PyElastica (pip install '.[bench]')",
+    )
+    p.add_argument(
+        "--rod-kinds",
+        nargs="*",
+        default=list(ELASTICA_SOURCES),
+        help="elastica: light (DLO1 motions), stiff (DLO3)",
+    )
+    p.add_argument(
+        "--runs",
+        default=None,
+        help="incremental results (resumed); default benchmarks/results/<stem>.runs.jsonl",
+    )
+    p.add_argument(
+        "--summary-only", action="store_true", help="only rebuild diagnose.{json,md} from the runs file"
+    )
+    p.add_argument(
+        "--mass-equivalence",
+        type=int,
+        nargs="*",
+        default=None,
+        metavar="SEED",
+        help="only measure how much of the planted marker mass is a uniform factor (prints JSON)",
+    )
+    p.add_argument(
+        "--damping-scan",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="only sweep the internal-damping term on planted data with fixed nominal parameters",
+    )
+    p.add_argument(
+        "--hidden-nodes",
+        type=int,
+        nargs="*",
+        default=None,
+        metavar="SEED",
+        help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)",
+    )
+    p.add_argument(
+        "--stem", default=None, help="name of the result files (default diagnose, diagnose.elastica)"
+    )
+    p.add_argument(
+        "--full-size-timing",
+        action="store_true",
+        help="only time `deform diagnose` (full budget) on one elastica case of 8 + 4 x 500 frames",
+    )
+    p.add_argument(
+        "--calibrate-damping",
+        action="store_true",
+        help="only fit the nominal model on independent-simulator controls and derive its material damping level",
+    )
     args = p.parse_args()
     if args.full_size_timing:
         sys.path.insert(0, str(ROOT))
@@ -650,16 +934,23 @@ def main() -> None:
     if args.simulator == "elastica":
         sys.path.insert(0, str(ROOT))
         from elastica_planted import EFFECTS as ELASTICA_EFFECTS
+
         effects = [e for e in (args.effects or ELASTICA_EFFECTS) if e != "none"]
         # per rod kind and seed: the control first (it is also the effects' pair), then the effects
-        jobs = [(k, e, s) for k in args.rod_kinds for s in range(max(args.seeds, args.control_seeds))
-                for e in ([None] if s < args.control_seeds else []) + (effects if s < args.seeds else [])]
+        jobs = [
+            (k, e, s)
+            for k in args.rod_kinds
+            for s in range(max(args.seeds, args.control_seeds))
+            for e in ([None] if s < args.control_seeds else []) + (effects if s < args.seeds else [])
+        ]
         if not args.summary_only:
             run_elastica(jobs, args, runs_path, done)
     else:
         effects = [e for e in (args.effects or EFFECTS) if e != "none"]
         # controls first (they calibrate the rule), then each seed through all effects, then the real rods
-        jobs = [(None, s) for s in range(args.control_seeds)] + [(e, s) for s in range(args.seeds) for e in effects]
+        jobs = [(None, s) for s in range(args.control_seeds)] + [
+            (e, s) for s in range(args.seeds) for e in effects
+        ]
         if not args.summary_only:
             run_planted(jobs, args, runs_path, done)
             run_real(args.real, args, runs_path, done)
@@ -668,16 +959,23 @@ def main() -> None:
     real = sorted((r for r in done.values() if r["kind"] == "real"), key=lambda r: r["rod"])
     rules = apply_rules(planted, real, args.alpha)
     b = budget(args.quick)
-    result = {"command": "python benchmarks/diagnose_planted.py " + " ".join(a for a in sys.argv[1:] if a != "--summary-only"),
-              "simulator": args.simulator, **provenance(),
-              "budget": (f"nominal {b.nominal_iterations} Adam iterations, candidates {b.candidate.iterations} iterations "
-                         f"of {b.candidate.batch} windows x {b.candidate.horizon} steps, {b.max_rounds} rounds; "
-                         f"{args.fit} fit + {args.check} check recordings of {args.frames} frames per planted dataset "
-                         f"(real rods: the first {args.fit} + next {args.check} train recordings, full length)"),
-              "seconds_total_runs": float(sum(r["seconds"] for r in done.values())),
-              "rules": rules,
-              "summary": {"as_run": summarise(planted, "as_run"), "calibrated": summarise(planted, "calibrated")},
-              "planted": planted, "real": real}
+    result = {
+        "command": "python benchmarks/diagnose_planted.py "
+        + " ".join(a for a in sys.argv[1:] if a != "--summary-only"),
+        "simulator": args.simulator,
+        **provenance(),
+        "budget": (
+            f"nominal {b.nominal_iterations} Adam iterations, candidates {b.candidate.iterations} iterations "
+            f"of {b.candidate.batch} windows x {b.candidate.horizon} steps, {b.max_rounds} rounds; "
+            f"{args.fit} fit + {args.check} check recordings of {args.frames} frames per planted dataset "
+            f"(real rods: the first {args.fit} + next {args.check} train recordings, full length)"
+        ),
+        "seconds_total_runs": float(sum(r["seconds"] for r in done.values())),
+        "rules": rules,
+        "summary": {"as_run": summarise(planted, "as_run"), "calibrated": summarise(planted, "calibrated")},
+        "planted": planted,
+        "real": real,
+    }
     write(result, stem)
 
 

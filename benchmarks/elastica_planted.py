@@ -40,6 +40,7 @@ hang from the grippers. The markers' material positions are the median marker sp
 
     python benchmarks/elastica_planted.py [--sources 8] [--frames 300]   # detectability table
 """
+
 from __future__ import annotations
 
 import math
@@ -51,8 +52,16 @@ from deform.diagnose.spec import RodSpec
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
-EFFECTS = ("aerodynamic_drag", "ground_contact", "point_mass", "stiffness_variation", "external_force",
-           "internal_damping", "rest_curvature", "actuation_delay")
+EFFECTS = (
+    "aerodynamic_drag",
+    "ground_contact",
+    "point_mass",
+    "stiffness_variation",
+    "external_force",
+    "internal_damping",
+    "rest_curvature",
+    "actuation_delay",
+)
 
 # Material of the two reference rods. The rod simulated takes its length and mass from the RodSpec
 # passed in (these lengths / masses are the references the values were chosen for); radius, bending
@@ -63,15 +72,29 @@ EFFECTS = ("aerodynamic_drag", "ground_contact", "point_mass", "stiffness_variat
 # frames): 99th percentile 0.6 % (light) / 0.3 % (stiff), brief local peaks at a gripper 1.4 / 0.6 %.
 ROD_KINDS = {
     # like DLO1 (1.152 m, 34.5 g), a soft cable: 8 mm thick, E 5.0 MPa, EA 250 N, 600 kg/m^3
-    "light": {"length_m": 1.152, "mass_kg": 0.0345, "radius_m": 0.004, "bend_stiffness_Nm2": 1.0e-3,
-              "material_damping_m4_per_s": 2e-6, "n_elements": 48, "dt_s": 5e-5},
+    "light": {
+        "length_m": 1.152,
+        "mass_kg": 0.0345,
+        "radius_m": 0.004,
+        "bend_stiffness_Nm2": 1.0e-3,
+        "material_damping_m4_per_s": 2e-6,
+        "n_elements": 48,
+        "dt_s": 5e-5,
+    },
     # like DLO3 (0.998 m, 96.8 g), the stiffest of the five: 12 mm thick, E 11.8 MPa, EA 1330 N, 860 kg/m^3
-    "stiff": {"length_m": 0.998, "mass_kg": 0.0968, "radius_m": 0.006, "bend_stiffness_Nm2": 1.2e-2,
-              "material_damping_m4_per_s": 2e-6, "n_elements": 42, "dt_s": 5e-5},
+    "stiff": {
+        "length_m": 0.998,
+        "mass_kg": 0.0968,
+        "radius_m": 0.006,
+        "bend_stiffness_Nm2": 1.2e-2,
+        "material_damping_m4_per_s": 2e-6,
+        "n_elements": 42,
+        "dt_s": 5e-5,
+    },
 }
-SETTLE_S = 1.0            # settling time before the first recorded frame [s]
-SETTLE_DAMPING = 10.0     # extra velocity damping while settling [1/s]
-LEAD_FRAMES = 20          # grips ramp from rest to their first recorded velocity over this lead-in
+SETTLE_S = 1.0  # settling time before the first recorded frame [s]
+SETTLE_DAMPING = 10.0  # extra velocity damping while settling [1/s]
+LEAD_FRAMES = 20  # grips ramp from rest to their first recorded velocity over this lead-in
 GRAVITY = 9.81
 
 # Planted parameters at strength 1 per rod kind, and what ``strength`` scales. The sizes are tuned
@@ -82,33 +105,39 @@ GRAVITY = 9.81
 # clip 1.35 / 1.72, stiff segment 1.30 / 1.48, wind 0.83 / 0.77, internal damping 0.63 / 0.65,
 # rest curvature 0.78 / 1.28, delay 0.84 / 0.70. Internal damping above dx^4 / (16 dt) shortens dt.
 _COMMON = {
-    "aerodynamic_drag": {"quadratic_1_per_m": 3.0},                       # x strength
-    "ground_contact": {"stiffness_1_per_s2": 1.0e4, "friction": 0.5},     # friction x strength (<= 1.5)
-    "point_mass": {"mass_fraction": 0.20, "position_s": 0.35},            # mass x strength
+    "aerodynamic_drag": {"quadratic_1_per_m": 3.0},  # x strength
+    "ground_contact": {"stiffness_1_per_s2": 1.0e4, "friction": 0.5},  # friction x strength (<= 1.5)
+    "point_mass": {"mass_fraction": 0.20, "position_s": 0.35},  # mass x strength
     "stiffness_variation": {"stiffness_ratio": 5.0, "start_s": 0.30, "end_s": 0.55},  # (ratio - 1) x strength
-    "rest_curvature": {"kappa1_per_m": 2.0, "kappa2_per_m": 0.0},         # x strength (radius 0.5 m)
-    "actuation_delay": {"delay_frames": 2.0},                             # x strength
+    "rest_curvature": {"kappa1_per_m": 2.0, "kappa2_per_m": 0.0},  # x strength (radius 0.5 m)
+    "actuation_delay": {"delay_frames": 2.0},  # x strength
 }
 DEFAULTS = {
-    "light": {**_COMMON,
-              "external_force": {"ax_m_per_s2": 1.2, "ay_m_per_s2": 0.75},        # x strength
-              "internal_damping": {"bending_rate_damping_m4_per_s": 2e-4},        # x strength
-              "rest_curvature": {"kappa1_per_m": 3.0, "kappa2_per_m": 0.0},       # radius 0.33 m
-              "actuation_delay": {"delay_frames": 3.0}},
-    "stiff": {**_COMMON,
-              "external_force": {"ax_m_per_s2": 3.2, "ay_m_per_s2": 2.0},
-              "internal_damping": {"bending_rate_damping_m4_per_s": 1e-3}},
+    "light": {
+        **_COMMON,
+        "external_force": {"ax_m_per_s2": 1.2, "ay_m_per_s2": 0.75},  # x strength
+        "internal_damping": {"bending_rate_damping_m4_per_s": 2e-4},  # x strength
+        "rest_curvature": {"kappa1_per_m": 3.0, "kappa2_per_m": 0.0},  # radius 0.33 m
+        "actuation_delay": {"delay_frames": 3.0},
+    },
+    "stiff": {
+        **_COMMON,
+        "external_force": {"ax_m_per_s2": 3.2, "ay_m_per_s2": 2.0},
+        "internal_damping": {"bending_rate_damping_m4_per_s": 1e-3},
+    },
 }
 
 
 def _elastica():
     import elastica as ea  # imported lazily: an optional dependency (the `bench` extra)
+
     return ea
 
 
 # ----------------------------------------------------------------------------------------------
 # geometry: material layout of markers, nodes and grips
 # ----------------------------------------------------------------------------------------------
+
 
 def marker_layout(sources: list[Recording], length_m: float) -> tuple[np.ndarray, float]:
     """Material arc length [m] of each marker on the rod, and the tail beyond each outer marker.
@@ -129,8 +158,8 @@ def marker_layout(sources: list[Recording], length_m: float) -> tuple[np.ndarray
 def _held_nodes(s_nodes: np.ndarray, s_a: float, s_b: float) -> np.ndarray:
     """Node ids covering the material interval [s_a, s_b] (snapped outwards to the node grid)."""
     dx = s_nodes[1] - s_nodes[0]
-    lo = int(math.floor(s_a / dx + 1e-9))
-    hi = int(math.ceil(s_b / dx - 1e-9))
+    lo = math.floor(s_a / dx + 1e-9)
+    hi = math.ceil(s_b / dx - 1e-9)
     return np.arange(max(lo, 0), min(hi, len(s_nodes) - 1) + 1)
 
 
@@ -152,8 +181,9 @@ def _curve_length(c: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(c, axis=0), axis=-1).sum())
 
 
-def _initial_curve(markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray,
-                   held_b: np.ndarray) -> np.ndarray:
+def _initial_curve(
+    markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray, held_b: np.ndarray
+) -> np.ndarray:
     """(N, 3) node positions of the rod at the start of settling, segments all ``dx`` long.
 
     Held portions and tails lie on the first frame's grip lines. Between the grips: a cubic spline
@@ -166,7 +196,7 @@ def _initial_curve(markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndar
     u_b = _unit(markers0[-2] - markers0[-1])
     x = np.empty((len(s_nodes), 3))
     lo, hi = held_a[-1], held_b[0]
-    x[:lo + 1] = markers0[0] + t_a * (s_nodes[:lo + 1] - s_markers[0])[:, None]
+    x[: lo + 1] = markers0[0] + t_a * (s_nodes[: lo + 1] - s_markers[0])[:, None]
     x[hi:] = markers0[-1] + u_b * (s_markers[-1] - s_nodes[hi:])[:, None]
     inner = [k for k in range(len(s_markers)) if s_nodes[lo] + 1e-3 < s_markers[k] < s_nodes[hi] - 1e-3]
     pts = np.concatenate([x[lo][None], markers0[inner], x[hi][None]])
@@ -189,7 +219,7 @@ def _initial_curve(markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndar
     curve = shape(0.5 * (a + b))
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=-1))])
     want = np.linspace(0.0, arc[-1], hi - lo + 1)
-    x[lo:hi + 1] = np.stack([np.interp(want, arc, curve[:, c]) for c in range(3)], axis=1)
+    x[lo : hi + 1] = np.stack([np.interp(want, arc, curve[:, c]) for c in range(3)], axis=1)
     return x
 
 
@@ -203,18 +233,26 @@ def _driving_grips(grips: np.ndarray, lead: int = LEAD_FRAMES) -> np.ndarray:
     g = gaussian_filter1d(median_filter(grips, size=(5, 1, 1), mode="nearest"), 1.0, axis=0, mode="nearest")
     v0 = g[1] - g[0]  # per frame
     k = np.arange(-lead, 0, dtype=float)[:, None, None]
-    before = g[0] - v0 * (-k - k ** 2 / (2 * lead))  # displacement of a linear velocity ramp
+    before = g[0] - v0 * (-k - k**2 / (2 * lead))  # displacement of a linear velocity ramp
     return np.concatenate([before, g])
 
 
-def _grip_tracks(grips: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray,
-                 held_b: np.ndarray, d1_a: np.ndarray, d1_b: np.ndarray, frame_dt: float):
+def _grip_tracks(
+    grips: np.ndarray,
+    s_markers: np.ndarray,
+    s_nodes: np.ndarray,
+    held_a: np.ndarray,
+    held_b: np.ndarray,
+    d1_a: np.ndarray,
+    d1_b: np.ndarray,
+    frame_dt: float,
+):
     """Per-frame targets of the held nodes and elements, from the recorded grips (T, 4, 3).
 
     -> P (T, 3, nh) positions, V (T, 3, nh) velocities to the next frame, Q (T, 3, 3, ne) directors,
     W (T, 3, ne) material-frame angular velocities to the next frame, node ids, element ids."""
     T = len(grips)
-    p_a, t_a = grips[:, 0], _unit(grips[:, 1] - grips[:, 0])        # outer marker, inward edge
+    p_a, t_a = grips[:, 0], _unit(grips[:, 1] - grips[:, 0])  # outer marker, inward edge
     p_b, u_b = grips[:, 3], _unit(grips[:, 2] - grips[:, 3])
     pos_a = p_a[:, None] + t_a[:, None] * (s_nodes[held_a] - s_markers[0])[None, :, None]
     pos_b = p_b[:, None] + u_b[:, None] * (s_markers[-1] - s_nodes[held_b])[None, :, None]
@@ -234,16 +272,26 @@ def _grip_tracks(grips: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, 
     P = np.concatenate([pos_a, pos_b], axis=1).transpose(0, 2, 1)
     V = np.zeros_like(P)
     V[:-1] = np.diff(P, axis=0) / frame_dt
-    Q = np.concatenate([np.repeat(Q_a[..., None], len(el_a), -1), np.repeat(Q_b[..., None], len(el_b), -1)], -1)
-    W = np.concatenate([np.repeat(omega["a"][..., None], len(el_a), -1),
-                        np.repeat(omega["b"][..., None], len(el_b), -1)], -1)
-    return (np.ascontiguousarray(P), np.ascontiguousarray(V), np.ascontiguousarray(Q), np.ascontiguousarray(W),
-            np.concatenate([held_a, held_b]).astype(np.int64), np.concatenate([el_a, el_b]).astype(np.int64))
+    Q = np.concatenate(
+        [np.repeat(Q_a[..., None], len(el_a), -1), np.repeat(Q_b[..., None], len(el_b), -1)], -1
+    )
+    W = np.concatenate(
+        [np.repeat(omega["a"][..., None], len(el_a), -1), np.repeat(omega["b"][..., None], len(el_b), -1)], -1
+    )
+    return (
+        np.ascontiguousarray(P),
+        np.ascontiguousarray(V),
+        np.ascontiguousarray(Q),
+        np.ascontiguousarray(W),
+        np.concatenate([held_a, held_b]).astype(np.int64),
+        np.concatenate([el_a, el_b]).astype(np.int64),
+    )
 
 
 # ----------------------------------------------------------------------------------------------
 # numba kernels (numba comes with PyElastica)
 # ----------------------------------------------------------------------------------------------
+
 
 def _kernels():
     from numba import njit
@@ -309,6 +357,7 @@ def _kernels():
 # the PyElastica system
 # ----------------------------------------------------------------------------------------------
 
+
 def _features(ea, kernels):
     """PyElastica feature classes (defined here so that importing this module needs no PyElastica)."""
     grip_values, grip_rates, fourth_difference_damp, quadratic_drag = kernels
@@ -329,12 +378,26 @@ def _features(ea, kernels):
             return (float(time) - self.settle_s) / self.frame_dt - self.delay
 
         def constrain_values(self, system, time):
-            grip_values(self._tau(time), self.P, self.Q, self.nodes, self.elems,
-                        system.position_collection, system.director_collection)
+            grip_values(
+                self._tau(time),
+                self.P,
+                self.Q,
+                self.nodes,
+                self.elems,
+                system.position_collection,
+                system.director_collection,
+            )
 
         def constrain_rates(self, system, time):
-            grip_rates(self._tau(time), self.V, self.W, self.nodes, self.elems,
-                       system.velocity_collection, system.omega_collection)
+            grip_rates(
+                self._tau(time),
+                self.V,
+                self.W,
+                self.nodes,
+                self.elems,
+                system.velocity_collection,
+                system.omega_collection,
+            )
 
     class MaterialDamping(ea.DamperBase):
         """Kelvin-Voigt-like damping: a weighted 4th-difference (order-2 Laplace) filter of the nodal
@@ -369,14 +432,20 @@ def _features(ea, kernels):
             self.coef = float(coef)
 
         def apply_forces(self, system, time=0.0):
-            quadratic_drag(self.coef, system.mass, system.velocity_collection, system.tangents,
-                           system.external_forces)
+            quadratic_drag(
+                self.coef, system.mass, system.velocity_collection, system.tangents, system.external_forces
+            )
 
     return Sim, GripTracks, MaterialDamping, SettleDamping, QuadraticDrag
 
 
-def planted_truth(effect: str | None, rod_kind: str = "light", strength: float = 1.0, lowest_z: float = 0.0,
-                  spec: RodSpec | None = None) -> dict:
+def planted_truth(
+    effect: str | None,
+    rod_kind: str = "light",
+    strength: float = 1.0,
+    lowest_z: float = 0.0,
+    spec: RodSpec | None = None,
+) -> dict:
     """Planted parameters (``DEFAULTS[rod_kind]`` scaled by ``strength``) in the tool's conventions."""
     if effect is None:
         return {}
@@ -385,10 +454,16 @@ def planted_truth(effect: str | None, rod_kind: str = "light", strength: float =
     if effect == "aerodynamic_drag":
         d = {"linear_1_per_s": 0.0, "quadratic_1_per_m": d["quadratic_1_per_m"] * s}
     elif effect == "ground_contact":
-        d = {"height_m": lowest_z, "stiffness_1_per_s2": d["stiffness_1_per_s2"],
-             "friction": min(d["friction"] * s, 1.5)}
+        d = {
+            "height_m": lowest_z,
+            "stiffness_1_per_s2": d["stiffness_1_per_s2"],
+            "friction": min(d["friction"] * s, 1.5),
+        }
     elif effect == "point_mass":
-        d = {"mass_kg": d["mass_fraction"] * s * (spec.mass_kg if spec else 1.0), "position_s": d["position_s"]}
+        d = {
+            "mass_kg": d["mass_fraction"] * s * (spec.mass_kg if spec else 1.0),
+            "position_s": d["position_s"],
+        }
     elif effect == "stiffness_variation":
         d["stiffness_ratio"] = 1.0 + (d["stiffness_ratio"] - 1.0) * s
     elif effect == "external_force":
@@ -409,9 +484,16 @@ def _marker_weights(s_markers: np.ndarray, dx: float, n_nodes: int) -> tuple[np.
     return j, f - j
 
 
-def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpec, rod_kind: str = "light",
-                      n_frames: int = 300, seed: int = 0, noise_m: float = 3e-4,
-                      strength: float = 1.0) -> tuple[list[Recording], dict]:
+def generate_elastica(
+    effect: str | None,
+    sources: list[Recording],
+    spec: RodSpec,
+    rod_kind: str = "light",
+    n_frames: int = 300,
+    seed: int = 0,
+    noise_m: float = 3e-4,
+    strength: float = 1.0,
+) -> tuple[list[Recording], dict]:
     """-> (recordings, truth). One output recording per source: the source's gripper motion over a
     window of ``n_frames`` at a seeded offset, replayed on a PyElastica rod with one planted
     ``effect`` (None: a control) of size ``strength`` (1 = ``DEFAULTS``). ``truth`` holds the
@@ -430,8 +512,8 @@ def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpe
     frame_dt = spec.dt
     L, n_el, dt = spec.length_m, int(kind["n_elements"]), float(kind["dt_s"])
     r0, ei = kind["radius_m"], kind["bend_stiffness_Nm2"]
-    area = math.pi * r0 ** 2
-    youngs = ei / (math.pi * r0 ** 4 / 4)
+    area = math.pi * r0**2
+    youngs = ei / (math.pi * r0**4 / 4)
     density = spec.mass_kg / (L * area)
     dx = L / n_el
     s_nodes = np.arange(n_el + 1) * dx
@@ -442,13 +524,19 @@ def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpe
 
     starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
     # a table just above the lowest points most recordings reach: the rope touches it in most of them
-    lowest = float(np.percentile([r.positions[s:s + n_frames, 2:-2, 2].min() for r, s in zip(sources, starts)], 80))
+    lowest = float(
+        np.percentile([r.positions[s : s + n_frames, 2:-2, 2].min() for r, s in zip(sources, starts)], 80)
+    )
     truth = planted_truth(effect, rod_kind, strength, lowest, spec)
     nu = kind["material_damping_m4_per_s"] + truth.get("bending_rate_damping_m4_per_s", 0.0)
-    dt = min(dt, frame_dt / math.ceil(frame_dt / (dx ** 4 / (16 * nu))))  # filter weight <= 1, whole steps per frame
+    dt = min(
+        dt, frame_dt / math.ceil(frame_dt / (dx**4 / (16 * nu)))
+    )  # filter weight <= 1, whole steps per frame
     delay = truth.get("delay_frames", 0.0)
 
-    grips_rec = np.stack([r.positions[s:s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)])
+    grips_rec = np.stack(
+        [r.positions[s : s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)]
+    )
     sim = Sim()
     rods = []
     for i, (r, st) in enumerate(zip(sources, starts)):
@@ -462,8 +550,17 @@ def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpe
         for k in range(1, len(t)):
             d1.append(_transport(d1[-1], t[k]))
         directors = _frames(t, np.array(d1)).transpose(1, 2, 0).copy()
-        rod = ea.CosseratRod.straight_rod(n_el, np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 0, 1.0]), L, r0,
-                                          density, youngs_modulus=youngs, shear_modulus=youngs / 3.0)
+        rod = ea.CosseratRod.straight_rod(
+            n_el,
+            np.zeros(3),
+            np.array([1.0, 0, 0]),
+            np.array([0, 0, 1.0]),
+            L,
+            r0,
+            density,
+            youngs_modulus=youngs,
+            shear_modulus=youngs / 3.0,
+        )
         rod.position_collection[:] = x0.T
         rod.director_collection[:] = directors
         s_vor = s_nodes[1:-1]  # Voronoi regions (between elements) sit on the interior nodes
@@ -483,27 +580,43 @@ def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpe
             rod.rest_kappa[1, :] = truth["kappa2_per_m"]
         sim.append(rod)
         rods.append(rod)
-        tracks = _grip_tracks(drive, s_markers, s_nodes, held_a, held_b,
-                              directors[0, :, held_a[0]], directors[0, :, held_b[-1] - 1], frame_dt)
-        sim.constrain(rod).using(GripTracks, tracks=tracks, settle_s=SETTLE_S, frame_dt=frame_dt,
-                                 delay_frames=delay)
+        tracks = _grip_tracks(
+            drive,
+            s_markers,
+            s_nodes,
+            held_a,
+            held_b,
+            directors[0, :, held_a[0]],
+            directors[0, :, held_b[-1] - 1],
+            frame_dt,
+        )
+        sim.constrain(rod).using(
+            GripTracks, tracks=tracks, settle_s=SETTLE_S, frame_dt=frame_dt, delay_frames=delay
+        )
         sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array([0.0, 0.0, -GRAVITY]))
         if effect == "external_force":
-            sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array(
-                [truth["ax_m_per_s2"], truth["ay_m_per_s2"], 0.0]))
+            sim.add_forcing_to(rod).using(
+                ea.GravityForces, acc_gravity=np.array([truth["ax_m_per_s2"], truth["ay_m_per_s2"], 0.0])
+            )
         elif effect == "aerodynamic_drag":
             sim.add_forcing_to(rod).using(QuadraticDrag, coef=truth["quadratic_1_per_m"])
         elif effect == "ground_contact":
             if i == 0:
-                plane = ea.Plane(plane_origin=np.array([0.0, 0.0, lowest - r0]), plane_normal=np.array([0.0, 0, 1]))
+                plane = ea.Plane(
+                    plane_origin=np.array([0.0, 0.0, lowest - r0]), plane_normal=np.array([0.0, 0, 1])
+                )
                 sim.append(plane)
             m_el = spec.mass_kg / n_el
             k_c = truth["stiffness_1_per_s2"] * m_el
             sim.detect_contact_between(rod, plane).using(
-                ea.RodPlaneContactWithAnisotropicFriction, k=k_c, nu=2.0 * math.sqrt(k_c * m_el),
-                slip_velocity_tol=1e-4, static_mu_array=np.full(3, truth["friction"]),
-                kinetic_mu_array=np.full(3, truth["friction"]))
-        sim.dampen(rod).using(MaterialDamping, weight=16.0 * nu * dt / dx ** 4)
+                ea.RodPlaneContactWithAnisotropicFriction,
+                k=k_c,
+                nu=2.0 * math.sqrt(k_c * m_el),
+                slip_velocity_tol=1e-4,
+                static_mu_array=np.full(3, truth["friction"]),
+                kinetic_mu_array=np.full(3, truth["friction"]),
+            )
+        sim.dampen(rod).using(MaterialDamping, weight=16.0 * nu * dt / dx**4)
         sim.dampen(rod).using(SettleDamping, rate=SETTLE_DAMPING, until_s=SETTLE_S, time_step=dt)
     sim.finalize()
     stepper = ea.PositionVerlet()
@@ -520,8 +633,8 @@ def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpe
             strain.append(float(np.abs(rod.dilatation - 1).max()))
 
     t_sim = 0.0
-    settle_steps = int(round(SETTLE_S / dt))
-    per_frame = int(round(frame_dt / dt))
+    settle_steps = round(SETTLE_S / dt)
+    per_frame = round(frame_dt / dt)
     for _ in range(settle_steps):
         t_sim = stepper.step(sim, t_sim, dt)
     t_sim = SETTLE_S  # exact frame times (PyElastica accumulates float time)
@@ -536,18 +649,37 @@ def generate_elastica(effect: str | None, sources: list[Recording], spec: RodSpe
     out = out + rng.normal(0.0, noise_m, out.shape)
     if not np.all(np.isfinite(out)):
         raise RuntimeError(f"elastica {effect}: the simulation diverged")
-    recs = [Recording(name=f"elastica_{rod_kind}_{effect or 'control'}_{seed}_{i}", positions=out[i], dt=frame_dt)
-            for i in range(len(sources))]
-    truth.update({
-        "effect": effect, "rod_kind": rod_kind, "strength": float(strength),
-        "rod": {"length_m": L, "mass_kg": spec.mass_kg, "radius_m": r0, "youngs_modulus_Pa": youngs,
-                "shear_modulus_Pa": youngs / 3.0, "bend_stiffness_Nm2": ei, "stretch_stiffness_N": youngs * area,
-                "material_damping_m4_per_s": kind["material_damping_m4_per_s"], "tail_m": tail,
-                "marker_s_m": s_markers.tolist()},
-        "numerics": {"n_elements": n_el, "dt_s": dt, "settle_s": SETTLE_S, "max_stretch": max(strain),
-                     "p99_stretch": float(np.percentile(strain, 99)),
-                     "starts": starts},
-    })
+    recs = [
+        Recording(name=f"elastica_{rod_kind}_{effect or 'control'}_{seed}_{i}", positions=out[i], dt=frame_dt)
+        for i in range(len(sources))
+    ]
+    truth.update(
+        {
+            "effect": effect,
+            "rod_kind": rod_kind,
+            "strength": float(strength),
+            "rod": {
+                "length_m": L,
+                "mass_kg": spec.mass_kg,
+                "radius_m": r0,
+                "youngs_modulus_Pa": youngs,
+                "shear_modulus_Pa": youngs / 3.0,
+                "bend_stiffness_Nm2": ei,
+                "stretch_stiffness_N": youngs * area,
+                "material_damping_m4_per_s": kind["material_damping_m4_per_s"],
+                "tail_m": tail,
+                "marker_s_m": s_markers.tolist(),
+            },
+            "numerics": {
+                "n_elements": n_el,
+                "dt_s": dt,
+                "settle_s": SETTLE_S,
+                "max_stretch": max(strain),
+                "p99_stretch": float(np.percentile(strain, 99)),
+                "starts": starts,
+            },
+        }
+    )
     return recs, truth
 
 
@@ -564,6 +696,7 @@ def detectability(effect_recs: list[Recording], control_recs: list[Recording]) -
 
 def _main() -> None:
     import argparse
+
     from deform.io.recordings import find_data_root, load_recordings
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -577,21 +710,31 @@ def _main() -> None:
     rods = {"light": ("DLO1", 1.152, 0.0345, 13), "stiff": ("DLO3", 0.998, 0.0968, 12)}
     for kind in args.kinds:
         name, length, mass, nv = rods[kind]
-        sources = load_recordings(root / name / "train")[:args.sources]
+        sources = load_recordings(root / name / "train")[: args.sources]
         spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)
         t0 = _time.perf_counter()
         control, truth = generate_elastica(None, sources, spec, kind, args.frames, args.seed)
         tc = _time.perf_counter() - t0
-        real = np.mean([np.abs(c.positions[:, 2:-2] - r.positions[s:s + args.frames, 2:-2]).mean()
-                        for c, r, s in zip(control, sources, truth["numerics"]["starts"])])
-        print(f"{kind} ({name}): control {tc:.1f} s, element strain max {truth['numerics']['max_stretch'] * 100:.2f} % "
-              f"p99 {truth['numerics']['p99_stretch'] * 100:.2f} %, "
-              f"L1 vs real {real * 100:.2f} cm", flush=True)
+        real = np.mean(
+            [
+                np.abs(c.positions[:, 2:-2] - r.positions[s : s + args.frames, 2:-2]).mean()
+                for c, r, s in zip(control, sources, truth["numerics"]["starts"])
+            ]
+        )
+        print(
+            f"{kind} ({name}): control {tc:.1f} s, element strain max {truth['numerics']['max_stretch'] * 100:.2f} % "
+            f"p99 {truth['numerics']['p99_stretch'] * 100:.2f} %, "
+            f"L1 vs real {real * 100:.2f} cm",
+            flush=True,
+        )
         for effect in args.effects:
             t0 = _time.perf_counter()
             recs, truth = generate_elastica(effect, sources, spec, kind, args.frames, args.seed)
-            print(f"  {effect:20s} {detectability(recs, control) * 100:5.2f} cm  "
-                  f"({_time.perf_counter() - t0:.1f} s)", flush=True)
+            print(
+                f"  {effect:20s} {detectability(recs, control) * 100:5.2f} cm  "
+                f"({_time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ with a constant chord (the first frame's).
 
     python benchmarks/gripper_chords.py [--rods DLO1 DLO2 DLO3]
 """
+
 import argparse
 
 import numpy as np
@@ -38,15 +39,20 @@ def main() -> None:
             const, arc0, arc_med = [], [], []
             for r in recs:
                 P = r.positions
-                axis, chord = (P[:, 1] - P[:, 0], P[:, 2] - P[:, 1]) if side == "first" else \
-                    (P[:, -2] - P[:, -1], P[:, -3] - P[:, -2])
+                axis, chord = (
+                    (P[:, 1] - P[:, 0], P[:, 2] - P[:, 1])
+                    if side == "first"
+                    else (P[:, -2] - P[:, -1], P[:, -3] - P[:, -2])
+                )
                 c, a = np.linalg.norm(chord, axis=-1), angle(axis, chord)
                 const.append(c - c[0])
                 arc0.append(c - c[0] / sinc(a[0]) * sinc(a))
                 arc_med.append(c - np.median(c / sinc(a)) * sinc(a))
             mm = [1e3 * np.abs(np.concatenate(x)).mean() for x in (const, arc0, arc_med)]
-            print(f"{rod} {side} gripper: mean |chord error| constant {mm[0]:.2f} mm, arc (L from frame 0) "
-                  f"{mm[1]:.2f} mm, arc (median L, oracle) {mm[2]:.2f} mm")
+            print(
+                f"{rod} {side} gripper: mean |chord error| constant {mm[0]:.2f} mm, arc (L from frame 0) "
+                f"{mm[1]:.2f} mm, arc (median L, oracle) {mm[2]:.2f} mm"
+            )
 
 
 if __name__ == "__main__":

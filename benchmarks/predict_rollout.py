@@ -15,6 +15,7 @@ A setting ``T,S:aot`` runs the one-graph step as an AOTInductor package (``defor
 Prints one JSON line per setting: median, p90 and max rollout time (best of ``repeats`` per start
 state), the starts where the one graph missed, steps redone, and pauses.
 """
+
 import argparse
 import json
 import sys
@@ -34,8 +35,9 @@ def start_states(model, rod: str, n_recordings: int):
 
     root = find_data_root()
     files = sorted((root / rod / "eval").glob("*.pkl"))[:n_recordings] if root else []
-    recs = [load_recording(f) for f in files] or [generate_recording(model, n_frames=400, seed=s)
-                                                   for s in range(n_recordings)]
+    recs = [load_recording(f) for f in files] or [
+        generate_recording(model, n_frames=400, seed=s) for s in range(n_recordings)
+    ]
     gi = gripped_indices(model.n)
     for r in recs:
         X = torch.as_tensor(r.positions, dtype=torch.float64)
@@ -43,8 +45,8 @@ def start_states(model, rod: str, n_recordings: int):
         for k in (50, 200, 350):
             if k + 2 > len(X):
                 continue
-            s = model.initial_state(X[k - 1:k], X[k:k + 1], d1=d1[k:k + 1])
-            s = model.step(s, X[k + 1:k + 2, gi])  # the material angles solved, as in a running service
+            s = model.initial_state(X[k - 1 : k], X[k : k + 1], d1=d1[k : k + 1])
+            s = model.step(s, X[k + 1 : k + 2, gi])  # the material angles solved, as in a running service
             yield f"{r.name}@{k}", s, X[k + 1, gi]
 
 
@@ -55,7 +57,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rod", default="DLO1")
     ap.add_argument("--recordings", type=int, default=5)
-    ap.add_argument("--settings", nargs="+", default=["2,1", "2,2", "3,2"], help="twist iterations,projection sweeps")
+    ap.add_argument(
+        "--settings", nargs="+", default=["2,1", "2,2", "3,2"], help="twist iterations,projection sweeps"
+    )
     ap.add_argument("--plans", type=int, default=64)
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--repeats", type=int, default=3)
@@ -63,15 +67,26 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)  # as in the service's predict worker
     model = load_model(args.rod)
-    steps = {s: RolloutStep(model, branch_free=tuple(int(v) for v in s.split(":")[0].split(",")),
-                            ahead_of_time=s.endswith(":aot")) for s in args.settings}
+    steps = {
+        s: RolloutStep(
+            model,
+            branch_free=tuple(int(v) for v in s.split(":")[0].split(",")),
+            ahead_of_time=s.endswith(":aot"),
+        )
+        for s in args.settings
+    }
     for st in steps.values():
         st.warmup((args.plans,))
     rng = np.random.default_rng(args.seed)
     results = {s: {"ms": [], "missed_at": [], "redone": 0, "paused": 0} for s in args.settings}
     lin = torch.linspace(0, 1, args.steps, dtype=torch.float64)[None, :, None, None]
     for name, state, grip in start_states(model, args.rod, args.recordings):
-        batch = RodState(*(t.expand(args.plans, *t.shape[1:]).clone() for t in (state.x, state.v, state.d1, state.theta, state.rest)))
+        batch = RodState(
+            *(
+                t.expand(args.plans, *t.shape[1:]).clone()
+                for t in (state.x, state.v, state.d1, state.theta, state.rest)
+            )
+        )
         offsets = torch.as_tensor(rng.uniform(-0.1, 0.1, (args.plans, 1, 2, 3)))
         grips = grip[None, None] + lin * offsets[:, :, [0, 0, 1, 1]]
         for s, st in steps.items():  # interleaved: the same machine state for every setting
@@ -90,10 +105,23 @@ def main() -> None:
                 res["missed_at"].append(name)
     for s, res in results.items():
         ms = np.array(res["ms"])
-        print(json.dumps({"branch_free": s, "starts": len(ms), "plans": args.plans, "steps": args.steps,
-                          "median_ms": round(float(np.median(ms)), 1), "p90_ms": round(float(np.percentile(ms, 90)), 1),
-                          "max_ms": round(float(ms.max()), 1), "starts_missed": len(res["missed_at"]),
-                          "steps_redone": res["redone"], "pauses": res["paused"], "missed_at": res["missed_at"]}))
+        print(
+            json.dumps(
+                {
+                    "branch_free": s,
+                    "starts": len(ms),
+                    "plans": args.plans,
+                    "steps": args.steps,
+                    "median_ms": round(float(np.median(ms)), 1),
+                    "p90_ms": round(float(np.percentile(ms, 90)), 1),
+                    "max_ms": round(float(ms.max()), 1),
+                    "starts_missed": len(res["missed_at"]),
+                    "steps_redone": res["redone"],
+                    "pauses": res["paused"],
+                    "missed_at": res["missed_at"],
+                }
+            )
+        )
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ frame every 3 s, and one gripper with it, by 24 cm in one tick (24 m/s; the reco
 gripper at most 6.4 mm per frame). No robot does that, and each jump left the loop's model step
 unconverged for several ticks. ``--loop-jumps`` restores the loop (the benchmark until 2026-11-23).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,11 +54,13 @@ def feeder(endpoint: str, seconds: float, fps: float, loop_jumps: bool = False) 
     poses = poses_from_vertices(positions, grippers)
     s = open_session(ZenohSettings(connect=[endpoint], multicast_scouting=False))
     import zenoh
+
     pp = s.declare_publisher("deform/rod1/ee_poses", congestion_control=zenoh.CongestionControl.DROP)
     pc = s.declare_publisher("deform/rod1/points", congestion_control=zenoh.CongestionControl.DROP)
     pi = s.declare_publisher("deform/rod1/camera_info")
     pk = s.declare_publisher("deform/rod1/camera_pose")
     from service.geometry import matrix_to_pose
+
     cam = frames[0].camera
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
     by_step = {f.step: f for f in frames}
@@ -109,8 +112,13 @@ def status(session, key="deform/rod1/status") -> dict:
 
 
 def start_feeder(endpoint: str, seconds: float, fps: float, loop_jumps: bool = False):
-    p = subprocess.Popen([sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)]
-                         + (["--loop-jumps"] if loop_jumps else []), stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    p = subprocess.Popen(
+        [sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)]
+        + (["--loop-jumps"] if loop_jumps else []),
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     assert p.stdout.readline().strip() == "ready"
     return p
 
@@ -137,7 +145,9 @@ def predict_run(endpoint: str, n: int, stale_plans: bool = False) -> None:
         while True:
             for r in s.get("deform/rod1/vertices", timeout=5.0):
                 if r.ok is not None:
-                    return poses_from_vertices(M.parse_vertices(r.ok.payload.to_bytes())[1].astype(float), grippers)
+                    return poses_from_vertices(
+                        M.parse_vertices(r.ok.payload.to_bytes())[1].astype(float), grippers
+                    )
 
     base = current_poses()
     rng = np.random.default_rng(0)
@@ -146,7 +156,8 @@ def predict_run(endpoint: str, n: int, stale_plans: bool = False) -> None:
         if not stale_plans:
             base = current_poses()
         plans = base[None, None] + np.linspace(0, 1, 100)[None, :, None, None] * np.concatenate(
-            [rng.uniform(-0.1, 0.1, (64, 1, 2, 3)), np.zeros((64, 1, 2, 4))], axis=-1)
+            [rng.uniform(-0.1, 0.1, (64, 1, 2, 3)), np.zeros((64, 1, 2, 4))], axis=-1
+        )
         # orjson: ~5 ms for the 1.1 MB body against ~60 ms with json, during which the rope moves on
         body = orjson.dumps({"plans": plans, "dt": 0.01}, option=orjson.OPT_SERIALIZE_NUMPY)
         t = time.perf_counter()
@@ -155,16 +166,30 @@ def predict_run(endpoint: str, n: int, stale_plans: bool = False) -> None:
             size = len(r.ok.payload.to_bytes())
         times.append(1e3 * (time.perf_counter() - t))
         time.sleep(0.2)  # a planner asking about five times a second
-    print(json.dumps({"ms": [round(t, 1) for t in times], "p50_ms": round(float(np.median(times)), 1),
-                      "p90_ms": round(float(np.percentile(times, 90)), 1), "max_ms": round(float(np.max(times)), 1),
-                      "reply_bytes": size}), flush=True)
+    print(
+        json.dumps(
+            {
+                "ms": [round(t, 1) for t in times],
+                "p50_ms": round(float(np.median(times)), 1),
+                "p90_ms": round(float(np.percentile(times, 90)), 1),
+                "max_ms": round(float(np.max(times)), 1),
+                "reply_bytes": size,
+            }
+        ),
+        flush=True,
+    )
     s.close()
 
 
 def predict_client(endpoint: str, n: int, stale_plans: bool = False) -> dict:
-    p = subprocess.run([sys.executable, __file__, "--predict-client", endpoint, "--predict-n", str(n)]
-                       + (["--stale-plans"] if stale_plans else []),
-                       capture_output=True, text=True, cwd=ROOT, timeout=600)
+    p = subprocess.run(
+        [sys.executable, __file__, "--predict-client", endpoint, "--predict-n", str(n)]
+        + (["--stale-plans"] if stale_plans else []),
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
     lines = [l for l in p.stdout.splitlines() if l.startswith("{")]
     if not lines:
         raise RuntimeError(f"predict client failed: {p.stderr[-2000:]}")
@@ -182,10 +207,16 @@ def main() -> int:
     ap.add_argument("--config", help="service YAML (default: config/service.yaml)")
     ap.add_argument("--predict-client")
     ap.add_argument("--feeder-s", type=float)
-    ap.add_argument("--loop-jumps", action="store_true",
-                    help="play the recording in a loop (a 24 cm gripper jump every 3 s) instead of back and forth")
-    ap.add_argument("--stale-plans", action="store_true",
-                    help="plans start where the grippers were when the client started, not at their current poses")
+    ap.add_argument(
+        "--loop-jumps",
+        action="store_true",
+        help="play the recording in a loop (a 24 cm gripper jump every 3 s) instead of back and forth",
+    )
+    ap.add_argument(
+        "--stale-plans",
+        action="store_true",
+        help="plans start where the grippers were when the client started, not at their current poses",
+    )
     args = ap.parse_args()
     if args.predict_client:
         predict_run(args.predict_client, args.predict_n, args.stale_plans)
@@ -195,6 +226,7 @@ def main() -> int:
         return 0
 
     import logging
+
     logging.basicConfig(level=logging.WARNING)
     from service.config import load_config
     from service.demo import free_port
@@ -204,9 +236,16 @@ def main() -> int:
     cfg = load_config(args.config, zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
     svc = Service(cfg).start()
     client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
-    out: dict = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                             "processor": platform.processor()}, "tracker": type(svc.est.tracker).__name__,
-                 "feeder": "loop (gripper jumps)" if args.loop_jumps else "back and forth"}
+    out: dict = {
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "processor": platform.processor(),
+        },
+        "tracker": type(svc.est.tracker).__name__,
+        "feeder": "loop (gripper jumps)" if args.loop_jumps else "back and forth",
+    }
 
     t_ready = time.perf_counter()
     # the predict worker compiles its rollout, and the service its loop step, first
@@ -218,7 +257,7 @@ def main() -> int:
 
     # 1. live loop with clouds at 30 Hz
     feed = start_feeder(ep, args.loop_s + 3, args.fps, args.loop_jumps)
-    time.sleep(3.0)   # initialization and warm-up
+    time.sleep(3.0)  # initialization and warm-up
     s0 = status(client)
     time.sleep(args.loop_s)
     s1 = status(client)
@@ -228,11 +267,22 @@ def main() -> int:
     skipped = counted(s0, s1, "ticks_skipped")
     fused = counted(s0, s1, "clouds_fused")
     redone = s1.get("step_redone", 0) - s0.get("step_redone", 0)
-    out["loop"] = {"seconds": args.loop_s, "ticks": ticks, "deadline_misses": misses, "ticks_skipped": skipped,
-                   "deadline_miss_pct": round(100.0 * (misses + skipped) / max(ticks + skipped, 1), 3),
-                   "rate_hz": s1["rate_hz"], "clouds_fused": fused, "compiled_steps_redone": redone, "clouds_per_s": round(fused / args.loop_s, 1),
-                   "step_ms": s1["step_ms"], "tick_to_publish_ms": s1["tick_to_publish_ms"],
-                   "fusion_ms": s1["fusion_ms"], "dropped": s1["dropped"], "rejected": s1["rejected"]}
+    out["loop"] = {
+        "seconds": args.loop_s,
+        "ticks": ticks,
+        "deadline_misses": misses,
+        "ticks_skipped": skipped,
+        "deadline_miss_pct": round(100.0 * (misses + skipped) / max(ticks + skipped, 1), 3),
+        "rate_hz": s1["rate_hz"],
+        "clouds_fused": fused,
+        "compiled_steps_redone": redone,
+        "clouds_per_s": round(fused / args.loop_s, 1),
+        "step_ms": s1["step_ms"],
+        "tick_to_publish_ms": s1["tick_to_publish_ms"],
+        "fusion_ms": s1["fusion_ms"],
+        "dropped": s1["dropped"],
+        "rejected": s1["rejected"],
+    }
     print(json.dumps(out["loop"]), flush=True)
 
     # 2. predict 64 plans x 100 steps from the current estimate, asked by a separate client process
@@ -240,14 +290,21 @@ def main() -> int:
     def inside(n: int) -> dict:
         """The last ``n`` predictions as the service saw them: job handed to the predict worker ->
         reply back (IPC included), and the time inside the worker (parse, rollout, encode)."""
-        return {"service_ms": svc.stats.predict_s.summary(last=n),
-                "worker_ms": svc.stats.predict_compute_s.summary(last=n)}
+        return {
+            "service_ms": svc.stats.predict_s.summary(last=n),
+            "worker_ms": svc.stats.predict_compute_s.summary(last=n),
+        }
 
-    out["plans_start"] = "where the grippers were at client start" if args.stale_plans else "current gripper poses"
+    out["plans_start"] = (
+        "where the grippers were at client start" if args.stale_plans else "current gripper poses"
+    )
     s0 = status(client)
-    out["predict_64x100"] = dict(predict_client(ep, args.predict_n, args.stale_plans), **inside(args.predict_n),
-                                 steps_redone=counted(s0, status(client), "predict_steps_redone"),
-                                 note="service idle (no feeder); request sent to reply received, client process")
+    out["predict_64x100"] = dict(
+        predict_client(ep, args.predict_n, args.stale_plans),
+        **inside(args.predict_n),
+        steps_redone=counted(s0, status(client), "predict_steps_redone"),
+        note="service idle (no feeder); request sent to reply received, client process",
+    )
     print(json.dumps(out["predict_64x100"]), flush=True)
     feed = start_feeder(ep, 3 + args.predict_n * 1.0 + 60, args.fps, args.loop_jumps)
     time.sleep(3.0)
@@ -256,13 +313,16 @@ def main() -> int:
     s1, t_live1 = status(client), time.perf_counter()
     feed.kill()
     out["predict_64x100_live"] = dict(
-        live, **inside(args.predict_n), steps_redone=counted(s0, s1, "predict_steps_redone"),
+        live,
+        **inside(args.predict_n),
+        steps_redone=counted(s0, s1, "predict_steps_redone"),
         loop_deadline_misses=counted(s0, s1, "deadline_misses"),
         clouds_fused=counted(s0, s1, "clouds_fused"),
         fusions_deferred=counted(s0, s1, "fusion_deferred"),
         seconds=round(t_live1 - t_live0, 1),
         loop_ticks=s1["counts"]["ticks"] - s0["counts"]["ticks"],
-        note="while the loop runs at 100 Hz with clouds at 30 Hz; client process")
+        note="while the loop runs at 100 Hz with clouds at 30 Hz; client process",
+    )
     print(json.dumps(out["predict_64x100_live"]), flush=True)
 
     # 3. memory soak
@@ -276,10 +336,16 @@ def main() -> int:
     s2 = status(client)
     feed.kill()
     growth = 100.0 * (samples[-1][1] - samples[0][1]) / samples[0][1]
-    out["soak"] = {"seconds": args.soak_s, "rss_start_mb": round(samples[0][1], 1), "rss_end_mb": round(samples[-1][1], 1),
-                   "growth_pct": round(growth, 2), "samples": [(t, round(m, 1)) for t, m in samples],
-                   "ticks": s2["ticks"], "deadline_misses_total": s2["deadline_misses"],
-                   "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+    out["soak"] = {
+        "seconds": args.soak_s,
+        "rss_start_mb": round(samples[0][1], 1),
+        "rss_end_mb": round(samples[-1][1], 1),
+        "growth_pct": round(growth, 2),
+        "samples": [(t, round(m, 1)) for t, m in samples],
+        "ticks": s2["ticks"],
+        "deadline_misses_total": s2["deadline_misses"],
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+    }
     print(json.dumps({k: v for k, v in out["soak"].items() if k != "samples"}), flush=True)
     client.close()
     svc.stop()

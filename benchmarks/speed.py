@@ -1,4 +1,5 @@
 """Speed benchmark (issue 2): `python benchmarks/speed.py [--quick]` -> benchmarks/results/speed.json."""
+
 import argparse
 import json
 from pathlib import Path

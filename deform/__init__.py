@@ -9,14 +9,35 @@ Public API (perception, service and tools use only these names):
 - :class:`RodConfig`, :func:`load_rod_config`, :class:`ConfigError`: rod configuration.
 - :func:`generate_recording`: synthetic recordings from the simulator.
 """
+
 from deform.config import ConfigError, RodConfig, available_rods, load_rod_config
-from deform.io import Recording, RecordingError, find_data_root, load_recording, load_recordings, save_recording
+from deform.io import (
+    Recording,
+    RecordingError,
+    find_data_root,
+    load_recording,
+    load_recordings,
+    save_recording,
+)
 from deform.model import DeformModel, ModelOptions, RodState, gripped_indices, load_model, overstretched
 from deform.synthetic import generate_recording
 
 __all__ = [
-    "ConfigError", "RodConfig", "available_rods", "load_rod_config",
-    "Recording", "RecordingError", "find_data_root", "load_recording", "load_recordings", "save_recording",
-    "DeformModel", "ModelOptions", "RodState", "gripped_indices", "load_model", "overstretched",
+    "ConfigError",
+    "DeformModel",
+    "ModelOptions",
+    "Recording",
+    "RecordingError",
+    "RodConfig",
+    "RodState",
+    "available_rods",
+    "find_data_root",
     "generate_recording",
+    "gripped_indices",
+    "load_model",
+    "load_recording",
+    "load_recordings",
+    "load_rod_config",
+    "overstretched",
+    "save_recording",
 ]

@@ -14,6 +14,7 @@ Only the branch-free step (fixed twist iterations and projection sweeps, see
 :class:`deform.compiled.CompiledStep`) is compiled this way: the convergence-checked step has
 data-dependent loops that do not export into one graph.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -27,8 +28,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 from deform.model import DeformModel, RodState
+from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 
 log = logging.getLogger("deform.aot")
 
@@ -46,9 +47,16 @@ def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dt
     """Hash of everything the compiled code depends on: the model's values and configuration, the
     step's settings, the source of ``deform`` and the torch build and CPU."""
     h = hashlib.sha256()
-    for part in (torch.__version__, platform.machine(), torch.backends.cpu.get_cpu_capability(),
-                 repr(branch_free), str(batch), str(dtype), repr(model.cfg),
-                 repr([type(e).__name__ for e in getattr(model, "extensions", [])])):
+    for part in (
+        torch.__version__,
+        platform.machine(),
+        torch.backends.cpu.get_cpu_capability(),
+        repr(branch_free),
+        str(batch),
+        str(dtype),
+        repr(model.cfg),
+        repr([type(e).__name__ for e in getattr(model, "extensions", [])]),
+    ):
         h.update(part.encode())
     for name, t in sorted(model.state_dict().items()):
         h.update(name.encode())
@@ -66,11 +74,15 @@ class _BranchFreeStep(torch.nn.Module):
         self.model, self.branch_free = model, branch_free
 
     def forward(self, x: Tensor, v: Tensor, d1: Tensor, theta: Tensor, rest: Tensor, grip: Tensor):
-        new, unconverged = branch_free_step(self.model, RodState(x, v, d1, theta, rest), grip, self.branch_free)
+        new, unconverged = branch_free_step(
+            self.model, RodState(x, v, d1, theta, rest), grip, self.branch_free
+        )
         return new.x, new.v, new.d1, new.theta, new.rest, unconverged
 
 
-def _build(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype, path: Path) -> None:
+def _build(
+    model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype, path: Path
+) -> None:
     """Export the step for a rod at rest (shapes and dtype are all that matter) and compile it."""
     state, grip = rod_at_rest(model, batch, dtype)
     args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
@@ -80,11 +92,17 @@ def _build(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: 
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=path.parent) as tmp:  # atomic: no half-written package
             part = Path(tmp) / path.name
-            torch._inductor.aoti_compile_and_package(exported, package_path=str(part),
-                                                     inductor_configs=AOT_OPTIONS)
+            torch._inductor.aoti_compile_and_package(
+                exported, package_path=str(part), inductor_configs=AOT_OPTIONS
+            )
             os.replace(part, path)
-    log.info("compiled the step ahead of time for %d rods (%s) in %.0f s: %s", batch, dtype,
-             time.perf_counter() - t0, path)
+    log.info(
+        "compiled the step ahead of time for %d rods (%s) in %.0f s: %s",
+        batch,
+        dtype,
+        time.perf_counter() - t0,
+        path,
+    )
 
 
 class AheadOfTimeStep:
@@ -95,8 +113,9 @@ class AheadOfTimeStep:
     >>> new, unconverged = step(state, grip_next)
     """
 
-    def __init__(self, model: DeformModel, branch_free: tuple[int, int], batch: int,
-                 dtype: torch.dtype = torch.float64):
+    def __init__(
+        self, model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype = torch.float64
+    ):
         self.model, self.branch_free, self.batch, self.dtype = model, branch_free, batch, dtype
         self._runner = None
         self._tensors: list[Tensor] = []  # the parameters and buffers the package was made from
@@ -106,7 +125,9 @@ class AheadOfTimeStep:
 
     def load(self) -> None:
         """The package for the model's current parameters: from the cache, else compiled now."""
-        self.path = cache_dir() / f"step-{package_key(self.model, self.branch_free, self.batch, self.dtype)}.pt2"
+        self.path = (
+            cache_dir() / f"step-{package_key(self.model, self.branch_free, self.batch, self.dtype)}.pt2"
+        )
         if not self.path.exists():
             _build(self.model, self.branch_free, self.batch, self.dtype, self.path)
         self._runner = torch._inductor.aoti_load_package(str(self.path))
@@ -121,5 +142,7 @@ class AheadOfTimeStep:
     def __call__(self, state: RodState, grip_next: Tensor) -> tuple[RodState, Tensor]:
         if self._current_versions() != self._versions:  # parameters changed in place: not these weights
             self.load()
-        x, v, d1, theta, rest, unconverged = self._runner(state.x, state.v, state.d1, state.theta, state.rest, grip_next)
+        x, v, d1, theta, rest, unconverged = self._runner(
+            state.x, state.v, state.d1, state.theta, state.rest, grip_next
+        )
         return RodState(x, v, d1, theta, rest), unconverged

@@ -3,6 +3,7 @@
 Every figure is a median (and p99 for latencies) over many steps, measured in one process; the
 Theseus twist solver runs in the same process as the baseline the fast solver is compared to.
 """
+
 from __future__ import annotations
 
 import os
@@ -75,7 +76,9 @@ def vertex_scaling(counts=(13, 25, 50, 100), steps: int = 300) -> dict:
     return out
 
 
-def training_iteration(model: DeformModel, positions: np.ndarray, batch: int = 32, horizon: int = 100, iters: int = 3) -> dict:
+def training_iteration(
+    model: DeformModel, positions: np.ndarray, batch: int = 32, horizon: int = 100, iters: int = 3
+) -> dict:
     from deform.io.recordings import Recording
     from deform.train import rollout_loss, sample_windows
 
@@ -98,9 +101,16 @@ def theta_solver_training_ratio(rod: str, positions: np.ndarray, batch: int = 4,
     for solver in ("newton", "theseus"):
         model = load_model(rod)
         model.options.theta_solver = solver
-        out[solver] = training_iteration(model, positions, batch=batch, horizon=horizon, iters=2)["seconds_p50"]
-    return {"batch": batch, "horizon": horizon, "seconds_newton": out["newton"], "seconds_theseus": out["theseus"],
-            "theseus_over_newton": out["theseus"] / out["newton"]}
+        out[solver] = training_iteration(model, positions, batch=batch, horizon=horizon, iters=2)[
+            "seconds_p50"
+        ]
+    return {
+        "batch": batch,
+        "horizon": horizon,
+        "seconds_newton": out["newton"],
+        "seconds_theseus": out["theseus"],
+        "theseus_over_newton": out["theseus"] / out["newton"],
+    }
 
 
 def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
@@ -109,17 +119,25 @@ def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
     positions = _trajectory(model)
     torch.set_num_threads(1)
     result = {
-        "machine": {"cpu_count": os.cpu_count(), "processor": platform.processor() or platform.machine(),
-                    "torch": torch.__version__, "python": platform.python_version()},
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "processor": platform.processor() or platform.machine(),
+            "torch": torch.__version__,
+            "python": platform.python_version(),
+        },
         "rod": rod,
         "n_vertices": model.n,
     }
     result["single_rollout_1_thread"] = step_latency(model, positions, steps)
     theseus_model = load_model(rod)
     theseus_model.options.theta_solver = "theseus"
-    result["single_rollout_theseus_theta_1_thread"] = step_latency(theseus_model, positions, 20 if quick else 60)
-    result["speedup_vs_theseus_theta"] = (result["single_rollout_theseus_theta_1_thread"]["p50_ms"]
-                                          / result["single_rollout_1_thread"]["p50_ms"])
+    result["single_rollout_theseus_theta_1_thread"] = step_latency(
+        theseus_model, positions, 20 if quick else 60
+    )
+    result["speedup_vs_theseus_theta"] = (
+        result["single_rollout_theseus_theta_1_thread"]["p50_ms"]
+        / result["single_rollout_1_thread"]["p50_ms"]
+    )
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     result["throughput_rod_steps_per_s_2_threads"] = {
         str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50))
@@ -141,11 +159,14 @@ def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
     sizes = (1, 32, 256) if quick else (1, 32, 256, 1024)
     compiled.warmup(sizes)
     result["throughput_compiled_rod_steps_per_s_2_threads"] = {
-        str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50), compiled) for b in sizes
+        str(b): throughput(model, positions, b, 20 if quick else (200 if b <= 32 else 50), compiled)
+        for b in sizes
     }
     torch.set_num_threads(1)
     result["vertex_scaling_1_thread"] = vertex_scaling(steps=100 if quick else 300)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
-    result["training_iteration_2_threads"] = training_iteration(load_model(rod), positions, iters=2 if quick else 5)
+    result["training_iteration_2_threads"] = training_iteration(
+        load_model(rod), positions, iters=2 if quick else 5
+    )
     result["training_theta_solver_2_threads"] = theta_solver_training_ratio(rod, positions)
     return result

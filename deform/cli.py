@@ -3,6 +3,7 @@
 Errors on bad input are one line on stderr naming the file and the problem, exit code 2, and
 nothing is written.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,9 +28,9 @@ def _data_dir(rod: str, split: str, explicit: str | None) -> Path:
 def cmd_train(args) -> int:
     import torch
 
+    from deform.config import load_rod_config
     from deform.io.recordings import load_recordings
     from deform.model import MODEL_DIR, DeformModel, ModelOptions, load_model
-    from deform.config import load_rod_config
     from deform.train import TrainConfig, split_validation, train
 
     torch.set_num_threads(args.threads)
@@ -39,16 +40,28 @@ def cmd_train(args) -> int:
     train_recs, val_recs = split_validation(recs, args.val_every)
     if not train_recs:
         raise UsageError(f"{args.recordings}: too few recordings to train")
-    options = ModelOptions(residual=not args.no_residual, weighted_pbd=not args.original_inextensibility,
-                           theta_solver=args.theta_solver)
+    options = ModelOptions(
+        residual=not args.no_residual,
+        weighted_pbd=not args.original_inextensibility,
+        theta_solver=args.theta_solver,
+    )
     model = load_model(args.init) if args.init else DeformModel(cfg, options)
     model.options = options
-    tcfg = TrainConfig(iterations=args.iterations, batch=args.batch, horizon=args.horizon,
-                       residual=not args.no_residual, sysid=not args.no_sysid, seed=args.seed,
-                       time_limit_s=args.time_limit, curriculum=tuple(args.curriculum) if args.horizon > 1 else (),
-                       lr_physics=args.lr_physics, lr_network=args.lr_network,
-                       coarse_sysid=not args.init,  # a given starting model is already identified
-                       drag=not args.no_drag, transported_frames=not args.fresh_frames)
+    tcfg = TrainConfig(
+        iterations=args.iterations,
+        batch=args.batch,
+        horizon=args.horizon,
+        residual=not args.no_residual,
+        sysid=not args.no_sysid,
+        seed=args.seed,
+        time_limit_s=args.time_limit,
+        curriculum=tuple(args.curriculum) if args.horizon > 1 else (),
+        lr_physics=args.lr_physics,
+        lr_network=args.lr_network,
+        coarse_sysid=not args.init,  # a given starting model is already identified
+        drag=not args.no_drag,
+        transported_frames=not args.fresh_frames,
+    )
     out = Path(args.out or f"runs/{args.rod}")
     result = train(model, train_recs, val_recs, tcfg, out, resume=not args.fresh)
     best = DeformModel.load(out / "best.pt")
@@ -76,12 +89,19 @@ def cmd_eval(args) -> int:
         model = load_baseline(args.method, args.rod, args.model)
     directory = _data_dir(args.rod, "eval", args.recordings)
     recs = load_recordings(directory, model.n)
-    result = {"rod": args.rod, "method": args.method, "recordings_dir": str(directory), **evaluate(model, recs, args.steps)}
+    result = {
+        "rod": args.rod,
+        "method": args.method,
+        "recordings_dir": str(directory),
+        **evaluate(model, recs, args.steps),
+    }
     if args.json:
         print(json.dumps(result, indent=2))
     else:
-        print(f"{args.rod}: L1 {result['l1_m'] * 100:.3f} cm over {result['recordings']} recordings, "
-              f"{result['steps']} steps; step p50 {result['step_ms_p50']:.3f} ms")
+        print(
+            f"{args.rod}: L1 {result['l1_m'] * 100:.3f} cm over {result['recordings']} recordings, "
+            f"{result['steps']} steps; step p50 {result['step_ms_p50']:.3f} ms"
+        )
     return 0
 
 
@@ -115,7 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="deform", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
-    t = sub.add_parser("train", help="identify parameters and train the residual network on a rod's recordings")
+    t = sub.add_parser(
+        "train", help="identify parameters and train the residual network on a rod's recordings"
+    )
     t.add_argument("--rod", required=True)
     t.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/train)")
     t.add_argument("--out", help="run directory (default runs/ROD); resumes from its checkpoint")
@@ -131,9 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--original-inextensibility", action="store_true")
     t.add_argument("--theta-solver", choices=["newton", "theseus"], default="newton")
     t.add_argument("--no-drag", action="store_true", help="no quadratic air drag (linear damping only)")
-    t.add_argument("--fresh-frames", action="store_true",
-                   help="start every training window in fresh space-parallel reference frames instead of "
-                        "the ones a rollout from the recording's start carries there")
+    t.add_argument(
+        "--fresh-frames",
+        action="store_true",
+        help="start every training window in fresh space-parallel reference frames instead of "
+        "the ones a rollout from the recording's start carries there",
+    )
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
     t.add_argument("--lr-physics", type=float, default=2e-2)
     t.add_argument("--lr-network", type=float, default=1e-3)
@@ -158,14 +183,20 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true")
     b.set_defaults(func=cmd_bench)
 
-    g = sub.add_parser("diagnose", help="locate and name the physics a simulation leaves out (see deform.diagnose)")
+    g = sub.add_parser(
+        "diagnose", help="locate and name the physics a simulation leaves out (see deform.diagnose)"
+    )
     g.add_argument("--rod", required=True, help="ROD.json: length_m, mass_kg, n_vertices, dt")
     g.add_argument("--fit", required=True, help="directory of recordings to fit")
     g.add_argument("--check", required=True, help="directory of held-out recordings")
     g.add_argument("--out", required=True, help="output directory (report.json, report.md, plots)")
     g.add_argument("--model", help="starting model (.pt)")
-    g.add_argument("--budget", choices=("full", "quick"), default="full",
-                   help="fitting effort: full (default) or quick (about a third; the planted benchmark's)")
+    g.add_argument(
+        "--budget",
+        choices=("full", "quick"),
+        default="full",
+        help="fitting effort: full (default) or quick (about a third; the planted benchmark's)",
+    )
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 

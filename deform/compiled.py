@@ -11,9 +11,9 @@ processes), so batches are padded up to a few bucket sizes, and anything that fa
 (no C++ compiler, an unsupported build) falls back to the eager step with one warning. Training
 never uses this path (it needs second-order autograd through the step).
 """
+
 from __future__ import annotations
 
-import functools
 import logging
 import threading
 
@@ -63,8 +63,14 @@ class CompiledStep:
     ``model.unconverged``, ``check="recompute"``) are stepped again eagerly.
     """
 
-    def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] | None = None,
-                 check: str = "report", ahead_of_time: bool = False):
+    def __init__(
+        self,
+        model: DeformModel,
+        enabled: bool = True,
+        branch_free: tuple[int, int] | None = None,
+        check: str = "report",
+        ahead_of_time: bool = False,
+    ):
         self.model = model
         self.enabled = enabled
         self.branch_free = branch_free
@@ -110,16 +116,18 @@ class CompiledStep:
         if fn is None:
             try:
                 fn = self._aot[(size, dtype)] = AheadOfTimeStep(self.model, self.branch_free, size, dtype)
-            except Exception as exc:  # noqa: BLE001 - no AOTInductor here: the torch.compile step
+            except Exception as exc:
                 self.ahead_of_time = False
-                log.warning("ahead-of-time step unavailable (%s: %s); using torch.compile", type(exc).__name__, exc)
+                log.warning(
+                    "ahead-of-time step unavailable (%s: %s); using torch.compile", type(exc).__name__, exc
+                )
         return fn
 
     def attempt(self, state: RodState, grip_next: Tensor | None) -> tuple[RodState, Tensor | None]:
         """The compiled step alone: ``(new state, unconverged)``, ``unconverged`` a (B,) bool tensor
         with ``branch_free`` (rods outside the solver tolerances, see ``model.unconverged``), else
         None. Eager (and None) when compilation is off or failed, or with gradients."""
-        if not self.active or torch.is_grad_enabled() and state.x.requires_grad:
+        if not self.active or (torch.is_grad_enabled() and state.x.requires_grad):
             return self.model.step(state, grip_next), None
         batch = state.x.shape[0]
         size = bucket_size(batch)
@@ -131,14 +139,16 @@ class CompiledStep:
                 if fn is not None:
                     try:
                         out, unconverged = fn(padded, grip)
-                    except Exception as exc:  # noqa: BLE001 - a package that fails at run time: the
+                    except Exception as exc:
                         # torch.compile step of the same graph is still good, so only this path goes
                         self.ahead_of_time, fn = False, None
                         self._aot.clear()
-                        log.warning("ahead-of-time step failed (%s: %s); using torch.compile", type(exc).__name__, exc)
+                        log.warning(
+                            "ahead-of-time step failed (%s: %s); using torch.compile", type(exc).__name__, exc
+                        )
                 if fn is None:
                     out, unconverged = self._step_fn()(padded, grip)
-        except Exception as exc:  # noqa: BLE001 - any compiler failure: keep running, eagerly
+        except Exception as exc:
             self._failed = True
             log.warning("compiled step unavailable (%s: %s); using the eager step", type(exc).__name__, exc)
             with torch.no_grad():
@@ -189,8 +199,14 @@ class RolloutStep:
     grippers nearly or fully as far apart as the rod is long. A third Newton iteration only costs.
     """
 
-    def __init__(self, model: DeformModel, enabled: bool = True, branch_free: tuple[int, int] = (2, 2),
-                 max_misses: int = 3, ahead_of_time: bool = False):
+    def __init__(
+        self,
+        model: DeformModel,
+        enabled: bool = True,
+        branch_free: tuple[int, int] = (2, 2),
+        max_misses: int = 3,
+        ahead_of_time: bool = False,
+    ):
         self.model = model
         self.fast = CompiledStep(model, enabled, branch_free=branch_free, ahead_of_time=ahead_of_time)
         self.checked = CompiledStep(model, enabled)

@@ -1,4 +1,5 @@
 """Rod configuration: what is known about a rod before any fitting (YAML under config/rods/)."""
+
 from __future__ import annotations
 
 from pathlib import Path

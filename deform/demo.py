@@ -1,4 +1,5 @@
 """Model-only demo: predict a recording open-loop and print the error (used when the service is absent)."""
+
 from __future__ import annotations
 
 import time
@@ -27,9 +28,13 @@ def main(rod: str = "DLO1") -> int:
     m = metrics(res)
     step = np.concatenate([r.step_seconds for r in res])
     print(f"{rod}: open-loop prediction of {source}")
-    print(f"  L1 (paper's metric) {m['l1_m'] * 100:.3f} cm, mean interior vertex distance {m['mean_vertex_dist_m'] * 100:.3f} cm")
-    print(f"  step p50 {np.median(step) * 1e3:.3f} ms, p99 {np.percentile(step, 99) * 1e3:.3f} ms, "
-          f"total {time.perf_counter() - t0:.1f} s")
+    print(
+        f"  L1 (paper's metric) {m['l1_m'] * 100:.3f} cm, mean interior vertex distance {m['mean_vertex_dist_m'] * 100:.3f} cm"
+    )
+    print(
+        f"  step p50 {np.median(step) * 1e3:.3f} ms, p99 {np.percentile(step, 99) * 1e3:.3f} ms, "
+        f"total {time.perf_counter() - t0:.1f} s"
+    )
     return 0
 
 

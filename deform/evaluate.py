@@ -4,6 +4,7 @@ For a recording ``X`` (T, n, 3): start from frames 0 and 1, feed the gripped ver
 frame, and predict the rest. ``l1_m`` is the mean of ``|prediction - truth|`` over predicted steps, all
 vertices (gripped ones included, as in the paper) and x, y, z.
 """
+
 from __future__ import annotations
 
 import time
@@ -42,19 +43,26 @@ def paper_l1(prediction: np.ndarray, truth: np.ndarray, nan_as: float | None = N
     return float((err if nan_as is None else np.nan_to_num(err, nan=nan_as)).mean())
 
 
-def predict_recordings(model, recordings: list[Recording], steps: int = 500,
-                       batched: bool = True) -> list[RolloutResult]:
+def predict_recordings(
+    model, recordings: list[Recording], steps: int = 500, batched: bool = True
+) -> list[RolloutResult]:
     """Roll out every recording open-loop, in input order. ``model`` is anything with ``n``,
     ``initial_state`` and ``step`` (the baselines too). Batched: recordings predicted over the same
     number of steps share one batch; otherwise one rollout each (the timing of a single rollout)."""
     idx = gripped_indices(model.n)
     horizon = [min(steps, r.n_frames - 2) for r in recordings]
-    groups = list(batches_by_horizon(recordings, steps).values()) if batched else [[i] for i in range(len(recordings))]
+    groups = (
+        list(batches_by_horizon(recordings, steps).values())
+        if batched
+        else [[i] for i in range(len(recordings))]
+    )
     results: list[RolloutResult | None] = [None] * len(recordings)
     with torch.no_grad():
         for members in groups:
             s = horizon[members[0]]
-            X = torch.tensor(np.stack([recordings[i].positions[: s + 2] for i in members]), dtype=torch.float64)
+            X = torch.tensor(
+                np.stack([recordings[i].positions[: s + 2] for i in members]), dtype=torch.float64
+            )
             state = model.initial_state(X[:, 0], X[:, 1])
             preds, times = [], []
             for k in range(s):

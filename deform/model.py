@@ -12,6 +12,7 @@ One step (semi-implicit Euler, ``dt``), for positions ``x`` and velocities ``v``
 Parameters identified from data: per-vertex bending and twisting stiffness (log scale), rest
 material curvature, extra point masses per vertex, linear damping and quadratic air drag.
 """
+
 from __future__ import annotations
 
 import math
@@ -74,10 +75,10 @@ class RodState:
     theta: Tensor
     rest: Tensor
 
-    def detach(self) -> "RodState":
+    def detach(self) -> RodState:
         return RodState(*(t.detach() for t in (self.x, self.v, self.d1, self.theta, self.rest)))
 
-    def index(self, idx) -> "RodState":
+    def index(self, idx) -> RodState:
         return RodState(*(t[idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
 
 
@@ -123,7 +124,9 @@ class DeformModel(nn.Module):
         # typical edge lengths (m,): from the training recordings (see deform.train); the even
         # spread of the configured length until then. Used where no recording gives them (a rod
         # first seen by a camera).
-        self.register_buffer("nominal_rest", torch.full((n - 1,), cfg.length_m / (n - 1), dtype=torch.float64))
+        self.register_buffer(
+            "nominal_rest", torch.full((n - 1,), cfg.length_m / (n - 1), dtype=torch.float64)
+        )
 
     # ----- parameters -------------------------------------------------------------------------
     def _physical(self, rest: Tensor, create_graph: bool) -> tuple[ElasticParams, Tensor]:
@@ -137,8 +140,13 @@ class DeformModel(nn.Module):
         if torch.compiler.is_compiling():  # compiled code fuses these; a cache keyed on ids would recompile
             with torch.no_grad():
                 return self.elastic_params(rest), self.vertex_mass(rest)
-        key = (id(rest), rest._version, rest.dtype, tuple(p._version for p in self.parameters()),
-               len(self.extensions))
+        key = (
+            id(rest),
+            rest._version,
+            rest.dtype,
+            tuple(p._version for p in self.parameters()),
+            len(self.extensions),
+        )
         cached = getattr(self, "_physical_cache", None)
         if cached is not None and cached[0] == key and cached[1] is rest:
             return cached[2], cached[3]
@@ -184,7 +192,9 @@ class DeformModel(nn.Module):
         return -self.damping.to(x.dtype) * v - self.drag.to(x.dtype) * v_n.norm(dim=-1, keepdim=True) * v_n
 
     # ----- state ------------------------------------------------------------------------------
-    def initial_state(self, x0: Tensor, x1: Tensor, dt: float | None = None, d1: Tensor | None = None) -> RodState:
+    def initial_state(
+        self, x0: Tensor, x1: Tensor, dt: float | None = None, d1: Tensor | None = None
+    ) -> RodState:
         """State at frame 1 from two observed frames (B, n, 3); rest lengths from frame 0.
 
         ``d1`` (B, n-1, 3): reference directors at frame 1; default space-parallel, which is what a
@@ -195,7 +205,11 @@ class DeformModel(nn.Module):
         if x1.dim() == 2:
             x0, x1 = x0.unsqueeze(0), x1.unsqueeze(0)
         t = G.normalize(G.edges(x1))
-        d1 = G.space_parallel_frame(t) if d1 is None else G.time_transport(torch.as_tensor(d1, dtype=x1.dtype), t, t)
+        d1 = (
+            G.space_parallel_frame(t)
+            if d1 is None
+            else G.time_transport(torch.as_tensor(d1, dtype=x1.dtype), t, t)
+        )
         theta = torch.zeros(t.shape[:-1], dtype=x1.dtype)
         rest = G.edges(x0).norm(dim=-1)
         return RodState(x=x1, v=(x1 - x0) / dt, d1=d1, theta=theta, rest=rest)
@@ -206,8 +220,13 @@ class DeformModel(nn.Module):
             x = x.unsqueeze(0)
         t = G.normalize(G.edges(x))
         rest = G.edges(x).norm(dim=-1) if rest is None else rest
-        return RodState(x=x, v=torch.zeros_like(x), d1=G.space_parallel_frame(t),
-                        theta=torch.zeros(t.shape[:-1], dtype=x.dtype), rest=rest)
+        return RodState(
+            x=x,
+            v=torch.zeros_like(x),
+            d1=G.space_parallel_frame(t),
+            theta=torch.zeros(t.shape[:-1], dtype=x.dtype),
+            rest=rest,
+        )
 
     def rest_lengths(self, grip: Tensor | None = None) -> Tensor:
         """(m,) rest lengths for a rod seen without a recording: the nominal ones, with the two
@@ -234,16 +253,26 @@ class DeformModel(nn.Module):
         x = x.to(state.x.dtype)
         with torch.no_grad():
             inv_mass = self._projection_inv_mass(self.vertex_mass(state.rest), held=True)
-            x = enforce_inextensibility(x, inv_mass, state.rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
-                                        self.options.pbd_method)
+            x = enforce_inextensibility(
+                x,
+                inv_mass,
+                state.rest,
+                self.options.pbd_tol,
+                self.options.pbd_max_sweeps,
+                self.options.pbd_method,
+            )
         d1 = G.time_transport(state.d1, G.normalize(G.edges(state.x)), G.normalize(G.edges(x)))
-        moved = RodState(x=x, v=state.v if v is None else v.to(state.x.dtype), d1=d1, theta=state.theta, rest=state.rest)
+        moved = RodState(
+            x=x, v=state.v if v is None else v.to(state.x.dtype), d1=d1, theta=state.theta, rest=state.rest
+        )
         with torch.no_grad():
             _, theta = self.forces(moved)
         return RodState(moved.x, moved.v, moved.d1, theta, moved.rest)
 
     # ----- dynamics ---------------------------------------------------------------------------
-    def forces(self, state: RodState, theta_ends: Tensor | None = None, create_graph: bool = False) -> tuple[Tensor, Tensor]:
+    def forces(
+        self, state: RodState, theta_ends: Tensor | None = None, create_graph: bool = False
+    ) -> tuple[Tensor, Tensor]:
         """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles.
 
         Closed form (:mod:`deform.rod.forces`); differentiable with first-order autograd when
@@ -253,8 +282,16 @@ class DeformModel(nn.Module):
         force, theta, _ = self._forces(state, params, mass, theta_ends, create_graph)
         return force, theta
 
-    def _forces(self, state: RodState, params: ElasticParams, mass: Tensor, theta_ends: Tensor | None,
-                create_graph: bool, branch_free: int = 0, report: dict | None = None):
+    def _forces(
+        self,
+        state: RodState,
+        params: ElasticParams,
+        mass: Tensor,
+        theta_ends: Tensor | None,
+        create_graph: bool,
+        branch_free: int = 0,
+        report: dict | None = None,
+    ):
         x = state.x if create_graph else state.x.detach()
         if theta_ends is None:
             theta_ends = state.theta[..., [0, -1]].detach()
@@ -264,17 +301,47 @@ class DeformModel(nn.Module):
         theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report)
         return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
 
-    def _solve_theta(self, a, b, m_ref, theta_ends, params: ElasticParams, theta_init, branch_free: int = 0,
-                     report: dict | None = None):
+    def _solve_theta(
+        self,
+        a,
+        b,
+        m_ref,
+        theta_ends,
+        params: ElasticParams,
+        theta_init,
+        branch_free: int = 0,
+        report: dict | None = None,
+    ):
         if self.options.theta_solver == "theseus":
             from deform.rod.twist_theseus import theseus_theta
 
-            return theseus_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar)
-        return solve_theta(a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar,
-                           theta_init=theta_init, tol=self.options.theta_tol, branch_free=branch_free, report=report)
+            return theseus_theta(
+                a, b, m_ref, theta_ends, params.beta, params.gamma, params.rest_vor, params.wbar
+            )
+        return solve_theta(
+            a,
+            b,
+            m_ref,
+            theta_ends,
+            params.beta,
+            params.gamma,
+            params.rest_vor,
+            params.wbar,
+            theta_init=theta_init,
+            tol=self.options.theta_tol,
+            branch_free=branch_free,
+            report=report,
+        )
 
-    def step(self, state: RodState, grip_next: Tensor | None, theta_ends: Tensor | None = None,
-             create_graph: bool = False, branch_free: tuple[int, int] = (0, 0), report: dict | None = None) -> RodState:
+    def step(
+        self,
+        state: RodState,
+        grip_next: Tensor | None,
+        theta_ends: Tensor | None = None,
+        create_graph: bool = False,
+        branch_free: tuple[int, int] = (0, 0),
+        report: dict | None = None,
+    ) -> RodState:
         """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
         (``None``: nothing is held, e.g. a dropped rope). ``branch_free``: iterations of the twist
         solve and sweeps of the projection done without host synchronisation before the checked
@@ -284,7 +351,9 @@ class DeformModel(nn.Module):
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
-        force, theta, t_old = self._forces(state, params, mass, theta_ends, create_graph, branch_free[0], report)
+        force, theta, t_old = self._forces(
+            state, params, mass, theta_ends, create_graph, branch_free[0], report
+        )
         accel = force / mass.unsqueeze(-1) + self.drag_acceleration(x, v)
         for ext in self.extensions:
             if hasattr(ext, "acceleration"):
@@ -298,8 +367,16 @@ class DeformModel(nn.Module):
             x_pred[..., gripped_indices(self.n), :] = grip_next.to(x_pred.dtype)
         inv_mass = self._projection_inv_mass(mass, held=grip_next is not None)
         rest = state.rest if grip_next is None else rest_within_reach(state.rest, grip_next.to(x_pred.dtype))
-        x_new = enforce_inextensibility(x_pred, inv_mass, rest, self.options.pbd_tol, self.options.pbd_max_sweeps,
-                                        self.options.pbd_method, branch_free[1], report)
+        x_new = enforce_inextensibility(
+            x_pred,
+            inv_mass,
+            rest,
+            self.options.pbd_tol,
+            self.options.pbd_max_sweeps,
+            self.options.pbd_method,
+            branch_free[1],
+            report,
+        )
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))
         d1_new = G.time_transport(state.d1, t_old, t_new)
@@ -324,12 +401,15 @@ class DeformModel(nn.Module):
         params, mass = self._physical(before.rest, False)
         geo = rod_geometry(before.x, before.d1)
         a, b = curvature_projections(geo)
-        grad, diag, off = gradient_and_hessian(after.theta, a, b, geo.m_ref, params.beta, params.gamma,
-                                               params.rest_vor, params.wbar)
+        grad, diag, off = gradient_and_hessian(
+            after.theta, a, b, geo.m_ref, params.beta, params.gamma, params.rest_vor, params.wbar
+        )
         step, pd = solve_tridiagonal_pd(diag, off, grad)
         twist_bad = ~pd | ~(step.abs().amax(-1) < max(self.options.theta_tol, 1e-12) ** 0.5)
         inv_mass = self._projection_inv_mass(mass, held)  # only which vertices can move matters here
-        rest = rest_within_reach(before.rest, after.x[..., gripped_indices(self.n), :]) if held else before.rest
+        rest = (
+            rest_within_reach(before.rest, after.x[..., gripped_indices(self.n), :]) if held else before.rest
+        )
         length_bad = ~(max_relative_error(after.x, rest, inv_mass, per_rod=True) < self.options.pbd_tol)
         if self.options.theta_solver == "theseus":
             twist_bad = torch.zeros_like(twist_bad)
@@ -362,18 +442,24 @@ class DeformModel(nn.Module):
 
     # ----- persistence ------------------------------------------------------------------------
     def save(self, path: str | Path, extra: dict | None = None) -> None:
-        payload = {"config": self.cfg.model_dump(), "options": vars(self.options), "state_dict": self.state_dict()}
+        payload = {
+            "config": self.cfg.model_dump(),
+            "options": vars(self.options),
+            "state_dict": self.state_dict(),
+        }
         payload.update(extra or {})
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         torch.save(payload, path)
 
     @classmethod
-    def load(cls, path: str | Path) -> "DeformModel":
+    def load(cls, path: str | Path) -> DeformModel:
         payload = torch.load(path, map_location="cpu", weights_only=True)
         model = cls(RodConfig(**payload["config"]), ModelOptions(**payload["options"]))
         missing, unexpected = model.load_state_dict(payload["state_dict"], strict=False)
         if unexpected or any(k not in ("log_drag", "nominal_rest") for k in missing):
-            raise RuntimeError(f"{path}: checkpoint does not match the model (missing {missing}, unexpected {unexpected})")
+            raise RuntimeError(
+                f"{path}: checkpoint does not match the model (missing {missing}, unexpected {unexpected})"
+            )
         return model
 
 

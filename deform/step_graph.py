@@ -3,6 +3,7 @@ package (:mod:`deform.aot`): what both trace, the inputs they trace it with, and
 
 Its own module so that ``compiled`` can use ``aot`` without ``aot`` importing ``compiled`` back.
 """
+
 from __future__ import annotations
 
 import torch
@@ -17,8 +18,9 @@ from deform.model import DeformModel, RodState, gripped_indices
 COMPILE_OPTIONS = {"cpp_wrapper": True, "memory_planning": True}
 
 
-def branch_free_step(model: DeformModel, state: RodState, grip_next: Tensor | None,
-                     branch_free: tuple[int, int]) -> tuple[RodState, Tensor]:
+def branch_free_step(
+    model: DeformModel, state: RodState, grip_next: Tensor | None, branch_free: tuple[int, int]
+) -> tuple[RodState, Tensor]:
     """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
     own flags): what the one-graph step computes, compiled or ahead of time."""
     report: dict = {}

@@ -4,6 +4,7 @@ A rod of the configured length hangs between two grippers that start a little cl
 is long, settles under gravity, then the grippers follow smooth random motions (sums of a few
 sinusoids, amplitudes and speeds like those of the real recordings).
 """
+
 from __future__ import annotations
 
 import math
@@ -44,8 +45,9 @@ def smooth_motion(rng: np.random.Generator, t: np.ndarray, amplitude: float, n_m
     return out
 
 
-def gripper_trajectory(cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: int, amplitude: float = 0.2,
-                       sag: float = 0.25) -> np.ndarray:
+def gripper_trajectory(
+    cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: int, amplitude: float = 0.2, sag: float = 0.25
+) -> np.ndarray:
     """(T, 4, 3) positions of vertices 0, 1, n-2, n-1: the two ends pulled ``sag``·L closer, then moving."""
     rng = np.random.default_rng(seed)
     t = np.arange(n_frames) * cfg.dt
@@ -53,7 +55,7 @@ def gripper_trajectory(cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: 
     ends = x_rest[gripped_indices(n)]
     out = np.empty((n_frames, 4, 3))
     for side, sign in ((0, 1.0), (1, -1.0)):
-        pair = ends[2 * side: 2 * side + 2]
+        pair = ends[2 * side : 2 * side + 2]
         anchor = pair[0] if side == 0 else pair[1]
         local = pair - anchor
         # the first 0.8 s pull the ends together; afterwards a smooth random motion and a yaw wobble
@@ -64,7 +66,7 @@ def gripper_trajectory(cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: 
         wiggle = smooth_motion(rng, t, amplitude) * np.clip((t - 1.0) / 0.5, 0, 1)[:, None]
         yaw = 0.3 * np.sin(2 * math.pi * rng.uniform(0.1, 0.4) * t) * np.clip((t - 1.0) / 0.5, 0, 1)
         rotated = np.einsum("tij,kj->tki", _rotation_z(sign * yaw), local)
-        out[:, 2 * side: 2 * side + 2] = anchor + pull[:, None] + wiggle[:, None] + rotated
+        out[:, 2 * side : 2 * side + 2] = anchor + pull[:, None] + wiggle[:, None] + rotated
     free_length = np.linalg.norm(np.diff(x_rest, axis=0), axis=1)[1:-1].sum()
     return _keep_slack(out, free_length * (1 - sag / 2))
 
@@ -83,14 +85,21 @@ def _keep_slack(grips: np.ndarray, max_span: float) -> np.ndarray:
     return out
 
 
-def generate_recording(model, n_frames: int = 500, seed: int = 0, amplitude: float = 0.2, warmup_s: float = 2.5,
-                       noise_m: float = 0.0, name: str | None = None) -> Recording:
+def generate_recording(
+    model,
+    n_frames: int = 500,
+    seed: int = 0,
+    amplitude: float = 0.2,
+    warmup_s: float = 2.5,
+    noise_m: float = 0.0,
+    name: str | None = None,
+) -> Recording:
     """Simulate ``model`` (a :class:`deform.model.DeformModel`) under random gripper motion.
 
     The first ``warmup_s`` seconds (ends pulled together, rod settling) are dropped.
     """
     cfg = model.cfg
-    warm = int(round(warmup_s / cfg.dt))
+    warm = round(warmup_s / cfg.dt)
     x_rest = straight_rod(cfg)
     grips = gripper_trajectory(cfg, x_rest, n_frames + warm + 1, seed, amplitude)
     rng = np.random.default_rng(seed + 10_000)
@@ -99,7 +108,10 @@ def generate_recording(model, n_frames: int = 500, seed: int = 0, amplitude: flo
     x0[2:-2, 2] -= 1e-3 * np.sin(np.linspace(0, math.pi, cfg.n_vertices))[2:-2]
     x0[2:-2] += rng.normal(0, 1e-5, x0[2:-2].shape)
     dtype = torch.float64
-    state = model.static_state(torch.tensor(x0, dtype=dtype), rest=torch.tensor(np.linalg.norm(np.diff(x_rest, axis=0), axis=1)[None], dtype=dtype))
+    state = model.static_state(
+        torch.tensor(x0, dtype=dtype),
+        rest=torch.tensor(np.linalg.norm(np.diff(x_rest, axis=0), axis=1)[None], dtype=dtype),
+    )
     frames = []
     g = torch.tensor(grips, dtype=dtype)
     with torch.no_grad():

@@ -6,6 +6,7 @@ evaluation does. Gradients flow through the whole rollout (forces by autograd wi
 ``create_graph``, twist angles by the implicit function theorem, PBD by plain autograd).
 Checkpoints hold the model, the optimiser, the step and the RNG state, so a run resumes exactly.
 """
+
 from __future__ import annotations
 
 import json
@@ -43,7 +44,9 @@ class TrainConfig:
     rest_curvature_lr_scale: float = 0.05
     coarse_sysid: bool = True
     drag: bool = True  # False: no quadratic air drag (fixed at its floor), linear damping only
-    transported_frames: bool = True  # windows start in the reference frames evaluation carries (sample_windows)
+    transported_frames: bool = (
+        True  # windows start in the reference frames evaluation carries (sample_windows)
+    )
     extra: dict = field(default_factory=dict)
 
 
@@ -66,13 +69,16 @@ def long_enough(recordings: list[Recording], horizon: int) -> list[Recording]:
     usable = [r for r in recordings if r.n_frames >= horizon + 2]
     if not usable:
         longest = max((r.n_frames for r in recordings), default=0)
-        raise UsageError(f"a {horizon}-step window needs recordings of at least {horizon + 2} frames; "
-                         f"the longest has {longest}")
+        raise UsageError(
+            f"a {horizon}-step window needs recordings of at least {horizon + 2} frames; "
+            f"the longest has {longest}"
+        )
     return usable
 
 
-def sample_windows(recordings: list[Recording], batch: int, horizon: int, rng: random.Random,
-                   transported: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+def sample_windows(
+    recordings: list[Recording], batch: int, horizon: int, rng: random.Random, transported: bool = True
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, horizon + 2, n, 3) windows (two frames to start from, ``horizon`` frames to predict) and
     the reference directors (B, n-1, 3) to start them in. Recordings shorter than ``horizon + 2``
     frames are skipped; a UsageError when all are.
@@ -99,8 +105,13 @@ def rollout_loss(model: DeformModel, windows: torch.Tensor, d1: torch.Tensor | N
     return (pred - windows[:, 2:]).abs().mean()
 
 
-def coarse_identification(model: DeformModel, recordings: list[Recording], steps: int = 200,
-                          max_recordings: int = 8, progress: bool = True) -> dict:
+def coarse_identification(
+    model: DeformModel,
+    recordings: list[Recording],
+    steps: int = 200,
+    max_recordings: int = 8,
+    progress: bool = True,
+) -> dict:
     """Grid search of one stiffness scale and the damping before gradient descent.
 
     Stiffness of real cables spans orders of magnitude and the open-loop loss is far from convex in
@@ -114,7 +125,9 @@ def coarse_identification(model: DeformModel, recordings: list[Recording], steps
     options = model.options.residual
     model.options.residual = False
     best = (math.inf, 0.0, float(model.log_damping.detach()))
-    grid = [(math.log(ei), math.log(c)) for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2) for c in (0.3, 1.0, 3.0)]
+    grid = [
+        (math.log(ei), math.log(c)) for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2) for c in (0.3, 1.0, 3.0)
+    ]
     for log_ei, log_c in tqdm(grid, desc="coarse identification", disable=not progress, leave=False):
         with torch.no_grad():
             model.log_beta.copy_(base_beta - shift0 + log_ei)
@@ -178,8 +191,15 @@ def validation_l1(model: DeformModel, recordings: list[Recording], steps: int) -
     return metrics(predict_recordings(model, recordings, steps))["l1_m"]
 
 
-def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Recording], cfg: TrainConfig,
-          out_dir: str | Path, resume: bool = True, progress: bool = True) -> dict:
+def train(
+    model: DeformModel,
+    train_recs: list[Recording],
+    val_recs: list[Recording],
+    cfg: TrainConfig,
+    out_dir: str | Path,
+    resume: bool = True,
+    progress: bool = True,
+) -> dict:
     """Train in place; writes ``out_dir/checkpoint.pt`` (resumable), ``best.pt`` and ``log.jsonl``."""
     long_enough(train_recs, cfg.horizon)  # before any work: the first training batch could not be cut
     out_dir = Path(out_dir)
@@ -190,7 +210,11 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
     opt = torch.optim.Adam(parameter_groups(model, cfg))
     floor = cfg.lr_final_fraction
     scheduler = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda it: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it / max(cfg.iterations, 1), 1.0))))
+        opt,
+        lambda it: (
+            floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it / max(cfg.iterations, 1), 1.0)))
+        ),
+    )
     start, best = 0, math.inf
     ckpt_path = out_dir / "checkpoint.pt"
     if resume and ckpt_path.is_file():
@@ -209,8 +233,14 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
     val_steps = min(cfg.horizon * 5, min(r.n_frames for r in val_recs) - 2) if val_recs else 0
     t_start = time.perf_counter()
     iter_times = []
-    bar = tqdm(range(start, cfg.iterations), initial=start, total=cfg.iterations, disable=not progress,
-               desc=f"train {model.cfg.name}", unit="it")
+    bar = tqdm(
+        range(start, cfg.iterations),
+        initial=start,
+        total=cfg.iterations,
+        disable=not progress,
+        desc=f"train {model.cfg.name}",
+        unit="it",
+    )
     log = (out_dir / "log.jsonl").open("a")
     skipped = 0
     last = {}
@@ -233,9 +263,16 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
         iter_times.append(time.perf_counter() - t0)
         scheduler.step()
         bar.set_postfix(loss=f"{fit.item() * 100:.3f}cm", h=horizon)
-        last = {"iteration": it + 1, "loss_m": fit.item(), "horizon": horizon, "seconds": iter_times[-1],
-                "skipped": skipped}
-        done = it + 1 == cfg.iterations or (cfg.time_limit_s and time.perf_counter() - t_start > cfg.time_limit_s)
+        last = {
+            "iteration": it + 1,
+            "loss_m": fit.item(),
+            "horizon": horizon,
+            "seconds": iter_times[-1],
+            "skipped": skipped,
+        }
+        done = it + 1 == cfg.iterations or (
+            cfg.time_limit_s and time.perf_counter() - t_start > cfg.time_limit_s
+        )
         if val_recs and ((it + 1) % cfg.log_every == 0 or done):
             val = validation_l1(model, val_recs, val_steps)
             last["val_l1_m"] = val
@@ -245,13 +282,26 @@ def train(model: DeformModel, train_recs: list[Recording], val_recs: list[Record
         log.write(json.dumps(last) + "\n")
         log.flush()
         if (it + 1) % cfg.log_every == 0 or done:
-            torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it + 1,
-                        "scheduler": scheduler.state_dict(),
-                        "best": best, "rng": rng.getstate(), "torch_rng": torch.get_rng_state()}, ckpt_path)
+            torch.save(
+                {
+                    "model": model.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "iteration": it + 1,
+                    "scheduler": scheduler.state_dict(),
+                    "best": best,
+                    "rng": rng.getstate(),
+                    "torch_rng": torch.get_rng_state(),
+                },
+                ckpt_path,
+            )
         if done:
             break
     log.close()
     if not val_recs:
         model.save(out_dir / "best.pt", {"iteration": last.get("iteration", start)})
-    return {"best_val_l1_m": best, "last": last, "coarse_identification": coarse,
-            "seconds_per_iteration_p50": float(np.median(iter_times)) if iter_times else None}
+    return {
+        "best_val_l1_m": best,
+        "last": last,
+        "coarse_identification": coarse,
+        "seconds_per_iteration_p50": float(np.median(iter_times)) if iter_times else None,
+    }

@@ -26,10 +26,20 @@ API used by the service (keep it stable)::
 
 ``render_recording(positions, dt, fps, config, camera, seed)`` renders test clouds with ground truth.
 """
+
 from perception.camera import Camera, look_at
 from perception.config import PerceptionConfig, load_config
 from perception.render import RenderedFrame, camera_steps, default_camera, render_recording
 from perception.tracker import Tracker
 
-__all__ = ["Tracker", "Camera", "look_at", "render_recording", "RenderedFrame", "default_camera", "camera_steps",
-           "PerceptionConfig", "load_config"]
+__all__ = [
+    "Camera",
+    "PerceptionConfig",
+    "RenderedFrame",
+    "Tracker",
+    "camera_steps",
+    "default_camera",
+    "load_config",
+    "look_at",
+    "render_recording",
+]

@@ -3,6 +3,7 @@
 Kept separate so the renderer, the occlusion test and the service agree on one convention:
 camera frame x right, y down, z forward (OpenCV); ``world_from_camera`` maps camera to world.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -27,12 +28,18 @@ class Camera:
         self.world_from_camera = np.asarray(self.world_from_camera, dtype=np.float64).reshape(4, 4)
 
     @classmethod
-    def kinect(cls, scale: float = 0.5, world_from_camera: np.ndarray | None = None) -> "Camera":
+    def kinect(cls, scale: float = 0.5, world_from_camera: np.ndarray | None = None) -> Camera:
         """Azure-Kinect-like intrinsics; ``scale=0.5`` gives 320x288 (what the tests and benchmark use)."""
         k = KINECT_NFOV
-        return cls(k["fx"] * scale, k["fy"] * scale, k["cx"] * scale, k["cy"] * scale,
-                   int(round(k["width"] * scale)), int(round(k["height"] * scale)),
-                   np.eye(4) if world_from_camera is None else world_from_camera)
+        return cls(
+            k["fx"] * scale,
+            k["fy"] * scale,
+            k["cx"] * scale,
+            k["cy"] * scale,
+            round(k["width"] * scale),
+            round(k["height"] * scale),
+            np.eye(4) if world_from_camera is None else world_from_camera,
+        )
 
     @property
     def camera_from_world(self) -> np.ndarray:

@@ -3,6 +3,7 @@
 A depth image is what the occlusion test compares predicted vertex depths against; flat clouds (or
 organized clouds of the wrong size) are projected into one with a z-buffer.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -65,7 +66,7 @@ def window_min(depth: np.ndarray, uv: np.ndarray, half: int) -> np.ndarray:
         c, r = int(np.floor(u)), int(np.floor(v))
         if c < 0 or c >= w or r < 0 or r >= h:
             continue
-        patch = depth[max(r - half, 0): r + half + 1, max(c - half, 0): c + half + 1]
+        patch = depth[max(r - half, 0) : r + half + 1, max(c - half, 0) : c + half + 1]
         if np.isfinite(patch).any():
             out[i] = np.nanmin(patch)
     return out

@@ -3,6 +3,7 @@
 Same result as sklearn's DBSCAN up to label order, without its per-call validation overhead
 (several ms), which alone would break the tracker's latency budget.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -3,6 +3,7 @@
 Plain dataclasses: the YAML has sections ``segmentation``, ``estimation``, ``tracker`` and ``render``;
 unknown keys are an error so that typos do not silently fall back to defaults.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
@@ -15,60 +16,64 @@ DEFAULT_PATH = Path(__file__).resolve().parents[1] / "config" / "perception.yaml
 
 @dataclass
 class SegmentationConfig:
-    hsv_low: tuple[int, int, int] = (5, 120, 60)     # OpenCV HSV, H in 0..180
+    hsv_low: tuple[int, int, int] = (5, 120, 60)  # OpenCV HSV, H in 0..180
     hsv_high: tuple[int, int, int] = (25, 255, 255)
-    depth_min: float = 0.25   # m, camera z
+    depth_min: float = 0.25  # m, camera z
     depth_max: float = 3.0
 
 
 @dataclass
 class EstimationConfig:
-    max_points: int = 100_000       # larger clouds are decimated (pixel stride) before segmentation
-    voxel: float = 0.008            # m, voxel grid downsampling of the rope points
-    filter_radius: float = 0.08     # m, keep points this close to a predicted vertex
+    max_points: int = 100_000  # larger clouds are decimated (pixel stride) before segmentation
+    voxel: float = 0.008  # m, voxel grid downsampling of the rope points
+    filter_radius: float = 0.08  # m, keep points this close to a predicted vertex
     occlusion_margin: float = 0.03  # m, a vertex is occluded if the scene is this much closer than it
-    occlusion_window: int = 1       # half size of the pixel window for the observed depth
-    dbscan_eps: float = 0.025       # m
+    occlusion_window: int = 1  # half size of the pixel window for the observed depth
+    dbscan_eps: float = 0.025  # m
     dbscan_min_samples: int = 3
-    assoc_radius: float = 0.05      # m, a vertex joins the group of its nearest point within this
+    assoc_radius: float = 0.05  # m, a vertex joins the group of its nearest point within this
     gmm_iters: int = 8
-    gmm_sigma: float = 0.02         # m, initial isotropic std of the components
-    min_points: float = 3.0         # responsibility mass a component needs to count as observed
-    two_sided: float = 0.25         # support on both sides of a vertex along the rope, as a fraction of the half edge
-    surface_offset: float = 0.004   # m, points lie on the camera-facing surface: push means back by this
+    gmm_sigma: float = 0.02  # m, initial isotropic std of the components
+    min_points: float = 3.0  # responsibility mass a component needs to count as observed
+    two_sided: float = (
+        0.25  # support on both sides of a vertex along the rope, as a fraction of the half edge
+    )
+    surface_offset: float = 0.004  # m, points lie on the camera-facing surface: push means back by this
 
 
 @dataclass
 class TrackerConfig:
-    stale_after_s: float = 0.2      # observed flags expire when no camera update came for this long
+    stale_after_s: float = 0.2  # observed flags expire when no camera update came for this long
     settle_max_steps: int = 300
-    settle_tol: float = 1e-3        # m/s
+    settle_tol: float = 1e-3  # m/s
     init_em_rounds: int = 3
-    rope_radius: float = 0.005      # m
-    velocity_gain: float = 0.5      # corrections also nudge velocities: v += gain * shift / time since last update
+    rope_radius: float = 0.005  # m
+    velocity_gain: float = (
+        0.5  # corrections also nudge velocities: v += gain * shift / time since last update
+    )
 
 
 @dataclass
 class RenderConfig:
-    scale: float = 0.5              # of the Azure Kinect NFOV 640x576 resolution
+    scale: float = 0.5  # of the Azure Kinect NFOV 640x576 resolution
     rope_radius: float = 0.005
     rope_rgb: tuple[int, int, int] = (230, 110, 25)
     table_rgb: tuple[int, int, int] = (165, 155, 145)
     gripper_rgb: tuple[int, int, int] = (50, 50, 55)
     occluder_rgb: tuple[int, int, int] = (95, 110, 135)
     table_z: float = 0.0
-    camera_distance: float = 1.0    # m from the scene centre
+    camera_distance: float = 1.0  # m from the scene centre
     camera_elevation_deg: float = 35.0
-    noise_base: float = 0.001       # m, depth noise std = base + quad * z^2
+    noise_base: float = 0.001  # m, depth noise std = base + quad * z^2
     noise_quad: float = 0.0015
-    edge_jump: float = 0.02         # m, depth jump that invalidates the far pixel of an edge
-    edge_fg_drop: float = 0.1       # probability of also dropping a near-side edge pixel
-    dropout: float = 0.002          # random missing pixels
+    edge_jump: float = 0.02  # m, depth jump that invalidates the far pixel of an edge
+    edge_fg_drop: float = 0.1  # probability of also dropping a near-side edge pixel
+    dropout: float = 0.002  # random missing pixels
     color_noise: float = 6.0
-    occlusion: float = 0.0          # fraction of the rope hidden by the occluder
-    occlusion_start: float = 0.3    # of the recording
+    occlusion: float = 0.0  # fraction of the rope hidden by the occluder
+    occlusion_start: float = 0.3  # of the recording
     occlusion_end: float = 0.8
-    occluder_gap: float = 0.15      # m between occluder and rope, towards the camera
+    occluder_gap: float = 0.15  # m between occluder and rope, towards the camera
 
 
 @dataclass
@@ -103,6 +108,10 @@ def load_config(source: str | Path | dict | PerceptionConfig | None = None) -> P
     unknown = set(data) - set(sections)
     if unknown:
         raise ValueError(f"perception config: unknown sections {sorted(unknown)}")
-    kinds = {"segmentation": SegmentationConfig, "estimation": EstimationConfig,
-             "tracker": TrackerConfig, "render": RenderConfig}
+    kinds = {
+        "segmentation": SegmentationConfig,
+        "estimation": EstimationConfig,
+        "tracker": TrackerConfig,
+        "render": RenderConfig,
+    }
     return PerceptionConfig(**{name: _section(kinds[name], data.get(name) or {}) for name in kinds})

@@ -12,9 +12,11 @@ Refinements over the paper, all for bias near occlusion borders: a vertex counts
 with enough points on both sides of it along the rope, and corrections larger than ``max_shift``
 are refused.
 """
+
 from __future__ import annotations
 
 import numpy as np
+
 from perception.camera import Camera
 from perception.cloud import voxel_downsample, window_min
 from perception.cluster import dbscan
@@ -33,12 +35,16 @@ def segment_distances(points: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.linalg.norm(points[:, None] - closest, axis=-1).min(1)
 
 
-def occluded_vertices(x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig) -> np.ndarray:
+def occluded_vertices(
+    x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig
+) -> np.ndarray:
     """(n,) True where something in the depth image is ``occlusion_margin`` closer than the vertex,
     or where the vertex is outside the image (not observable)."""
     uv, z = camera.project(camera.to_camera(x_world))
     seen = window_min(depth, uv, cfg.occlusion_window)
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    inside = (
+        (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
     closer = np.isfinite(seen) & (seen < z - cfg.occlusion_margin)
     return closer | ~inside
 
@@ -56,8 +62,15 @@ def _two_sided(points, resp, j, x_pred, idx, frac) -> bool:
     return bool(s.max() > frac * half and s.min() < -frac * half)
 
 
-def correct_vertices(x_pred: np.ndarray, rope_world: np.ndarray, depth: np.ndarray, camera: Camera,
-                     cfg: EstimationConfig, movable: np.ndarray, backend: str = "numpy") -> tuple[np.ndarray, np.ndarray]:
+def correct_vertices(
+    x_pred: np.ndarray,
+    rope_world: np.ndarray,
+    depth: np.ndarray,
+    camera: Camera,
+    cfg: EstimationConfig,
+    movable: np.ndarray,
+    backend: str = "numpy",
+) -> tuple[np.ndarray, np.ndarray]:
     """Corrected vertices (n, 3) and observed flags (n,) from rope points in the world frame."""
     n = len(x_pred)
     x_new = x_pred.copy()

@@ -5,15 +5,17 @@ tracker needs a few components on a few hundred points in well under a milliseco
 components must keep their means fixed: occluded neighbours absorb their share of the points without
 being moved.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-VAR_FLOOR = 0.003 ** 2
+VAR_FLOOR = 0.003**2
 
 
-def fit_gmm(points: np.ndarray, means: np.ndarray, free: np.ndarray, sigma: float, iters: int,
-            backend: str = "numpy") -> tuple[np.ndarray, np.ndarray]:
+def fit_gmm(
+    points: np.ndarray, means: np.ndarray, free: np.ndarray, sigma: float, iters: int, backend: str = "numpy"
+) -> tuple[np.ndarray, np.ndarray]:
     """Means (K, 3) and responsibilities (N, K) of a K-component isotropic mixture.
 
     ``free`` (K,) bool: components whose means EM may move; the others stay at ``means``."""
@@ -45,8 +47,15 @@ def _fit_sklearn(points, means, free, sigma, iters):
     k = len(means)
     if len(points) < k:
         return np.array(means, dtype=np.float64), np.zeros((len(points), k))
-    gm = GaussianMixture(k, covariance_type="spherical", means_init=means, precisions_init=np.full(k, 1 / sigma ** 2),
-                         max_iter=max(iters, 1), tol=1e-6, reg_covar=VAR_FLOOR)
+    gm = GaussianMixture(
+        k,
+        covariance_type="spherical",
+        means_init=means,
+        precisions_init=np.full(k, 1 / sigma**2),
+        max_iter=max(iters, 1),
+        tol=1e-6,
+        reg_covar=VAR_FLOOR,
+    )
     gm.fit(points)
     mu = np.where(free[:, None], gm.means_, means)
     return mu, gm.predict_proba(points)

@@ -5,6 +5,7 @@ vertices; the plane of that parabola is turned about the chord to the angle that
 visible points. The tracker then lets the model settle from this guess (grippers fixed), which fills
 in the occluded vertices with a physically plausible shape.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,12 +49,16 @@ def place_by_arclength(curve: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(target, s, curve[:, k]) for k in range(3)], axis=1)
 
 
-def initial_guess(grip: np.ndarray, rest: np.ndarray, points: np.ndarray | None = None, n_angles: int = 19) -> np.ndarray:
+def initial_guess(
+    grip: np.ndarray, rest: np.ndarray, points: np.ndarray | None = None, n_angles: int = 19
+) -> np.ndarray:
     """(n, 3) guess: gripped vertices from ``grip`` (4, 3), the free part hanging, turned towards ``points``."""
     n = len(rest) + 1
-    inner = rest[1:n - 2]
+    inner = rest[1 : n - 2]
     best, best_cost = None, np.inf
-    angles = np.linspace(-np.pi * 0.45, np.pi * 0.45, n_angles) if points is not None and len(points) else [0.0]
+    angles = (
+        np.linspace(-np.pi * 0.45, np.pi * 0.45, n_angles) if points is not None and len(points) else [0.0]
+    )
     for ang in angles:
         curve = hanging_curve(grip[1], grip[2], float(inner.sum()), float(ang))
         if points is None or len(points) == 0:
@@ -65,6 +70,6 @@ def initial_guess(grip: np.ndarray, rest: np.ndarray, points: np.ndarray | None 
             best, best_cost = curve, cost
     x = np.empty((n, 3))
     x[gripped_indices(n)] = grip
-    x[1:n - 1] = place_by_arclength(best, inner)
+    x[1 : n - 1] = place_by_arclength(best, inner)
     x[1], x[n - 2] = grip[1], grip[2]
     return x

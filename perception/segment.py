@@ -3,6 +3,7 @@
 Colour comes first because it is what separates a thin rope from the table it hangs above;
 without colour only the depth range applies and the distance filter of the estimator does the rest.
 """
+
 from __future__ import annotations
 
 import cv2

@@ -4,6 +4,7 @@ Errors in the loop are contained here: bad gripper inputs, failed model steps an
 leave the tracker running open-loop with vertices marked unobserved; nothing raises and no NaN is
 returned from :meth:`Tracker.step` or :meth:`Tracker.correct`.
 """
+
 from __future__ import annotations
 
 import logging
@@ -30,8 +31,16 @@ class Tracker:
     ``step_fn``: what advances the model, called like ``model.step(state, grip)``; default the
     model's own step (e.g. a :class:`deform.compiled.CompiledStep` in a real-time loop)."""
 
-    def __init__(self, model, camera: Camera | None = None, config=None, physics: bool = True,
-                 rest: np.ndarray | None = None, gmm_backend: str = "numpy", step_fn=None):
+    def __init__(
+        self,
+        model,
+        camera: Camera | None = None,
+        config=None,
+        physics: bool = True,
+        rest: np.ndarray | None = None,
+        gmm_backend: str = "numpy",
+        step_fn=None,
+    ):
         self.model = model
         self.step_fn = step_fn
         self.n = int(model.n)
@@ -80,7 +89,7 @@ class Tracker:
             # the marker spacing the model learnt from recordings; the end edges as the grippers hold them
             self.rest = self.model.rest_lengths(grip).numpy()
         camera = camera or self.camera
-        xyz, rgb = (cloud if isinstance(cloud, (tuple, list)) else (cloud, None))
+        xyz, rgb = cloud if isinstance(cloud, (tuple, list)) else (cloud, None)
         pts = None
         if xyz is not None and camera is not None:
             pts = camera.to_world(segment_rope(xyz, rgb, self.config.segmentation))
@@ -88,7 +97,9 @@ class Tracker:
         if pts is not None and len(pts):
             depth = depth_image(xyz, camera)
             for _ in range(self.config.tracker.init_em_rounds):
-                x, _ = correct_vertices(x, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend)
+                x, _ = correct_vertices(
+                    x, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
+                )
         tx = torch.as_tensor(x).unsqueeze(0)
         rest = torch.as_tensor(self.rest).unsqueeze(0)
         g = torch.as_tensor(grip).unsqueeze(0)
@@ -144,8 +155,9 @@ class Tracker:
             small, colours = decimate(xyz, colours, self.config.estimation.max_points)
             pts = camera.to_world(segment_rope(small, colours, self.config.segmentation))
             depth = depth_image(xyz, camera)
-            x_new, observed = correct_vertices(self.x, pts, depth, camera, self.config.estimation,
-                                               self.movable, self.gmm_backend)
+            x_new, observed = correct_vertices(
+                self.x, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
+            )
             if not np.all(np.isfinite(x_new)):
                 raise ValueError("non-finite correction")
         except Exception as exc:

@@ -12,6 +12,7 @@ as missing; a file whose layout this script does not understand is listed with i
 
 Standard library and numpy only; nothing is measured here, every number is copied from a file.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,9 +29,18 @@ OUT = ROOT / "docs" / "results.md"
 KNOWN = {
     "accuracy.json": ("Accuracy: 500-step open-loop prediction", "python benchmarks/accuracy.py"),
     "speed.json": ("Speed of the model step", "python benchmarks/speed.py"),
-    "perception.json": ("Perception: tracking from rendered RGB-D clouds", "python benchmarks/perception_tracking.py"),
-    "service.json": ("Service: loop, predict, 60 s soak", "python benchmarks/service_bench.py --json benchmarks/results/service.json"),
-    "service_soak.json": ("Service: 30-minute soak", "python benchmarks/service_bench.py --json benchmarks/results/service_soak.json"),
+    "perception.json": (
+        "Perception: tracking from rendered RGB-D clouds",
+        "python benchmarks/perception_tracking.py",
+    ),
+    "service.json": (
+        "Service: loop, predict, 60 s soak",
+        "python benchmarks/service_bench.py --json benchmarks/results/service.json",
+    ),
+    "service_soak.json": (
+        "Service: 30-minute soak",
+        "python benchmarks/service_bench.py --json benchmarks/results/service_soak.json",
+    ),
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
     "diagnose.json": ("deform diagnose: planted-effect benchmark", "python benchmarks/diagnose_planted.py"),
@@ -70,12 +80,18 @@ def git_last_commit(path: Path) -> str | None:
     tree differs from it; None without git or when the file was never committed."""
     try:
         rel = str(path.resolve().relative_to(ROOT))
-        log = subprocess.run(["git", "log", "-1", "--format=%h (%cs)", "--", rel], cwd=ROOT,
-                             capture_output=True, text=True, timeout=10).stdout.strip()
+        log = subprocess.run(
+            ["git", "log", "-1", "--format=%h (%cs)", "--", rel],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
         if not log:
             return None
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", rel], cwd=ROOT,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", rel], cwd=ROOT, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
         return log + ("; the working tree's copy differs from it" if dirty else "")
     except (OSError, ValueError, subprocess.SubprocessError):
         return None
@@ -94,9 +110,12 @@ def provenance(name: str, data, path: Path) -> list[str]:
     command = meta.get("command")
     lines = [
         f"- file: `benchmarks/results/{name}`",
-        f"- command: `{command.strip()}`" if command else "- command: not recorded"
-        + (f" (written by `{KNOWN[name][1]}`)" if name in KNOWN else ""),
-        f"- commit: `{meta['commit']}`" if meta.get("commit") else "- commit: not recorded"
+        f"- command: `{command.strip()}`"
+        if command
+        else "- command: not recorded" + (f" (written by `{KNOWN[name][1]}`)" if name in KNOWN else ""),
+        f"- commit: `{meta['commit']}`"
+        if meta.get("commit")
+        else "- commit: not recorded"
         + (f" (file last changed in git commit {c})" if (c := git_last_commit(path)) else ""),
         f"- machine: {machine_text(meta.get('machine'))}",
     ]
@@ -112,44 +131,94 @@ def render_accuracy(d: dict) -> list[str]:
         paper = r.get("paper_deform_cm")
         l1 = r["l1_m"] * 100
         hz = r.get("l1_by_horizon_m", {})
-        rows.append([rod, f"{r.get('recordings', '-')} {str(r.get('split', '')).split(' ')[0]}", f"{l1:.3f}",
-                     fmt(paper), f"{l1 / paper:.2f}" if paper else "-", fmt(r.get("paper_der_cm")),
-                     fmt(r.get("mean_vertex_dist_m"), 3, 100),
-                     " / ".join(fmt(hz.get(h), 2, 100) for h in ("1", "10", "100", "500")),
-                     f"{fmt(r.get('step_ms_p50'))} / {fmt(r.get('step_ms_p99'))}"])
-    out = ["L1 = mean |prediction - truth| over the predicted steps, all vertices and x, y, z (the paper's metric). "
-           "Split `train` = the held-out fifth of the train recordings (DLO4 and DLO5 have no eval split).", ""]
-    return out + table(["rod", "recordings", "L1 [cm]", "paper DEFORM [cm]", "ratio", "paper DER [cm]",
-                        "interior vertex dist [cm]", "L1 at 1/10/100/500 steps [cm]", "step p50 / p99 [ms]"], rows)
+        rows.append(
+            [
+                rod,
+                f"{r.get('recordings', '-')} {str(r.get('split', '')).split(' ')[0]}",
+                f"{l1:.3f}",
+                fmt(paper),
+                f"{l1 / paper:.2f}" if paper else "-",
+                fmt(r.get("paper_der_cm")),
+                fmt(r.get("mean_vertex_dist_m"), 3, 100),
+                " / ".join(fmt(hz.get(h), 2, 100) for h in ("1", "10", "100", "500")),
+                f"{fmt(r.get('step_ms_p50'))} / {fmt(r.get('step_ms_p99'))}",
+            ]
+        )
+    out = [
+        "L1 = mean |prediction - truth| over the predicted steps, all vertices and x, y, z (the paper's metric). "
+        "Split `train` = the held-out fifth of the train recordings (DLO4 and DLO5 have no eval split).",
+        "",
+    ]
+    return out + table(
+        [
+            "rod",
+            "recordings",
+            "L1 [cm]",
+            "paper DEFORM [cm]",
+            "ratio",
+            "paper DER [cm]",
+            "interior vertex dist [cm]",
+            "L1 at 1/10/100/500 steps [cm]",
+            "step p50 / p99 [ms]",
+        ],
+        rows,
+    )
 
 
 def render_speed(d: dict) -> list[str]:
     rows = []
-    for key, label in (("single_rollout_1_thread", "single rollout, eager step, 1 thread"),
-                       ("single_rollout_compiled_1_thread", "single rollout, compiled step, 1 thread"),
-                       ("single_rollout_theseus_theta_1_thread", "single rollout, Theseus twist solver, 1 thread")):
+    for key, label in (
+        ("single_rollout_1_thread", "single rollout, eager step, 1 thread"),
+        ("single_rollout_compiled_1_thread", "single rollout, compiled step, 1 thread"),
+        ("single_rollout_theseus_theta_1_thread", "single rollout, Theseus twist solver, 1 thread"),
+    ):
         r = d.get(key)
         if isinstance(r, dict):
-            rows.append([label, f"p50 {fmt(r.get('p50_ms'))} ms, p99 {fmt(r.get('p99_ms'))} ms ({r.get('steps', '-')} steps)"])
-    for key, label in (("throughput_rod_steps_per_s_2_threads", "batched throughput, eager, 2 threads [rod-steps/s]"),
-                       ("throughput_compiled_rod_steps_per_s_2_threads", "batched throughput, compiled, 2 threads [rod-steps/s]")):
+            rows.append(
+                [
+                    label,
+                    f"p50 {fmt(r.get('p50_ms'))} ms, p99 {fmt(r.get('p99_ms'))} ms ({r.get('steps', '-')} steps)",
+                ]
+            )
+    for key, label in (
+        ("throughput_rod_steps_per_s_2_threads", "batched throughput, eager, 2 threads [rod-steps/s]"),
+        (
+            "throughput_compiled_rod_steps_per_s_2_threads",
+            "batched throughput, compiled, 2 threads [rod-steps/s]",
+        ),
+    ):
         r = d.get(key)
         if isinstance(r, dict):
             rows.append([label, ", ".join(f"B={b}: {v:,.0f}" for b, v in r.items())])
     vs = d.get("vertex_scaling_1_thread")
     if isinstance(vs, dict):
-        rows.append(["step against vertex count, eager, 1 thread (p50 / p99 ms)",
-                     ", ".join(f"n={n}: {fmt(r.get('p50_ms'))} / {fmt(r.get('p99_ms'))}" for n, r in vs.items())])
+        rows.append(
+            [
+                "step against vertex count, eager, 1 thread (p50 / p99 ms)",
+                ", ".join(f"n={n}: {fmt(r.get('p50_ms'))} / {fmt(r.get('p99_ms'))}" for n, r in vs.items()),
+            ]
+        )
     tr = d.get("training_iteration_2_threads")
     if isinstance(tr, dict):
-        rows.append([f"training iteration (batch {tr.get('batch')}, horizon {tr.get('horizon')}, forward + backward), 2 threads",
-                     f"{fmt(tr.get('seconds_p50'))} s (median of {tr.get('iterations')})"])
+        rows.append(
+            [
+                f"training iteration (batch {tr.get('batch')}, horizon {tr.get('horizon')}, forward + backward), 2 threads",
+                f"{fmt(tr.get('seconds_p50'))} s (median of {tr.get('iterations')})",
+            ]
+        )
     th = d.get("training_theta_solver_2_threads")
     if isinstance(th, dict):
-        rows.append([f"training, Theseus over Newton twist solver (batch {th.get('batch')}, horizon {th.get('horizon')})",
-                     f"{fmt(th.get('theseus_over_newton'), 1)}x"])
-    out = [f"Rod {d.get('rod', '-')} ({d.get('n_vertices', '-')} vertices); compiled step active: "
-           f"{fmt(d.get('compiled_active'))}; compiled steps redone eagerly: {fmt(d.get('single_rollout_compiled_redone'))}.", ""]
+        rows.append(
+            [
+                f"training, Theseus over Newton twist solver (batch {th.get('batch')}, horizon {th.get('horizon')})",
+                f"{fmt(th.get('theseus_over_newton'), 1)}x",
+            ]
+        )
+    out = [
+        f"Rod {d.get('rod', '-')} ({d.get('n_vertices', '-')} vertices); compiled step active: "
+        f"{fmt(d.get('compiled_active'))}; compiled steps redone eagerly: {fmt(d.get('single_rollout_compiled_redone'))}.",
+        "",
+    ]
     return out + table(["measure", "result"], rows)
 
 
@@ -162,60 +231,109 @@ def render_perception(d: dict) -> list[str]:
     fps = sorted(fps_all)
     n = {r.get("n") for r in d.get("mean_l1_cm", [])}
     args = d.get("args", {})
-    out = [f"L1 over 5 s [cm], mean of {'/'.join(str(x) for x in sorted(n - {None})) or '-'} recordings "
-           f"({args.get('per_rod', '-')} per rod of {', '.join(args.get('rods', [])) or '-'}); columns: camera updates "
-           "per second (0 = open loop). `baseline` = the same tracker with a non-physical prediction.", ""]
-    rows = [[f"{occ * 100:.0f} %", tr] + [fmt(c.get(f)) for f in fps]
-            for (occ, tr), c in sorted(cells.items(), key=lambda kv: (kv[0][0], kv[0][1] != "deform"))]
+    out = [
+        f"L1 over 5 s [cm], mean of {'/'.join(str(x) for x in sorted(n - {None})) or '-'} recordings "
+        f"({args.get('per_rod', '-')} per rod of {', '.join(args.get('rods', [])) or '-'}); columns: camera updates "
+        "per second (0 = open loop). `baseline` = the same tracker with a non-physical prediction.",
+        "",
+    ]
+    rows = [
+        [f"{occ * 100:.0f} %", tr] + [fmt(c.get(f)) for f in fps]
+        for (occ, tr), c in sorted(cells.items(), key=lambda kv: (kv[0][0], kv[0][1] != "deform"))
+    ]
     out += table(["occlusion", "tracker"] + [f"{f} fps" for f in fps], rows)
     hid = d.get("hidden_fraction_of_free_vertices")
     if isinstance(hid, dict):
-        out += ["Free vertices actually hidden while the occluder is present: "
-                + ", ".join(f"{float(k) * 100:.0f} % setting: {v * 100:.0f} %" for k, v in hid.items()) + ".", ""]
+        out += [
+            "Free vertices actually hidden while the occluder is present: "
+            + ", ".join(f"{float(k) * 100:.0f} % setting: {v * 100:.0f} %" for k, v in hid.items())
+            + ".",
+            "",
+        ]
     lat = d.get("latency_ms", {})
     parts = []
-    for key, label in (("bench_resolution", "benchmark clouds (320x288)"), ("full_resolution", "full-resolution clouds")):
+    for key, label in (
+        ("bench_resolution", "benchmark clouds (320x288)"),
+        ("full_resolution", "full-resolution clouds"),
+    ):
         r = lat.get(key)
         if isinstance(r, dict):
-            shape = f" {r['shape'][1]}x{r['shape'][0]}" if isinstance(r.get("shape"), list) and len(r["shape"]) == 2 else ""
-            parts.append(f"{label}{shape}: p50 {fmt(r.get('p50'), 1)} ms, p99 {fmt(r.get('p99'), 1)} ms ({r.get('n')} updates)")
+            shape = (
+                f" {r['shape'][1]}x{r['shape'][0]}"
+                if isinstance(r.get("shape"), list) and len(r["shape"]) == 2
+                else ""
+            )
+            parts.append(
+                f"{label}{shape}: p50 {fmt(r.get('p50'), 1)} ms, p99 {fmt(r.get('p99'), 1)} ms ({r.get('n')} updates)"
+            )
     if parts:
-        out += ["`Tracker.correct` latency: " + "; ".join(parts) + f". Wall time {fmt(d.get('wall_s'), 1)} s.", ""]
+        out += [
+            "`Tracker.correct` latency: " + "; ".join(parts) + f". Wall time {fmt(d.get('wall_s'), 1)} s.",
+            "",
+        ]
     return out
 
 
 def _predict_row(label: str, p: dict | None) -> list:
     if not isinstance(p, dict):
         return [label] + ["-"] * 6
-    return [label, fmt(p.get("p50_ms"), 1), fmt(p.get("p90_ms"), 1), fmt(p.get("max_ms"), 1),
-            fmt(get(p, "worker_ms", "p50"), 1), fmt(p.get("steps_redone")), fmt(p.get("loop_deadline_misses"))]
+    return [
+        label,
+        fmt(p.get("p50_ms"), 1),
+        fmt(p.get("p90_ms"), 1),
+        fmt(p.get("max_ms"), 1),
+        fmt(get(p, "worker_ms", "p50"), 1),
+        fmt(p.get("steps_redone")),
+        fmt(p.get("loop_deadline_misses")),
+    ]
 
 
 def render_service(d: dict) -> list[str]:
-    out = [f"Tracker {d.get('tracker', '-')}, feeder {d.get('feeder', 'not recorded')}, loop step "
-           f"{d.get('loop_step', '-')}, predict plans start at: {d.get('plans_start', 'not recorded')}; "
-           f"predict worker warm-up {fmt(d.get('predict_warmup_s'), 1)} s. Workers: {machine_text(d.get('workers'))}.", ""]
+    out = [
+        f"Tracker {d.get('tracker', '-')}, feeder {d.get('feeder', 'not recorded')}, loop step "
+        f"{d.get('loop_step', '-')}, predict plans start at: {d.get('plans_start', 'not recorded')}; "
+        f"predict worker warm-up {fmt(d.get('predict_warmup_s'), 1)} s. Workers: {machine_text(d.get('workers'))}.",
+        "",
+    ]
     lp = d.get("loop")
     if isinstance(lp, dict):
-        rows = [["seconds / ticks", f"{fmt(lp.get('seconds'), 0)} s / {fmt(lp.get('ticks'))}"],
-                ["rate", f"{fmt(lp.get('rate_hz'), 1)} Hz"],
-                ["deadline misses", f"{fmt(lp.get('deadline_misses'))} ({fmt(lp.get('deadline_miss_pct'))} %)"],
-                ["tick-to-publish p50 / p99 / max [ms]", " / ".join(fmt(get(lp, "tick_to_publish_ms", k)) for k in ("p50", "p99", "max"))],
-                ["model step p50 / p99 / max [ms]", " / ".join(fmt(get(lp, "step_ms", k)) for k in ("p50", "p99", "max"))],
-                ["cloud fusion p50 / p99 [ms]", " / ".join(fmt(get(lp, "fusion_ms", k), 1) for k in ("p50", "p99"))],
-                ["clouds fused (per s)", f"{fmt(lp.get('clouds_fused'))} ({fmt(lp.get('clouds_per_s'), 1)})"],
-                ["compiled steps redone", fmt(lp.get("compiled_steps_redone"))],
-                ["dropped / rejected", f"{lp.get('dropped', {})} / {lp.get('rejected', {})}"]]
+        rows = [
+            ["seconds / ticks", f"{fmt(lp.get('seconds'), 0)} s / {fmt(lp.get('ticks'))}"],
+            ["rate", f"{fmt(lp.get('rate_hz'), 1)} Hz"],
+            ["deadline misses", f"{fmt(lp.get('deadline_misses'))} ({fmt(lp.get('deadline_miss_pct'))} %)"],
+            [
+                "tick-to-publish p50 / p99 / max [ms]",
+                " / ".join(fmt(get(lp, "tick_to_publish_ms", k)) for k in ("p50", "p99", "max")),
+            ],
+            [
+                "model step p50 / p99 / max [ms]",
+                " / ".join(fmt(get(lp, "step_ms", k)) for k in ("p50", "p99", "max")),
+            ],
+            [
+                "cloud fusion p50 / p99 [ms]",
+                " / ".join(fmt(get(lp, "fusion_ms", k), 1) for k in ("p50", "p99")),
+            ],
+            ["clouds fused (per s)", f"{fmt(lp.get('clouds_fused'))} ({fmt(lp.get('clouds_per_s'), 1)})"],
+            ["compiled steps redone", fmt(lp.get("compiled_steps_redone"))],
+            ["dropped / rejected", f"{lp.get('dropped', {})} / {lp.get('rejected', {})}"],
+        ]
         out += ["Loop (100 Hz, clouds at 30 Hz):", ""] + table(["measure", "result"], rows)
     out += ["Predict, 64 plans x 100 steps, timed at a client process from request to reply [ms]:", ""]
-    out += table(["condition", "p50", "p90", "max", "worker p50", "steps redone", "loop misses meanwhile"],
-                 [_predict_row("service idle", d.get("predict_64x100")),
-                  _predict_row("while the loop runs", d.get("predict_64x100_live"))])
+    out += table(
+        ["condition", "p50", "p90", "max", "worker p50", "steps redone", "loop misses meanwhile"],
+        [
+            _predict_row("service idle", d.get("predict_64x100")),
+            _predict_row("while the loop runs", d.get("predict_64x100_live")),
+        ],
+    )
     sk = d.get("soak")
     if isinstance(sk, dict):
-        out += [f"Soak: {fmt(sk.get('seconds'), 0)} s, RSS of the service and its workers {fmt(sk.get('rss_start_mb'), 1)} -> "
-                f"{fmt(sk.get('rss_end_mb'), 1)} MB ({fmt(sk.get('growth_pct'))} %), {fmt(sk.get('ticks'))} ticks, "
-                f"{fmt(sk.get('deadline_misses_total'))} deadline misses.", ""]
+        out += [
+            f"Soak: {fmt(sk.get('seconds'), 0)} s, RSS of the service and its workers {fmt(sk.get('rss_start_mb'), 1)} -> "
+            f"{fmt(sk.get('rss_end_mb'), 1)} MB ({fmt(sk.get('growth_pct'))} %), {fmt(sk.get('ticks'))} ticks, "
+            f"{fmt(sk.get('deadline_misses_total'))} deadline misses.",
+            "",
+        ]
     return out
 
 
@@ -234,13 +352,20 @@ def render_baselines(d: dict) -> list[str]:
         for rod in rods:
             r = res[rod].get(m)
             p = get(paper, alias.get(m, m), rod)
-            cells.append("-" if not r else f"{r['l1_m'] * 100:.2f}" + (f" ({fmt(p)})" if p is not None else ""))
-        steps = sorted(res[rod][m].get("step_ms", res[rod][m].get("step_ms_p50")) for rod in rods if m in res[rod])
+            cells.append(
+                "-" if not r else f"{r['l1_m'] * 100:.2f}" + (f" ({fmt(p)})" if p is not None else "")
+            )
+        steps = sorted(
+            res[rod][m].get("step_ms", res[rod][m].get("step_ms_p50")) for rod in rods if m in res[rod]
+        )
         med = steps[len(steps) // 2] if steps else None
         ps = paper_step.get(m)
         rows.append([m] + cells + [fmt(med) + (f" ({fmt(ps, 1)})" if ps is not None else "")])
-    out = ["L1 [cm] on the same splits as the accuracy table (paper's Table 1 in brackets); step p50 = median over "
-           "rods, batch of one, one thread.", ""]
+    out = [
+        "L1 [cm] on the same splits as the accuracy table (paper's Table 1 in brackets); step p50 = median over "
+        "rods, batch of one, one thread.",
+        "",
+    ]
     return out + table(["method"] + [f"{r} L1 [cm]" for r in rods] + ["step p50 [ms]"], rows)
 
 
@@ -251,11 +376,17 @@ def render_ablations(d: list) -> list[str]:
         variants += [r["variant"]] if r["variant"] not in variants else []
         cells[(r["variant"], r["rod"])] = r["l1_m"] * 100
         budget.setdefault(r["variant"], set()).add((r.get("iterations"), r.get("batch")))
-    rows = [[v] + [fmt(cells.get((v, rod)), 3) for rod in rods]
-            + [", ".join(f"{i} x {b}" for i, b in sorted(budget[v], key=str))] for v in variants]
-    return (["L1 [cm] on the eval recordings; every trained variant with the same budget (iterations x batch), "
-             "so the rows compare with each other, not with the accuracy table.", ""]
-            + table(["variant"] + rods + ["iterations x batch"], rows))
+    rows = [
+        [v]
+        + [fmt(cells.get((v, rod)), 3) for rod in rods]
+        + [", ".join(f"{i} x {b}" for i, b in sorted(budget[v], key=str))]
+        for v in variants
+    ]
+    return [
+        "L1 [cm] on the eval recordings; every trained variant with the same budget (iterations x batch), "
+        "so the rows compare with each other, not with the accuracy table.",
+        "",
+    ] + table(["variant"] + rods + ["iterations x batch"], rows)
 
 
 def render_diagnose(d: dict) -> list[str]:
@@ -273,19 +404,48 @@ def render_diagnose(d: dict) -> list[str]:
         ok = sum(v.get("named_correctly", 0) for v in planted.values())
         tot = sum(v.get("runs", 0) for v in planted.values())
         ctl = s.get("none", {})
-        out += [f"**{title.capitalize()}**: planted effects named first {ok}/{tot}"
-                + (f" ({100 * ok / tot:.0f} %)" if tot else "")
-                + f"; controls named `none` {ctl.get('named_correctly', '-')}/{ctl.get('runs', '-')}.", ""]
-        rows = [[k, v.get("runs"), f"{v.get('named_correctly')}/{v.get('runs')}", fmt(v.get("nominal_check_cm"), 3),
-                 fmt(v.get("final_check_cm"), 3), fmt(v.get("oracle_check_cm"), 3),
-                 fmt(v.get("gap_closed_oracle_median"), 0, 100)] for k, v in s.items()]
-        out += table(["planted effect", "runs", "named first", "check L1 nominal [cm]", "after [cm]", "oracle [cm]",
-                      "gap closed vs oracle, median [%]"], rows)
+        out += [
+            f"**{title.capitalize()}**: planted effects named first {ok}/{tot}"
+            + (f" ({100 * ok / tot:.0f} %)" if tot else "")
+            + f"; controls named `none` {ctl.get('named_correctly', '-')}/{ctl.get('runs', '-')}.",
+            "",
+        ]
+        rows = [
+            [
+                k,
+                v.get("runs"),
+                f"{v.get('named_correctly')}/{v.get('runs')}",
+                fmt(v.get("nominal_check_cm"), 3),
+                fmt(v.get("final_check_cm"), 3),
+                fmt(v.get("oracle_check_cm"), 3),
+                fmt(v.get("gap_closed_oracle_median"), 0, 100),
+            ]
+            for k, v in s.items()
+        ]
+        out += table(
+            [
+                "planted effect",
+                "runs",
+                "named first",
+                "check L1 nominal [cm]",
+                "after [cm]",
+                "oracle [cm]",
+                "gap closed vs oracle, median [%]",
+            ],
+            rows,
+        )
     real = d.get("real")
     if isinstance(real, list) and real:
-        rows = [[r.get("rod", r.get("key")), ", ".join(get(r, "as_run", "selected", default=r.get("selected")) or []) or "none",
-                 fmt(r.get("nominal_check_l1_m"), 3, 100), fmt(r.get("final_check_l1_m"), 3, 100),
-                 fmt(r.get("seconds"), 0)] for r in real]
+        rows = [
+            [
+                r.get("rod", r.get("key")),
+                ", ".join(get(r, "as_run", "selected", default=r.get("selected")) or []) or "none",
+                fmt(r.get("nominal_check_l1_m"), 3, 100),
+                fmt(r.get("final_check_l1_m"), 3, 100),
+                fmt(r.get("seconds"), 0),
+            ]
+            for r in real
+        ]
         out += ["Real recordings against plain DER:", ""]
         out += table(["rod", "selected", "check L1 before [cm]", "after [cm]", "seconds"], rows)
     if not out:
@@ -295,17 +455,33 @@ def render_diagnose(d: dict) -> list[str]:
 
 def render_generic(d) -> list[str]:
     if isinstance(d, list):
-        return [f"A list of {len(d)} rows" + (f" with fields {', '.join(d[0])}." if d and isinstance(d[0], dict) else "."), ""]
+        return [
+            f"A list of {len(d)} rows"
+            + (f" with fields {', '.join(d[0])}." if d and isinstance(d[0], dict) else "."),
+            "",
+        ]
     if not isinstance(d, dict):
         return [f"Value: {d}", ""]
-    rows = [[k, fmt(v, 4) if not isinstance(v, (dict, list)) else f"({type(v).__name__} of {len(v)})"]
-            for k, v in d.items() if k not in ("command", "commit", "machine")]
-    return ["Top-level fields (this script has no table for this file):", ""] + table(["field", "value"], rows)
+    rows = [
+        [k, fmt(v, 4) if not isinstance(v, (dict, list)) else f"({type(v).__name__} of {len(v)})"]
+        for k, v in d.items()
+        if k not in ("command", "commit", "machine")
+    ]
+    return ["Top-level fields (this script has no table for this file):", ""] + table(
+        ["field", "value"], rows
+    )
 
 
-RENDER = {"accuracy.json": render_accuracy, "speed.json": render_speed, "perception.json": render_perception,
-          "service.json": render_service, "service_soak.json": render_service, "baselines.json": render_baselines,
-          "ablations.json": render_ablations, "diagnose.json": render_diagnose}
+RENDER = {
+    "accuracy.json": render_accuracy,
+    "speed.json": render_speed,
+    "perception.json": render_perception,
+    "service.json": render_service,
+    "service_soak.json": render_service,
+    "baselines.json": render_baselines,
+    "ablations.json": render_ablations,
+    "diagnose.json": render_diagnose,
+}
 
 
 def renderer(name: str):
@@ -322,16 +498,20 @@ def build(results: Path) -> str:
     extra_diag = [n for n in present if n.startswith("diagnose.") and n not in KNOWN]
     others = [n for n in present if n not in KNOWN and n not in extra_diag]
     order = list(KNOWN) + extra_diag + others
-    lines = ["# Results", "",
-             "<!-- generated by scripts/make_results.py from benchmarks/results/*.json; edit those or the script, not this page -->",
-             "",
-             "Every number on this page is copied from a results file in `benchmarks/results/`, written by the "
-             "benchmark script named in its section; regenerate the page with `make results`. Timings come from "
-             "a 2-core x86_64 VM without GPU (torch CPU build) whose speed varies with the host's load; each "
-             "section names the machine as the file records it. \"Commit: not recorded\" means the file does "
-             "not say which code produced it; the git commit that last changed the file is given instead "
-             "(the results were stored with, or after, the code they measure). The `.md` files beside the JSON "
-             "(e.g. `diagnose.md`, per-run detail) and `docs/*.md` have more.", ""]
+    lines = [
+        "# Results",
+        "",
+        "<!-- generated by scripts/make_results.py from benchmarks/results/*.json; edit those or the script, not this page -->",
+        "",
+        "Every number on this page is copied from a results file in `benchmarks/results/`, written by the "
+        "benchmark script named in its section; regenerate the page with `make results`. Timings come from "
+        "a 2-core x86_64 VM without GPU (torch CPU build) whose speed varies with the host's load; each "
+        'section names the machine as the file records it. "Commit: not recorded" means the file does '
+        "not say which code produced it; the git commit that last changed the file is given instead "
+        "(the results were stored with, or after, the code they measure). The `.md` files beside the JSON "
+        "(e.g. `diagnose.md`, per-run detail) and `docs/*.md` have more.",
+        "",
+    ]
     lines += ["Files: " + ", ".join(f"[{n}](#{anchor(n)})" for n in order) + ".", ""]
     for name in order:
         title = KNOWN.get(name, (f"Other results: {name}",))[0]
@@ -340,8 +520,11 @@ def build(results: Path) -> str:
         lines += [f"## {name}", "", f"*{title}*", ""]
         path = results / name
         if not path.is_file():
-            lines += ["Missing: no such file in `benchmarks/results/`"
-                      + (f" (run `{KNOWN[name][1]}`)." if name in KNOWN else "."), ""]
+            lines += [
+                "Missing: no such file in `benchmarks/results/`"
+                + (f" (run `{KNOWN[name][1]}`)." if name in KNOWN else "."),
+                "",
+            ]
             continue
         try:
             data = json.loads(path.read_text())
@@ -352,8 +535,11 @@ def build(results: Path) -> str:
         try:
             lines += renderer(name)(data)
         except Exception as exc:  # a results layout this script does not know yet: say so, keep going
-            lines += [f"(The layout of this file was not understood by scripts/make_results.py: "
-                      f"{type(exc).__name__}: {exc}.)", ""] + render_generic(data)
+            lines += [
+                f"(The layout of this file was not understood by scripts/make_results.py: "
+                f"{type(exc).__name__}: {exc}.)",
+                "",
+            ] + render_generic(data)
     return "\n".join(lines).rstrip() + "\n"
 
 

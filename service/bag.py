@@ -3,6 +3,7 @@
 Topics are ROS names (``/deform/rod1/ee_poses``); Zenoh keys are the same without the leading slash,
 which is how zenoh-bridge-ros2dds maps them. Replay can remap to another namespace.
 """
+
 from __future__ import annotations
 
 import threading
@@ -17,15 +18,20 @@ from mcap.writer import Writer
 from service import messages as M
 from service.ordering import encode_order, new_stream_id
 
-TYPES = {"ee_poses": M.POSE_ARRAY, "points": M.POINT_CLOUD2, "camera_info": M.CAMERA_INFO,
-         "camera_pose": M.POSE_STAMPED, "vertices": M.POINT_CLOUD2}
+TYPES = {
+    "ee_poses": M.POSE_ARRAY,
+    "points": M.POINT_CLOUD2,
+    "camera_info": M.CAMERA_INFO,
+    "camera_pose": M.POSE_STAMPED,
+    "vertices": M.POINT_CLOUD2,
+}
 
 
 @dataclass
 class Message:
-    name: str        # input name: ee_poses, points, ...
-    log_time: int    # ns; replay paces by it
-    data: bytes      # CDR
+    name: str  # input name: ee_poses, points, ...
+    log_time: int  # ns; replay paces by it
+    data: bytes  # CDR
 
 
 class McapWriter:
@@ -45,17 +51,24 @@ class McapWriter:
         if name not in self._channels:
             typename = TYPES[name]
             if typename not in self._schemas:
-                self._schemas[typename] = self._w.register_schema(name=typename, encoding="ros2msg",
-                                                                  data=M.definition(typename).encode())
-            self._channels[name] = self._w.register_channel(topic=f"/{self.namespace}/{name}", message_encoding="cdr",
-                                                            schema_id=self._schemas[typename])
+                self._schemas[typename] = self._w.register_schema(
+                    name=typename, encoding="ros2msg", data=M.definition(typename).encode()
+                )
+            self._channels[name] = self._w.register_channel(
+                topic=f"/{self.namespace}/{name}", message_encoding="cdr", schema_id=self._schemas[typename]
+            )
         return self._channels[name]
 
     def write(self, name: str, log_time: int, data: bytes) -> None:
         with self._lock:
             self._seq += 1
-            self._w.add_message(channel_id=self._channel(name), log_time=int(log_time), publish_time=int(log_time),
-                                data=data, sequence=self._seq)
+            self._w.add_message(
+                channel_id=self._channel(name),
+                log_time=int(log_time),
+                publish_time=int(log_time),
+                data=data,
+                sequence=self._seq,
+            )
 
     def close(self) -> None:
         with self._lock:
@@ -81,8 +94,13 @@ def read_messages(path: str | Path) -> list[Message]:
     return out
 
 
-def record(session: zenoh.Session, namespace: str, path: str | Path, stop: threading.Event,
-           names=("ee_poses", "points", "camera_info", "camera_pose")) -> int:
+def record(
+    session: zenoh.Session,
+    namespace: str,
+    path: str | Path,
+    stop: threading.Event,
+    names=("ee_poses", "points", "camera_info", "camera_pose"),
+) -> int:
     """Write what arrives on the input keys until ``stop`` is set; returns the message count."""
     w = McapWriter(path, namespace)
     count = [0]
@@ -91,6 +109,7 @@ def record(session: zenoh.Session, namespace: str, path: str | Path, stop: threa
         def cb(sample):
             w.write(name, time.time_ns(), sample.payload.to_bytes())
             count[0] += 1
+
         return cb
 
     subs = [session.declare_subscriber(f"{namespace}/{n}", on(n)) for n in names]
@@ -101,15 +120,21 @@ def record(session: zenoh.Session, namespace: str, path: str | Path, stop: threa
     return count[0]
 
 
-def replay(session: zenoh.Session, namespace: str, messages: list[Message], fast: bool = True,
-           speed: float = 1.0) -> int:
+def replay(
+    session: zenoh.Session, namespace: str, messages: list[Message], fast: bool = True, speed: float = 1.0
+) -> int:
     """Publish on ``{namespace}/<name>``: as fast as possible (reliable, blocking: nothing dropped) or
     paced by the recorded log times. Every sample carries its place in the send order (see
     :mod:`service.ordering`), so a message-clock service handles them in this order whatever order
     the transport delivers them in. Returns the number of messages sent."""
-    pubs = {n: session.declare_publisher(f"{namespace}/{n}", congestion_control=zenoh.CongestionControl.BLOCK,
-                                         reliability=zenoh.Reliability.RELIABLE)
-            for n in {m.name for m in messages}}
+    pubs = {
+        n: session.declare_publisher(
+            f"{namespace}/{n}",
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        for n in {m.name for m in messages}
+    }
     t0_log, t0_wall = (messages[0].log_time if messages else 0), time.perf_counter()
     stream = new_stream_id()
     for seq, m in enumerate(messages):

@@ -1,4 +1,5 @@
 """`deform-service run | record FILE | replay FILE | demo-bag FILE` (also `python -m service`)."""
+
 from __future__ import annotations
 
 import argparse
@@ -29,9 +30,13 @@ def _parser() -> argparse.ArgumentParser:
     rec.add_argument("--duration", type=float, help="seconds, default until interrupted")
     rep = sub.add_parser("replay", help="publish an MCAP file on the input keys")
     rep.add_argument("file")
-    rep.add_argument("--fast", action="store_true", help="as fast as possible (use a service with --clock message)")
+    rep.add_argument(
+        "--fast", action="store_true", help="as fast as possible (use a service with --clock message)"
+    )
     rep.add_argument("--speed", type=float, default=1.0)
-    bag = sub.add_parser("demo-bag", help="write the demo recording (poses and rendered clouds) to an MCAP file")
+    bag = sub.add_parser(
+        "demo-bag", help="write the demo recording (poses and rendered clouds) to an MCAP file"
+    )
     bag.add_argument("file")
     bag.add_argument("--frames", type=int, default=500)
     return p
@@ -46,7 +51,10 @@ def _config(args):
         zenoh["connect"] = args.connect
     if args.listen:
         zenoh["listen"] = args.listen
-    over = {"namespace": args.namespace, "zenoh": base.zenoh.model_copy(update=zenoh).model_dump() if zenoh else None}
+    over = {
+        "namespace": args.namespace,
+        "zenoh": base.zenoh.model_copy(update=zenoh).model_dump() if zenoh else None,
+    }
     if args.command in (None, "run"):
         over.update(clock=getattr(args, "clock", None), rod=getattr(args, "rod", None))
         rr = {}
@@ -68,8 +76,10 @@ def _wait(stop: threading.Event, duration: float | None = None) -> None:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     try:
         cfg = _config(args)
     except ServiceConfigError as exc:
@@ -103,8 +113,11 @@ def main(argv=None) -> int:
         return 0
     if args.command == "demo-bag":
         from service import scenario
+
         positions, name = scenario.demo_positions(args.frames, cfg.rod)
-        bag.write_messages(args.file, cfg.namespace, scenario.build_stream(positions, scenario.offsets_for(positions)))
+        bag.write_messages(
+            args.file, cfg.namespace, scenario.build_stream(positions, scenario.offsets_for(positions))
+        )
         print(f"wrote {name} as {args.file}")
         return 0
     return 1

@@ -1,5 +1,6 @@
 """Service configuration (config/service.yaml), validated with pydantic so a typo fails at start-up
 with the file and field named, not minutes later inside the loop."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -21,6 +22,7 @@ class _Strict(BaseModel):
 
 class GripOffsets(_Strict):
     """Distances along the gripper's +x axis of the end vertex (d0) and of its neighbour (d1)."""
+
     d0: float = 0.0
     d1: float = Field(default=0.03)
 
@@ -38,7 +40,9 @@ class Grippers(_Strict):
 
 
 class Camera(_Strict):
-    pose: list[float] = Field(default=[0.0, -1.2, 0.5, -0.7071068, 0.0, 0.0, 0.7071068], min_length=7, max_length=7)
+    pose: list[float] = Field(
+        default=[0.0, -1.2, 0.5, -0.7071068, 0.0, 0.0, 0.7071068], min_length=7, max_length=7
+    )
     use_pose_topic: bool = True
 
 
@@ -59,7 +63,7 @@ class Limits(_Strict):
 
 
 class Workers(_Strict):
-    processes: bool = True        # fusion (wall clock) and predict run in child processes, off the loop's GIL
+    processes: bool = True  # fusion (wall clock) and predict run in child processes, off the loop's GIL
     compile_predict: bool = True  # torch.compile the predict rollout (eager fallback if it cannot compile)
     # its one-graph step as an AOTInductor package (deform.aot: same values, 0.7x per step; cached
     # on disk, torch.compile if it cannot be built); only with compile_predict
@@ -100,8 +104,12 @@ class ServiceConfig(_Strict):
     rate_hz: float = Field(default=100.0, gt=0, le=1000)
     clock: Literal["wall", "message"] = "wall"
     torch_threads: int = Field(default=1, ge=1)
-    realtime_priority: int | None = Field(default=10, ge=1, le=99)  # SCHED_FIFO for the loop thread; null: off
-    compile_step: bool = True  # wall clock: the loop's step compiled once ready (eager until then, and if it cannot)
+    realtime_priority: int | None = Field(
+        default=10, ge=1, le=99
+    )  # SCHED_FIFO for the loop thread; null: off
+    compile_step: bool = (
+        True  # wall clock: the loop's step compiled once ready (eager until then, and if it cannot)
+    )
     grippers: Grippers = Grippers()
     camera: Camera = Camera()
     timeouts: Timeouts = Timeouts()

@@ -4,13 +4,14 @@ Thread model: input handlers may be called from any thread and only swap small "
 tracker is advanced by :meth:`Estimator.tick` (the loop thread) and by cloud fusion (see
 ``service.fusion``) under one lock that is never held for a whole cloud fusion.
 """
+
 from __future__ import annotations
 
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -27,25 +28,32 @@ NS = 1_000_000_000
 @dataclass
 class Estimate:
     stamp_ns: int
-    x: np.ndarray          # (n, 3) float64, world
-    observed: np.ndarray   # (n,) bool
-    grip: np.ndarray       # (4, 3) the gripped vertices used
-    poses: np.ndarray      # (2, 7) the gripper poses used
+    x: np.ndarray  # (n, 3) float64, world
+    observed: np.ndarray  # (n,) bool
+    grip: np.ndarray  # (4, 3) the gripped vertices used
+    poses: np.ndarray  # (2, 7) the gripper poses used
     tick: int
 
 
 @dataclass
 class Cloud:
     """A decoded, subsampled cloud ready for the tracker."""
+
     stamp_ns: int
-    xyz: np.ndarray   # (H, W, 3) float32, camera frame, NaN = no return
-    rgb: np.ndarray   # (H, W, 3) uint8
-    camera: object    # perception Camera (intrinsics + world_from_camera)
+    xyz: np.ndarray  # (H, W, 3) float32, camera frame, NaN = no return
+    rgb: np.ndarray  # (H, W, 3) uint8
+    camera: object  # perception Camera (intrinsics + world_from_camera)
 
 
 class Estimator:
-    def __init__(self, cfg: ServiceConfig, model, tracker=None, stats: Stats | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self,
+        cfg: ServiceConfig,
+        model,
+        tracker=None,
+        stats: Stats | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.cfg, self.model = cfg, model
         self.clock = clock  # wall time (s) for arrivals, ages and the cloud rate limit; tests pass a fake
         self.tracker = tracker if tracker is not None else make_tracker(model)
@@ -61,8 +69,8 @@ class Estimator:
         self.last_cloud_ns: int | None = None
         self.last_cloud_arrival = self.clock()
         self.cloud_tokens = 3.0
-        self.pending: list[Cloud] = []          # message clock: clouds waiting for their tick
-        self.arrived: dict[str, float] = {}     # input -> arrival (wall monotonic or message time, s)
+        self.pending: list[Cloud] = []  # message clock: clouds waiting for their tick
+        self.arrived: dict[str, float] = {}  # input -> arrival (wall monotonic or message time, s)
         self.fused_at: float | None = None
         # estimate
         self.initialized = False
@@ -175,7 +183,9 @@ class Estimator:
             K, w, h = self.camera_info
             pose = self.camera_pose.copy()
         if xyz.shape[:2] != (h, w):
-            raise M.InputError("cloud_size_mismatch", f"cloud {xyz.shape[1]}x{xyz.shape[0]}, camera_info {w}x{h}")
+            raise M.InputError(
+                "cloud_size_mismatch", f"cloud {xyz.shape[1]}x{xyz.shape[0]}, camera_info {w}x{h}"
+            )
         return Cloud(stamp, xyz, rgb, make_camera(K, w, h, pose))
 
     def on_cloud_sync(self, raw: bytes) -> bool:
@@ -214,8 +224,14 @@ class Estimator:
                     x, observed = self._correct(self.tracker, self.pending.pop(0))
                     self.fused_at = self.now()
             self.prev_x = self.estimate.x if self.estimate is not None else None
-            self.estimate = Estimate(stamp_ns, np.asarray(x, dtype=float), np.asarray(observed, dtype=bool), grip, poses,
-                                     self.tick_index)
+            self.estimate = Estimate(
+                stamp_ns,
+                np.asarray(x, dtype=float),
+                np.asarray(observed, dtype=bool),
+                grip,
+                poses,
+                self.tick_index,
+            )
             return self.estimate
 
     def _correct(self, tracker, cloud: Cloud):

@@ -6,6 +6,7 @@ at tick k in the loop (same operations, same order), without the loop paying for
 itself runs in a worker (:mod:`service.workers`: a child process by default, so perception's
 Python-level work never holds the loop's interpreter); only the catch-up steps run here.
 """
+
 from __future__ import annotations
 
 import logging
@@ -42,8 +43,14 @@ class LatestSlot:
 
 
 class FusionWorker(threading.Thread):
-    def __init__(self, est: Estimator, worker=None, max_lag_ticks: int = 200,
-                 yield_to: threading.Event | None = None, max_yield_s: float = 0.0):
+    def __init__(
+        self,
+        est: Estimator,
+        worker=None,
+        max_lag_ticks: int = 200,
+        yield_to: threading.Event | None = None,
+        max_yield_s: float = 0.0,
+    ):
         super().__init__(name=f"fusion[{est.cfg.namespace}]", daemon=True)
         self.est = est
         self.worker = worker if worker is not None else InlineWorker(est.model, est.cfg)
@@ -78,6 +85,7 @@ class FusionWorker(threading.Thread):
 
     def run(self) -> None:
         import torch
+
         torch.set_num_threads(self.est.cfg.torch_threads)
         while not self._stop_event.is_set():
             self._yield()
@@ -125,7 +133,7 @@ class FusionWorker(threading.Thread):
         while True:
             with est.lock:
                 todo = [(i, g) for i, g in est.history if i > k]
-                if todo and todo[0][0] != k + 1 or len(todo) > self.max_lag:
+                if (todo and todo[0][0] != k + 1) or len(todo) > self.max_lag:
                     est.stats.drop("cloud_too_late", f"{len(todo)} ticks behind")
                     return
                 if len(todo) <= 1:  # one step left: finish under the lock and swap

@@ -1,5 +1,6 @@
 """Poses (x y z qx qy qz qw) to rotations and gripped vertices: the only place that knows how a
 gripper holds the rod (the rod leaves along the gripper's +x axis)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,9 +13,15 @@ def quat_to_matrix(q) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     R = np.empty(q.shape[:-1] + (3, 3))
-    R[..., 0, 0] = 1 - 2 * (y * y + z * z); R[..., 0, 1] = 2 * (x * y - z * w); R[..., 0, 2] = 2 * (x * z + y * w)
-    R[..., 1, 0] = 2 * (x * y + z * w); R[..., 1, 1] = 1 - 2 * (x * x + z * z); R[..., 1, 2] = 2 * (y * z - x * w)
-    R[..., 2, 0] = 2 * (x * z - y * w); R[..., 2, 1] = 2 * (y * z + x * w); R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - z * w)
+    R[..., 0, 2] = 2 * (x * z + y * w)
+    R[..., 1, 0] = 2 * (x * y + z * w)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - x * w)
+    R[..., 2, 0] = 2 * (x * z - y * w)
+    R[..., 2, 1] = 2 * (y * z + x * w)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
     return R
 
 
@@ -46,8 +53,15 @@ def grips_from_poses(poses: np.ndarray, offsets: Grippers) -> np.ndarray:
     ex = quat_to_matrix(poses[..., 3:7])[..., :, 0]  # (..., 2, 3) the +x axes
     p = poses[..., :3]
     a, b = offsets.first, offsets.last
-    return np.stack([p[..., 0, :] + a.d0 * ex[..., 0, :], p[..., 0, :] + a.d1 * ex[..., 0, :],
-                     p[..., 1, :] + b.d1 * ex[..., 1, :], p[..., 1, :] + b.d0 * ex[..., 1, :]], axis=-2)
+    return np.stack(
+        [
+            p[..., 0, :] + a.d0 * ex[..., 0, :],
+            p[..., 0, :] + a.d1 * ex[..., 0, :],
+            p[..., 1, :] + b.d1 * ex[..., 1, :],
+            p[..., 1, :] + b.d0 * ex[..., 1, :],
+        ],
+        axis=-2,
+    )
 
 
 def poses_from_vertices(x: np.ndarray, offsets: Grippers) -> np.ndarray:
@@ -55,7 +69,7 @@ def poses_from_vertices(x: np.ndarray, offsets: Grippers) -> np.ndarray:
     for the end vertices; used to turn recordings into ee_poses streams)."""
     x = np.asarray(x, dtype=float)
     out = []
-    for end, (i0, i1), off in ((0, (0, 1), offsets.first), (1, (-1, -2), offsets.last)):
+    for (i0, i1), off in (((0, 1), offsets.first), ((-1, -2), offsets.last)):
         u = x[..., i1, :] - x[..., i0, :]
         u = u / np.linalg.norm(u, axis=-1, keepdims=True)
         out.append(np.concatenate([x[..., i0, :] - off.d0 * u, quat_from_x_axis(u)], axis=-1))

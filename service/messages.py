@@ -3,6 +3,7 @@
 Decoders validate what the loop relies on and raise :class:`InputError` with a short reason, which
 becomes the name of a rejection counter.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,7 +15,11 @@ POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-FLOAT32, UINT8, UINT32 = T["sensor_msgs/msg/PointField"].FLOAT32, T["sensor_msgs/msg/PointField"].UINT8, T["sensor_msgs/msg/PointField"].UINT32
+FLOAT32, UINT8, UINT32 = (
+    T["sensor_msgs/msg/PointField"].FLOAT32,
+    T["sensor_msgs/msg/PointField"].UINT8,
+    T["sensor_msgs/msg/PointField"].UINT32,
+)
 
 
 class InputError(ValueError):
@@ -44,7 +49,9 @@ def definition(typename: str) -> str:
 # ----- time -----------------------------------------------------------------------------------
 def header(stamp_ns: int, frame_id: str):
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id)
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id
+    )
 
 
 def stamp_ns(hdr) -> int:
@@ -54,12 +61,24 @@ def stamp_ns(hdr) -> int:
 # ----- poses ----------------------------------------------------------------------------------
 def _pose(p) -> object:
     P = T["geometry_msgs/msg/Pose"]
-    return P(position=T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
-             orientation=T["geometry_msgs/msg/Quaternion"](x=float(p[3]), y=float(p[4]), z=float(p[5]), w=float(p[6])))
+    return P(
+        position=T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        orientation=T["geometry_msgs/msg/Quaternion"](
+            x=float(p[3]), y=float(p[4]), z=float(p[5]), w=float(p[6])
+        ),
+    )
 
 
 def _pose_vec(p) -> list[float]:
-    return [p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+    return [
+        p.position.x,
+        p.position.y,
+        p.position.z,
+        p.orientation.x,
+        p.orientation.y,
+        p.orientation.z,
+        p.orientation.w,
+    ]
 
 
 def _check_poses(poses: np.ndarray) -> np.ndarray:
@@ -75,7 +94,9 @@ def _check_poses(poses: np.ndarray) -> np.ndarray:
 
 def pose_array(stamp: int, poses, frame_id: str = "world") -> bytes:
     """``poses`` (k, 7): x y z qx qy qz qw."""
-    msg = T[POSE_ARRAY](header=header(stamp, frame_id), poses=[_pose(p) for p in np.asarray(poses, dtype=float)])
+    msg = T[POSE_ARRAY](
+        header=header(stamp, frame_id), poses=[_pose(p) for p in np.asarray(poses, dtype=float)]
+    )
     return encode(msg, POSE_ARRAY)
 
 
@@ -100,9 +121,21 @@ def camera_info(stamp: int, K, width: int, height: int, frame_id: str = "camera"
     K = np.asarray(K, dtype=float).reshape(9)
     P = np.zeros(12)
     P[[0, 1, 2, 4, 5, 6, 10]] = K[[0, 1, 2, 3, 4, 5, 8]]
-    msg = T[CAMERA_INFO](header=header(stamp, frame_id), height=int(height), width=int(width), distortion_model="plumb_bob",
-                         d=np.zeros(5), k=K, r=np.eye(3).reshape(9), p=P, binning_x=0, binning_y=0,
-                         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    msg = T[CAMERA_INFO](
+        header=header(stamp, frame_id),
+        height=int(height),
+        width=int(width),
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=K,
+        r=np.eye(3).reshape(9),
+        p=P,
+        binning_x=0,
+        binning_y=0,
+        roi=T["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
     return encode(msg, CAMERA_INFO)
 
 
@@ -128,10 +161,20 @@ def point_cloud(stamp: int, xyz: np.ndarray, rgb: np.ndarray, frame_id: str = "c
     rec["x"], rec["y"], rec["z"] = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     rec["rgb"] = _pack_rgb(rgb)
     PF = T["sensor_msgs/msg/PointField"]
-    fields = [PF(name=n, offset=4 * i, datatype=FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))]
-    msg = T[POINT_CLOUD2](header=header(stamp, frame_id), height=H, width=W, fields=fields, is_bigendian=False,
-                          point_step=16, row_step=16 * W, data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
-                          is_dense=False)
+    fields = [
+        PF(name=n, offset=4 * i, datatype=FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))
+    ]
+    msg = T[POINT_CLOUD2](
+        header=header(stamp, frame_id),
+        height=H,
+        width=W,
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * W,
+        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
+        is_dense=False,
+    )
     return encode(msg, POINT_CLOUD2)
 
 
@@ -149,7 +192,12 @@ def _structured(msg, wanted: dict[str, tuple[int, ...]]) -> np.ndarray:
         formats.append({FLOAT32: "<f4", UINT8: "u1", UINT32: "<u4"}[f.datatype])
         offsets.append(f.offset)
     step, H, W = int(msg.point_step), int(msg.height), int(msg.width)
-    if step <= 0 or any(o + 4 > step for o in offsets) or msg.row_step < step * W or len(msg.data) != msg.row_step * H:
+    if (
+        step <= 0
+        or any(o + 4 > step for o in offsets)
+        or msg.row_step < step * W
+        or len(msg.data) != msg.row_step * H
+    ):
         raise InputError("wrong_point_fields", "inconsistent sizes")
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     data = np.asarray(msg.data, dtype=np.uint8).reshape(H, msg.row_step)[:, : step * W]
@@ -166,7 +214,11 @@ def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     H, W = int(msg.height), int(msg.width)
     xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).reshape(H, W, 3)
     packed = rec["rgb"].view(np.uint32) if rec["rgb"].dtype == np.float32 else rec["rgb"]
-    rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8).reshape(H, W, 3)
+    rgb = (
+        np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)
+        .astype(np.uint8)
+        .reshape(H, W, 3)
+    )
     if not np.isfinite(xyz).any():
         raise InputError("empty_cloud")
     return stamp_ns(msg.header), xyz, rgb, msg.header.frame_id
@@ -175,15 +227,33 @@ def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
 def vertices_cloud(stamp: int, x: np.ndarray, observed: np.ndarray, frame_id: str = "world") -> bytes:
     """The estimate: one point per vertex, fields x, y, z (float32) and observed (uint8)."""
     n = len(x)
-    rec = np.zeros(n, dtype=np.dtype({"names": ["x", "y", "z", "observed"], "formats": ["<f4", "<f4", "<f4", "u1"],
-                                      "offsets": [0, 4, 8, 12], "itemsize": 16}))
+    rec = np.zeros(
+        n,
+        dtype=np.dtype(
+            {
+                "names": ["x", "y", "z", "observed"],
+                "formats": ["<f4", "<f4", "<f4", "u1"],
+                "offsets": [0, 4, 8, 12],
+                "itemsize": 16,
+            }
+        ),
+    )
     rec["x"], rec["y"], rec["z"] = x[:, 0], x[:, 1], x[:, 2]
     rec["observed"] = np.asarray(observed, dtype=np.uint8)
     PF = T["sensor_msgs/msg/PointField"]
     fields = [PF(name=n_, offset=4 * i, datatype=FLOAT32, count=1) for i, n_ in enumerate(("x", "y", "z"))]
     fields.append(PF(name="observed", offset=12, datatype=UINT8, count=1))
-    msg = T[POINT_CLOUD2](header=header(stamp, frame_id), height=1, width=n, fields=fields, is_bigendian=False,
-                          point_step=16, row_step=16 * n, data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True)
+    msg = T[POINT_CLOUD2](
+        header=header(stamp, frame_id),
+        height=1,
+        width=n,
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * n,
+        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
+        is_dense=True,
+    )
     return encode(msg, POINT_CLOUD2)
 
 
@@ -191,4 +261,8 @@ def parse_vertices(raw: bytes) -> tuple[int, np.ndarray, np.ndarray]:
     """Client side of ``{ns}/vertices``: -> stamp, x (n, 3) float32, observed (n,) bool."""
     msg = decode(raw, POINT_CLOUD2)
     rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), "observed": (UINT8,)})
-    return stamp_ns(msg.header), np.stack([rec["x"], rec["y"], rec["z"]], axis=1), rec["observed"].astype(bool)
+    return (
+        stamp_ns(msg.header),
+        np.stack([rec["x"], rec["y"], rec["z"]], axis=1),
+        rec["observed"].astype(bool),
+    )

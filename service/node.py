@@ -4,6 +4,7 @@ Two clocks. ``wall``: a fixed-rate timer ticks with the latest gripper poses, cl
 worker. ``message``: every gripper message is one tick at its own stamp and everything is handled
 on one thread in send order (:mod:`service.ordering`), so a replay gives the same output bit for bit.
 """
+
 from __future__ import annotations
 
 import gc
@@ -20,10 +21,10 @@ import zenoh
 
 from service import messages as M
 from service import predict
-from service.ordering import SequenceBuffer, decode_order
 from service.config import ServiceConfig, ZenohSettings
 from service.estimator import Estimator
 from service.fusion import FusionWorker
+from service.ordering import SequenceBuffer, decode_order
 from service.stats import Stats
 from service.workers import make_worker
 
@@ -58,21 +59,30 @@ def set_realtime_priority(priority: int | None) -> bool:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         return True
     except (AttributeError, PermissionError, OSError) as exc:
-        log.warning("real-time priority %s not available (%s): the loop runs at normal priority", priority, exc)
+        log.warning(
+            "real-time priority %s not available (%s): the loop runs at normal priority", priority, exc
+        )
         return False
 
 
 class Service:
     """One rod under one namespace. ``start()`` declares everything and starts the threads."""
 
-    def __init__(self, cfg: ServiceConfig, model=None, tracker=None, session: zenoh.Session | None = None,
-                 rerun_logger=None):
+    def __init__(
+        self,
+        cfg: ServiceConfig,
+        model=None,
+        tracker=None,
+        session: zenoh.Session | None = None,
+        rerun_logger=None,
+    ):
         torch.set_num_threads(cfg.torch_threads)
         # the loop shares the GIL with fusion and Zenoh callbacks: hand it over every 0.5 ms, not 5 ms,
         # so a tick waits at most that long for the interpreter
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
         if model is None:
             from deform import load_model
+
             model = load_model(cfg.rod)
         self.cfg = cfg
         self.stats = Stats(cfg.namespace)
@@ -82,15 +92,26 @@ class Service:
         self.rerun = rerun_logger
         if self.rerun is None and cfg.rerun.mode != "off":
             from service.rerun_log import RerunLogger
+
             self.rerun = RerunLogger(cfg.rerun, cfg.namespace, self.stats)
         # child processes (or inline workers) for cloud fusion (wall clock only: the message clock
         # fuses in order, in the loop, for bit-exact replays) and for predict
-        self.fusion_worker = None if self.est.message_clock else make_worker(model, cfg, f"fusion[{cfg.namespace}]",
-                                                                                 cfg.workers.fusion_nice)
+        self.fusion_worker = (
+            None
+            if self.est.message_clock
+            else make_worker(model, cfg, f"fusion[{cfg.namespace}]", cfg.workers.fusion_nice)
+        )
         self.predict_running = threading.Event()  # fusion defers to it (workers.fusion_yields_to_predict_s)
-        self.fusion = None if self.est.message_clock else FusionWorker(
-            self.est, self.fusion_worker, yield_to=self.predict_running,
-            max_yield_s=cfg.workers.fusion_yields_to_predict_s)
+        self.fusion = (
+            None
+            if self.est.message_clock
+            else FusionWorker(
+                self.est,
+                self.fusion_worker,
+                yield_to=self.predict_running,
+                max_yield_s=cfg.workers.fusion_yields_to_predict_s,
+            )
+        )
         self.predict_worker = make_worker(model, cfg, f"predict[{cfg.namespace}]")
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
@@ -102,10 +123,12 @@ class Service:
         self._last_logged_cloud = None
         self._idle = True
         self.predict_ready = False
-        self.step_ready = not cfg.compile_step or self.est.message_clock  # the loop's step compiled (or not wanted)
+        self.step_ready = (
+            not cfg.compile_step or self.est.message_clock
+        )  # the loop's step compiled (or not wanted)
 
     # ----- lifecycle ---------------------------------------------------------------------------
-    def start(self) -> "Service":
+    def start(self) -> Service:
         if self.session is None:
             self.session = open_session(self.cfg.zenoh)
         s, key = self.session, self.cfg.key
@@ -124,15 +147,22 @@ class Service:
         self._warm.start()
         if self.cfg.compile_step and not self.est.message_clock:
             # not on the message clock: a replay must not depend on when compilation finished
-            threading.Thread(target=self._compile_step, name=f"compile[{self.cfg.namespace}]", daemon=True).start()
+            threading.Thread(
+                target=self._compile_step, name=f"compile[{self.cfg.namespace}]", daemon=True
+            ).start()
         gc.freeze()  # torch and the model out of the collector's reach (see _compile_step)
         loop = self._message_loop if self.est.message_clock else self._wall_loop
         for target, name in ((loop, "loop"), (self._predict_loop, "predict")):
             t = threading.Thread(target=target, name=f"{name}[{self.cfg.namespace}]", daemon=True)
             t.start()
             self._threads.append(t)
-        log.info("[%s] service up (%s clock, %.0f Hz, tracker %s)", self.cfg.namespace, self.cfg.clock,
-                 self.cfg.rate_hz, type(self.est.tracker).__name__)
+        log.info(
+            "[%s] service up (%s clock, %.0f Hz, tracker %s)",
+            self.cfg.namespace,
+            self.cfg.clock,
+            self.cfg.rate_hz,
+            type(self.est.tracker).__name__,
+        )
         return self
 
     def stop(self) -> None:
@@ -177,9 +207,13 @@ class Service:
             t0 = time.perf_counter()
             active = self.predict_worker.call("warmup", list(sizes))
             self.predict_ready = True
-            log.info("[%s] predict ready in %.1f s (%s)", self.cfg.namespace, time.perf_counter() - t0,
-                     "compiled" if active and sizes else "eager" if not active else "compiles on first use")
-        except Exception as exc:  # noqa: BLE001 - predict still answers, eagerly or compiled on first use
+            log.info(
+                "[%s] predict ready in %.1f s (%s)",
+                self.cfg.namespace,
+                time.perf_counter() - t0,
+                "compiled" if active and sizes else "eager" if not active else "compiles on first use",
+            )
+        except Exception as exc:
             log.warning("[%s] predict warm-up failed: %s", self.cfg.namespace, exc)
 
     def _compile_step(self) -> None:
@@ -202,14 +236,20 @@ class Service:
     # ----- inputs ------------------------------------------------------------------------------
     def _on_input(self, name: str):
         if self.est.message_clock:
+
             def enqueue(sample):
                 self._idle = False
                 att = sample.attachment
                 order = decode_order(att.to_bytes() if att is not None else None)
                 self.inbox.put((name, sample.payload.to_bytes(), order))  # blocks: back-pressure, never loss
+
             return enqueue
-        handlers = {"ee_poses": self.est.on_poses, "points": self.fusion.submit,
-                    "camera_info": self.est.on_camera_info, "camera_pose": self.est.on_camera_pose}
+        handlers = {
+            "ee_poses": self.est.on_poses,
+            "points": self.fusion.submit,
+            "camera_info": self.est.on_camera_info,
+            "camera_pose": self.est.on_camera_pose,
+        }
         handler = handlers[name]
 
         def direct(sample):
@@ -217,6 +257,7 @@ class Service:
                 handler(sample.payload.to_bytes())
             except Exception:
                 log.exception("input handler %s failed", name)
+
         return direct
 
     # ----- loops -------------------------------------------------------------------------------
@@ -278,7 +319,11 @@ class Service:
         tick at their stamp can no longer be changed by a message still in transit (see _advance)."""
         torch.set_num_threads(self.cfg.torch_threads)
         est = self.est
-        handlers = {"camera_info": est.on_camera_info, "camera_pose": est.on_camera_pose, "points": est.on_cloud_sync}
+        handlers = {
+            "camera_info": est.on_camera_info,
+            "camera_pose": est.on_camera_pose,
+            "points": est.on_cloud_sync,
+        }
         window = int(self.cfg.timeouts.reorder_s * 1e9)
         order = SequenceBuffer(self.cfg.timeouts.reorder_s)
         poses: list = []
@@ -288,7 +333,10 @@ class Service:
             try:
                 name, raw, seq = self.inbox.get(timeout=0.05)
                 last_message = time.perf_counter()
-                ready, taken = order.push((name, raw, seq is not None, bool(seq and seq.last)), seq, last_message), True
+                ready, taken = (
+                    order.push((name, raw, seq is not None, bool(seq and seq.last)), seq, last_message),
+                    True,
+                )
                 ready += order.expire(last_message)
             except queue.Empty:
                 taken = False

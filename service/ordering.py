@@ -14,6 +14,7 @@ little-endian, 0 for a stream's first sample). The last-sample flag lets the ser
 poses at once instead of waiting for the input to go idle (which would make the result depend on
 how long the sender paused).
 """
+
 from __future__ import annotations
 
 import os

@@ -3,6 +3,7 @@
 Requests are validated before any work so a malformed or huge request costs microseconds; the
 rollout never touches the live tracker.
 """
+
 from __future__ import annotations
 
 import json
@@ -59,7 +60,9 @@ def snapshot(est: Estimator) -> tuple[tuple, int]:
             raise InputError("no_estimate", "no gripper poses received yet")
         base = rod_state(est.tracker, est.model, est.prev_x, est.estimate.x)
         stamp = est.estimate.stamp_ns
-        return tuple(t[:1].detach().numpy().copy() for t in (base.x, base.v, base.d1, base.theta, base.rest)), stamp
+        return tuple(
+            t[:1].detach().numpy().copy() for t in (base.x, base.v, base.d1, base.theta, base.rest)
+        ), stamp
 
 
 def rollout(step, base: tuple, grips: np.ndarray) -> np.ndarray:
@@ -86,8 +89,15 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
     # 0.01 mm resolution: the estimate is not better than that, and the reply is a third shorter
-    return True, orjson.dumps({"stamp": stamp_ns / NS, "vertices": np.round(verts, 5), "overstretched": taut},
-                              option=orjson.OPT_SERIALIZE_NUMPY), None, None
+    return (
+        True,
+        orjson.dumps(
+            {"stamp": stamp_ns / NS, "vertices": np.round(verts, 5), "overstretched": taut},
+            option=orjson.OPT_SERIALIZE_NUMPY,
+        ),
+        None,
+        None,
+    )
 
 
 def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
@@ -101,8 +111,9 @@ def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
         est.stats.reject("predict", exc.reason, str(exc))
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
     t0 = time.perf_counter()
-    ok, reply, reason, detail, compute_s, redone = worker.call("predict", body, base, stamp,
-                                                               timeout=est.cfg.workers.predict_timeout_s)
+    ok, reply, reason, detail, compute_s, redone = worker.call(
+        "predict", body, base, stamp, timeout=est.cfg.workers.predict_timeout_s
+    )
     if ok:
         est.stats.count("predictions")
         est.stats.count("predict_steps_redone", redone)

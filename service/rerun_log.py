@@ -1,6 +1,7 @@
 """Rerun logging of the rope, the fused cloud, the observed flags, the grippers and the timings, on a
 ``message_time`` timeline. A separate thread with a bounded queue does the logging so that a slow
 sink can only drop log entries, never delay the tick."""
+
 from __future__ import annotations
 
 import logging
@@ -66,7 +67,10 @@ class RerunLogger(threading.Thread):
         rec.log("world/rope", rr.LineStrips3D([est.x], colors=[[240, 200, 60]], radii=0.004))
         rec.log("world/rope/vertices", rr.Points3D(est.x, colors=colors, radii=0.008))
         axes = quat_to_matrix(est.poses[:, 3:])[:, :, 0]
-        rec.log("world/grippers", rr.Arrows3D(origins=est.poses[:, :3], vectors=0.08 * axes, colors=[[80, 140, 255]]))
+        rec.log(
+            "world/grippers",
+            rr.Arrows3D(origins=est.poses[:, :3], vectors=0.08 * axes, colors=[[80, 140, 255]]),
+        )
         rec.log("world/grippers/gripped", rr.Points3D(est.grip, colors=[[80, 140, 255]], radii=0.01))
         rec.log("rope/observed_fraction", rr.Scalars(float(est.observed.mean())))
         if step_ms is not None:

@@ -1,6 +1,7 @@
 """Turn a rod recording (T, n, 3) into the message stream a robot and a depth camera would send:
 gripper poses every tick, rendered clouds at the camera rate, camera info and pose once.
 Used by the demo, the tests and the benchmark; the ground truth stays with the caller."""
+
 from __future__ import annotations
 
 import logging
@@ -37,20 +38,29 @@ def render(positions: np.ndarray, dt: float, fps: float, seed: int = 0):
     return render_recording(positions, dt=dt, fps=fps, seed=seed)
 
 
-def build_stream(positions: np.ndarray, grippers: Grippers, dt: float = 0.01, fps: float = 30.0,
-                 t0_ns: int = 1_700_000_000 * NS, seed: int = 0, frames=None) -> list[Message]:
+def build_stream(
+    positions: np.ndarray,
+    grippers: Grippers,
+    dt: float = 0.01,
+    fps: float = 30.0,
+    t0_ns: int = 1_700_000_000 * NS,
+    seed: int = 0,
+    frames=None,
+) -> list[Message]:
     """Messages in send order, each with log time = its header stamp."""
     positions = np.asarray(positions, dtype=float)
     poses = poses_from_vertices(positions, grippers)
     frames = render(positions, dt, fps, seed) if frames is None else frames
     by_step = {f.step: f for f in frames}
     out: list[Message] = []
-    step_ns = int(round(dt * NS))
+    step_ns = round(dt * NS)
     if frames:
         cam = frames[0].camera
         K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
         out.append(Message("camera_info", t0_ns, M.camera_info(t0_ns, K, cam.width, cam.height)))
-        out.append(Message("camera_pose", t0_ns, M.pose_stamped(t0_ns, matrix_to_pose(cam.world_from_camera))))
+        out.append(
+            Message("camera_pose", t0_ns, M.pose_stamped(t0_ns, matrix_to_pose(cam.world_from_camera)))
+        )
     for k in range(len(positions)):
         t = t0_ns + k * step_ns
         out.append(Message("ee_poses", t, M.pose_array(t, poses[k])))

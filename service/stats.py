@@ -3,6 +3,7 @@
 Rejections are counted per reason and logged at most once a second per reason, so a flood of bad
 messages cannot turn into a flood of log lines that slows the loop.
 """
+
 from __future__ import annotations
 
 import logging
@@ -30,8 +31,12 @@ class Rolling:
         if not values:
             return {"p50": None, "p99": None, "max": None, "n": 0}
         a = np.fromiter(values, dtype=float) * scale
-        return {"p50": round(float(np.percentile(a, 50)), 4), "p99": round(float(np.percentile(a, 99)), 4),
-                "max": round(float(a.max()), 4), "n": len(a)}
+        return {
+            "p50": round(float(np.percentile(a, 50)), 4),
+            "p99": round(float(np.percentile(a, 99)), 4),
+            "max": round(float(a.max()), 4),
+            "n": len(a),
+        }
 
 
 class Stats:
@@ -62,13 +67,21 @@ class Stats:
         with self._lock:
             self.rejected[key] += 1
             total = self.rejected[key]
-        self._log(key, logging.WARNING, f"rejected {topic} ({reason}{': ' + detail if detail else ''}); {total} so far")
+        self._log(
+            key,
+            logging.WARNING,
+            f"rejected {topic} ({reason}{': ' + detail if detail else ''}); {total} so far",
+        )
 
     def drop(self, what: str, detail: str = "") -> None:
         with self._lock:
             self.dropped[what] += 1
             total = self.dropped[what]
-        self._log("drop:" + what, logging.INFO, f"dropped {what}{' (' + detail + ')' if detail else ''}; {total} so far")
+        self._log(
+            "drop:" + what,
+            logging.INFO,
+            f"dropped {what}{' (' + detail + ')' if detail else ''}; {total} so far",
+        )
 
     def count(self, what: str, k: int = 1) -> None:
         with self._lock:
@@ -82,4 +95,8 @@ class Stats:
 
     def snapshot(self) -> dict:
         with self._lock:
-            return {"rejected": dict(self.rejected), "dropped": dict(self.dropped), "counts": dict(self.counts)}
+            return {
+                "rejected": dict(self.rejected),
+                "dropped": dict(self.dropped),
+                "counts": dict(self.counts),
+            }

@@ -3,6 +3,7 @@ open-loop tracker (model only) used when perception is not installed, so the ser
 
 Everything here goes through perception's public names only (``Tracker``, ``Camera``).
 """
+
 from __future__ import annotations
 
 import logging
@@ -19,6 +20,7 @@ def _perception(name: str):
     """``perception.<name>`` or None while perception does not provide it yet."""
     try:
         import perception
+
         return getattr(perception, name, None)
     except ImportError:
         return None
@@ -29,8 +31,15 @@ def make_camera(K: np.ndarray, width: int, height: int, pose: np.ndarray):
     Camera = _perception("Camera")
     if Camera is None:
         from perception.camera import Camera  # until perception exports it at the top level
-    return Camera(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height),
-                  pose_matrix(np.asarray(pose, dtype=float)))
+    return Camera(
+        float(K[0, 0]),
+        float(K[1, 1]),
+        float(K[0, 2]),
+        float(K[1, 2]),
+        int(width),
+        int(height),
+        pose_matrix(np.asarray(pose, dtype=float)),
+    )
 
 
 def hanging_guess(grip: np.ndarray, rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,19 +80,23 @@ class OpenLoopTracker:
         x, rest = hanging_guess(grip, self.model.rest_lengths(grip).numpy())
         with torch.no_grad():
             state = self.model.static_state(torch.tensor(x)[None], rest=torch.tensor(rest)[None])
-            self.state = self.model.settle(state, torch.tensor(grip)[None], max_steps=self.settle_steps, tol=1e-3)
+            self.state = self.model.settle(
+                state, torch.tensor(grip)[None], max_steps=self.settle_steps, tol=1e-3
+            )
         return self._out()
 
     def initialize_from_frames(self, x0, x1):
         with torch.no_grad():
-            self.state = self.model.initial_state(torch.as_tensor(x0, dtype=torch.float64)[None],
-                                                  torch.as_tensor(x1, dtype=torch.float64)[None])
+            self.state = self.model.initial_state(
+                torch.as_tensor(x0, dtype=torch.float64)[None], torch.as_tensor(x1, dtype=torch.float64)[None]
+            )
         return self._out()
 
     def step(self, grip_next):
         with torch.no_grad():
-            self.state = (self.step_fn or self.model.step)(self.state,
-                                                            torch.as_tensor(np.asarray(grip_next), dtype=torch.float64)[None])
+            self.state = (self.step_fn or self.model.step)(
+                self.state, torch.as_tensor(np.asarray(grip_next), dtype=torch.float64)[None]
+            )
         return self._out()
 
     def correct(self, points_xyz, rgb, camera):
@@ -107,6 +120,3 @@ def rod_state(tracker, model, x_prev: np.ndarray | None, x: np.ndarray):
         return state
     x_prev = x if x_prev is None else x_prev
     return model.initial_state(torch.tensor(x_prev)[None], torch.tensor(x)[None])
-
-
-

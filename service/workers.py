@@ -9,6 +9,7 @@ state, a decoded cloud, a request body and its reply bytes).
 :class:`WorkerProcess` and :class:`InlineWorker` have the same ``call(op, *args)``; the inline one
 runs the job in the caller's thread (tests, or ``workers.processes: false``).
 """
+
 from __future__ import annotations
 
 import gc
@@ -96,8 +97,12 @@ class JobContext:
     def step(self):
         if self._step is None:
             from deform.compiled import RolloutStep
-            self._step = RolloutStep(self.model, enabled=self.cfg.workers.compile_predict,
-                                     ahead_of_time=self.cfg.workers.predict_ahead_of_time)
+
+            self._step = RolloutStep(
+                self.model,
+                enabled=self.cfg.workers.compile_predict,
+                ahead_of_time=self.cfg.workers.predict_ahead_of_time,
+            )
         return self._step
 
 
@@ -161,7 +166,7 @@ def _serve(conn, model_path: str, cfg, nice: int = 0) -> None:
             return
         try:
             reply = ("ok", JOBS[op](ctx, *args))
-        except Exception as exc:  # noqa: BLE001 - reported to the caller, the worker keeps serving
+        except Exception as exc:
             reply = ("error", f"{type(exc).__name__}: {exc}")
         try:
             conn.send(reply)
@@ -173,8 +178,13 @@ def main(argv: list[str] | None = None) -> None:
     """``python -m service.workers FD MODEL CONFIG_JSON [NICE]``: a worker on an inherited socket."""
     from service.config import ServiceConfig
 
-    fd, model_path, cfg_json, *rest = (argv or sys.argv[1:])
-    _serve(Connection(int(fd)), model_path, ServiceConfig.model_validate_json(cfg_json), int(rest[0]) if rest else 0)
+    fd, model_path, cfg_json, *rest = argv or sys.argv[1:]
+    _serve(
+        Connection(int(fd)),
+        model_path,
+        ServiceConfig.model_validate_json(cfg_json),
+        int(rest[0]) if rest else 0,
+    )
 
 
 class InlineWorker:
@@ -188,7 +198,7 @@ class InlineWorker:
         with self._lock:
             try:
                 return JOBS[op](self.ctx, *args)
-            except Exception as exc:  # noqa: BLE001 - same contract as the process worker
+            except Exception as exc:
                 raise WorkerError(f"{type(exc).__name__}: {exc}") from exc
 
     def close(self) -> None:
@@ -214,9 +224,19 @@ class WorkerProcess:
         # main script (which then needs an `if __name__ == "__main__"` guard)
         ours, theirs = socket.socketpair()
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "service.workers", str(theirs.fileno()), self._model_path, self.cfg.model_dump_json(),
-             str(self.nice)],
-            pass_fds=[theirs.fileno()], cwd=_PROJECT_ROOT, env=_child_env())
+            [
+                sys.executable,
+                "-m",
+                "service.workers",
+                str(theirs.fileno()),
+                self._model_path,
+                self.cfg.model_dump_json(),
+                str(self.nice),
+            ],
+            pass_fds=[theirs.fileno()],
+            cwd=_PROJECT_ROOT,
+            env=_child_env(),
+        )
         theirs.close()
         self._conn = Connection(ours.detach())
 

@@ -6,7 +6,7 @@ import torch
 
 torch.set_num_threads(1)  # small tensors: one thread is fastest, and CI has two cores
 
-from deform.io.recordings import find_data_root
+from deform.io.recordings import find_data_root  # noqa: E402 (after the thread setting)
 
 # torch.compile / AOTInductor compile C++ with $CXX, else g++ (torch._inductor.config.cpp.cxx on Linux)
 CXX = shutil.which(os.environ.get("CXX") or "g++")
@@ -14,8 +14,10 @@ CXX = shutil.which(os.environ.get("CXX") or "g++")
 
 @pytest.hookimpl(tryfirst=True)  # before pytest's own -m selection, which then sees the added markers
 def pytest_collection_modifyitems(config, items):
-    no_cxx = pytest.mark.skip(reason=f"no C++ compiler ({os.environ.get('CXX') or 'g++'} not on PATH; "
-                                     "set CXX): torch.compile / AOTInductor cannot build")
+    no_cxx = pytest.mark.skip(
+        reason=f"no C++ compiler ({os.environ.get('CXX') or 'g++'} not on PATH; "
+        "set CXX): torch.compile / AOTInductor cannot build"
+    )
     for item in items:
         if "data_root" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.needs_data)

@@ -16,6 +16,7 @@ attribute ``n``, ``initial_state(x0, x1)`` (torch (B, n, 3) frames 0 and 1) retu
 ``load_baseline(name, rod, path=None)``: ``path`` overrides the shipped weight file.
 Training of everything: ``benchmarks/baselines.py``.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

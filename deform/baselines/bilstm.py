@@ -13,6 +13,7 @@ Trained by :func:`train_bilstm` with open-loop multi-step rollouts (L1 as the pa
 horizons growing 5 -> 50 steps) on windows of the train recordings; the best weights on the held-out
 recordings are kept. Weights: ``weights/bilstm_ROD.pt`` (float32, ~50 kB).
 """
+
 from __future__ import annotations
 
 import math
@@ -95,7 +96,16 @@ def weight_path(rod: str) -> Path:
 
 def save_bilstm(model: BiLSTMDynamics, path: str | Path, extra: dict | None = None) -> None:
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"n": model.n, "hidden": model.hidden, "dt": model.dt, "state_dict": model.state_dict(), **(extra or {})}, path)
+    torch.save(
+        {
+            "n": model.n,
+            "hidden": model.hidden,
+            "dt": model.dt,
+            "state_dict": model.state_dict(),
+            **(extra or {}),
+        },
+        path,
+    )
 
 
 def load_bilstm(rod: str, path: str | Path | None = None) -> BiLSTMDynamics:
@@ -117,18 +127,31 @@ def _val_l1(model, recordings, steps: int) -> float:
     return err if math.isfinite(err) else math.inf
 
 
-def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: int = 32,
-                 curriculum: tuple[tuple[int, int], ...] = ((0, 5), (200, 10), (500, 25), (900, 50)),
-                 lr: float = 2e-3, hidden: int = 64, seed: int = 0, time_limit_s: float | None = None,
-                 val_every: int = 100, val_steps: int = 500, out: str | Path | None = None,
-                 progress: bool = False) -> tuple[BiLSTMDynamics, dict]:
+def train_bilstm(
+    train_recs,
+    val_recs,
+    n: int,
+    iterations: int = 1500,
+    batch: int = 32,
+    curriculum: tuple[tuple[int, int], ...] = ((0, 5), (200, 10), (500, 25), (900, 50)),
+    lr: float = 2e-3,
+    hidden: int = 64,
+    seed: int = 0,
+    time_limit_s: float | None = None,
+    val_every: int = 100,
+    val_steps: int = 500,
+    out: str | Path | None = None,
+    progress: bool = False,
+) -> tuple[BiLSTMDynamics, dict]:
     """Train on windows of ``train_recs`` with open-loop rollouts (L1); keep the best on ``val_recs``
     (500-step open loop). ``curriculum``: (from iteration, horizon) pairs. Returns the best model."""
     torch.manual_seed(seed)
     rng = random.Random(seed)
     model = BiLSTMDynamics(n, hidden)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda it: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(it / iterations, 1.0))))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda it: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(it / iterations, 1.0)))
+    )
     idx = gripped_indices(n)
     best, best_state, log = math.inf, None, []
     t0 = time.perf_counter()
@@ -147,11 +170,21 @@ def train_bilstm(train_recs, val_recs, n: int, iterations: int = 1500, batch: in
         done = it + 1 == iterations or (time_limit_s is not None and time.perf_counter() - t0 > time_limit_s)
         if (it + 1) % val_every == 0 or done:
             val = _val_l1(model, val_recs, val_steps) if val_recs else float(loss.detach())
-            log.append({"iteration": it + 1, "horizon": horizon, "loss_m": float(loss.detach()), "val_l1_m": val,
-                        "seconds": time.perf_counter() - t0})
+            log.append(
+                {
+                    "iteration": it + 1,
+                    "horizon": horizon,
+                    "loss_m": float(loss.detach()),
+                    "val_l1_m": val,
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
             if progress:
-                print(f"  bilstm it {it + 1} h {horizon} loss {float(loss.detach()) * 100:.3f} cm val {val * 100:.3f} cm "
-                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
+                print(
+                    f"  bilstm it {it + 1} h {horizon} loss {float(loss.detach()) * 100:.3f} cm val {val * 100:.3f} cm "
+                    f"({time.perf_counter() - t0:.0f} s)",
+                    flush=True,
+                )
             if val <= best or not val_recs:  # without held-out recordings: the last weights
                 best, best_state = val, {k: t.clone() for k, t in model.state_dict().items()}
         if done:

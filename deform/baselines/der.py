@@ -7,6 +7,7 @@
   Without that file the physical parameters of the shipped DEFORM model ``deform/models/ROD.pt``
   are used with the residual network disabled (``model.baseline_source`` says which).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -58,20 +59,42 @@ def der_identified(rod: str, path: str | Path | None = None) -> DeformModel:
             payload = torch.load(p, map_location="cpu", weights_only=True)
             physics = payload.get("physics") or payload["state_dict"]
             return _with_physics(rod, physics, str(p))
-    raise MissingWeightsError(f"no identified DER parameters for {rod}: looked at {', '.join(map(str, candidates))}; "
-                            "run benchmarks/baselines.py")
+    raise MissingWeightsError(
+        f"no identified DER parameters for {rod}: looked at {', '.join(map(str, candidates))}; "
+        "run benchmarks/baselines.py"
+    )
 
 
-def identify(rod: str, train_recs, val_recs, out_dir: str | Path, iterations: int = 100, batch: int = 8,
-             horizon: int = 100, time_limit_s: float | None = None, progress: bool = True) -> dict:
+def identify(
+    rod: str,
+    train_recs,
+    val_recs,
+    out_dir: str | Path,
+    iterations: int = 100,
+    batch: int = 8,
+    horizon: int = 100,
+    time_limit_s: float | None = None,
+    progress: bool = True,
+) -> dict:
     """System identification of plain DER (no residual) and save of ``weights/der_ROD.pt``."""
     from deform.train import TrainConfig, train
 
     model = DeformModel(load_rod_config(rod), ModelOptions(residual=False))
-    cfg = TrainConfig(iterations=iterations, batch=batch, horizon=horizon, residual=False,
-                      curriculum=(10, 25, 50), curriculum_iters=max(1, iterations // 10), log_every=10,
-                      time_limit_s=time_limit_s)
+    cfg = TrainConfig(
+        iterations=iterations,
+        batch=batch,
+        horizon=horizon,
+        residual=False,
+        curriculum=(10, 25, 50),
+        curriculum_iters=max(1, iterations // 10),
+        log_every=10,
+        time_limit_s=time_limit_s,
+    )
     result = train(model, train_recs, val_recs, cfg, out_dir, resume=False, progress=progress)
     best = DeformModel.load(Path(out_dir) / "best.pt")
-    save_physics(best, weight_path(rod), {"val_l1_m": result["best_val_l1_m"], "iterations": result["last"].get("iteration")})
+    save_physics(
+        best,
+        weight_path(rod),
+        {"val_l1_m": result["best_val_l1_m"], "iterations": result["last"].get("iteration")},
+    )
     return result

@@ -1,5 +1,6 @@
 """Trivial baseline: the interior vertices keep their frame-1 positions for ever; the gripped
 vertices 0, 1, n-2, n-1 are set to the inputs. Scores about 5 cm on the paper's metric."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -18,6 +18,7 @@ Parameters (``alpha_stretch``, ``alpha_bend``, ``damping``; ``substeps`` fixed) 
 :func:`tune` with a coarse-to-fine log grid on the open-loop L1 of train recordings, and stored as
 ``weights/xpbd_ROD.json``.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -66,12 +67,20 @@ def _groups(pairs: list[tuple[int, int]]) -> list[tuple[np.ndarray, np.ndarray, 
         else:
             groups.append([k])
             used.append({i, j})
-    return [(np.array(g), np.array([pairs[k][0] for k in g]), np.array([pairs[k][1] for k in g])) for g in groups]
+    return [
+        (np.array(g), np.array([pairs[k][0] for k in g]), np.array([pairs[k][1] for k in g])) for g in groups
+    ]
 
 
 class XPBDRope:
-    def __init__(self, n: int, mass_kg: float, marker_mass_kg: float, dt: float = 0.01,
-                 params: XPBDParams | None = None):
+    def __init__(
+        self,
+        n: int,
+        mass_kg: float,
+        marker_mass_kg: float,
+        dt: float = 0.01,
+        params: XPBDParams | None = None,
+    ):
         self.n = n
         self.dt = dt
         self.mass_kg = mass_kg
@@ -85,7 +94,7 @@ class XPBDRope:
         self.bend_groups = _groups([(i, i + 2) for i in range(n - 2)])
 
     @classmethod
-    def for_rod(cls, rod: str, params: XPBDParams | None = None) -> "XPBDRope":
+    def for_rod(cls, rod: str, params: XPBDParams | None = None) -> XPBDRope:
         cfg = load_rod_config(rod)
         return cls(cfg.n_vertices, cfg.mass_kg, cfg.marker_mass_kg, cfg.dt, params)
 
@@ -120,7 +129,7 @@ class XPBDRope:
         g0 = x[:, self.grip].copy()
         g1 = np.asarray(torch.as_tensor(grip_next, dtype=torch.float64)).reshape(-1, 4, 3)
         fade = math.exp(-prm.damping * h)
-        a_s, a_b = prm.alpha_stretch / h ** 2, prm.alpha_bend / h ** 2
+        a_s, a_b = prm.alpha_stretch / h**2, prm.alpha_bend / h**2
         free = self.free[None, :, None]
         for k in range(1, s + 1):
             v = (v + h * GRAVITY * free) * fade
@@ -153,8 +162,15 @@ def _score(rope: XPBDRope, recordings, steps: int) -> float:
     return err if math.isfinite(err) else math.inf
 
 
-def tune(rod: str, train_recs, steps: int = 300, max_recordings: int = 12, substeps: int = 10,
-         save: bool = True, progress: bool = False) -> dict:
+def tune(
+    rod: str,
+    train_recs,
+    steps: int = 300,
+    max_recordings: int = 12,
+    substeps: int = 10,
+    save: bool = True,
+    progress: bool = False,
+) -> dict:
     """Coarse log grid over (alpha_bend, damping) at two stretch compliances, then a finer grid
     around the best; score = open-loop L1 over ``steps`` on up to ``max_recordings`` train recordings."""
     recs = train_recs[:: max(1, len(train_recs) // max_recordings)][:max_recordings]
@@ -169,16 +185,29 @@ def tune(rod: str, train_recs, steps: int = 300, max_recordings: int = 12, subst
             err = _score(rope, recs, steps)
             tried += 1
             if progress:
-                print(f"  xpbd {rod} alpha_s={a_s:.1e} alpha_b={a_b:.1e} c={c:.2f}: {err * 100:.3f} cm", flush=True)
+                print(
+                    f"  xpbd {rod} alpha_s={a_s:.1e} alpha_b={a_b:.1e} c={c:.2f}: {err * 100:.3f} cm",
+                    flush=True,
+                )
             if err < best[0]:
                 best = (err, XPBDParams(a_s, a_b, c, substeps))
 
     run(itertools.product((1e-8, 1e-5), (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0), (0.1, 0.5, 2.0, 5.0)))
     b = best[1]
-    run(itertools.product((b.alpha_stretch,), [b.alpha_bend * f for f in (0.3, 0.55, 1.0, 1.8, 3.3)],
-                          [b.damping * f for f in (0.5, 0.75, 1.0, 1.4, 2.0)]))
-    result = {"rod": rod, "params": asdict(best[1]), "train_l1_m": best[0], "configs_tried": tried,
-              "tuning": {"steps": steps, "recordings": [r.name for r in recs]}}
+    run(
+        itertools.product(
+            (b.alpha_stretch,),
+            [b.alpha_bend * f for f in (0.3, 0.55, 1.0, 1.8, 3.3)],
+            [b.damping * f for f in (0.5, 0.75, 1.0, 1.4, 2.0)],
+        )
+    )
+    result = {
+        "rod": rod,
+        "params": asdict(best[1]),
+        "train_l1_m": best[0],
+        "configs_tried": tried,
+        "tuning": {"steps": steps, "recordings": [r.name for r in recs]},
+    }
     if save:
         weight_path(rod).parent.mkdir(parents=True, exist_ok=True)
         weight_path(rod).write_text(json.dumps(result, indent=2) + "\n")

@@ -7,6 +7,7 @@ Modules: :mod:`.spec` (inputs and their checks), :mod:`.simulator` (bound DER mo
 :mod:`.scoring` (bootstrap + parameter penalty), :mod:`.selection` (forward selection),
 :mod:`.report`, :mod:`.planted` (benchmark data with planted effects).
 """
+
 from __future__ import annotations
 
 import json
@@ -19,10 +20,10 @@ def run_cli(args) -> int:
     """Entry point of ``deform diagnose``: errors are raised before anything is written."""
     import torch
 
-    from deform.errors import UsageError
     from deform.diagnose.report import write_report
     from deform.diagnose.selection import DiagnoseBudget, diagnose
     from deform.diagnose.spec import load_inputs
+    from deform.errors import UsageError
 
     torch.set_num_threads(1)
     out = Path(args.out)
@@ -44,7 +45,9 @@ def run_cli(args) -> int:
     if args.json:
         print(json.dumps(diag.report, indent=2))
     else:
-        print(f"selected: {', '.join(diag.report['selected']) or 'none'}; check L1 "
-              f"{diag.report['nominal']['check_l1_m'] * 100:.3f} -> {diag.report['final_check_l1_m'] * 100:.3f} cm; "
-              f"report in {out / 'report.md'}")
+        print(
+            f"selected: {', '.join(diag.report['selected']) or 'none'}; check L1 "
+            f"{diag.report['nominal']['check_l1_m'] * 100:.3f} -> {diag.report['final_check_l1_m'] * 100:.3f} cm; "
+            f"report in {out / 'report.md'}"
+        )
     return 0

@@ -3,6 +3,7 @@
 Windows are short (tens of steps) and batched so that one candidate costs seconds; every candidate
 sees the same window sequence (same seed) so that their fits are comparable.
 """
+
 from __future__ import annotations
 
 import copy
@@ -29,12 +30,20 @@ class FitBudget:
     seed: int = 0
     progress: bool = True
     transported: bool = True  # windows start with the reference frames a full rollout carries (make_windows)
-    anneal: bool = True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
+    anneal: bool = (
+        True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
+    )
     # jittering by one Adam step, which would make two fits of the same model differ by noise
 
 
-def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: int, rng: random.Random,
-                 transported: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+def make_windows(
+    recordings: list[Recording],
+    batch: int,
+    horizon: int,
+    margin: int,
+    rng: random.Random,
+    transported: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings, and the reference
     directors (B, m, 3) a full rollout would carry at each window's start frame (``margin + 1``), or
     None when not ``transported`` (fresh frames, the behaviour before they were carried)."""
@@ -43,7 +52,7 @@ def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: 
     for _ in range(batch):
         r = rng.choice(recordings)
         s = rng.randrange(0, r.n_frames - length + 1)
-        out.append(r.positions[s:s + length])
+        out.append(r.positions[s : s + length])
         if transported:
             frames.append(r.reference_frames[s + margin + 1])
     X = torch.tensor(np.stack(out), dtype=torch.float64)
@@ -53,7 +62,7 @@ def make_windows(recordings: list[Recording], batch: int, horizon: int, margin: 
 def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph: bool) -> torch.Tensor:
     X, d1 = windows
     pred = sim.rollout(X, horizon, margin, create_graph=create_graph, d1=d1)
-    return (pred - X[:, margin + 2:margin + 2 + horizon]).abs().mean()
+    return (pred - X[:, margin + 2 : margin + 2 + horizon]).abs().mean()
 
 
 @torch.no_grad()
@@ -67,8 +76,14 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
     points = term.grid()
     if not points:
         return None
-    windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, random.Random(budget.seed + 1),
-                           budget.transported)
+    windows = make_windows(
+        recordings,
+        budget.batch,
+        budget.horizon,
+        budget.margin,
+        random.Random(budget.seed + 1),
+        budget.transported,
+    )
     named = {k: p for k, p in term.named_parameters()}
     named.update({f"nominal:{k}": p for k, p in sim.nominal.named_parameters()})
     named.update({f"nominal={k}": p for k, p in sim.nominal.named_parameters()})
@@ -91,15 +106,23 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
     best = (math.inf, None)
     for point in [None] + points:
         apply(point)
-        loss = float(torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf))
+        loss = float(
+            torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf)
+        )
         if loss < best[0]:
             best = (loss, point)
     apply(best[1])
     return {"grid_loss_m": best[0], "chosen": best[1]}
 
 
-def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: str = "fit",
-        fit_nominal: bool = True, new_term=None) -> dict:
+def fit(
+    sim: Simulator,
+    recordings: list[Recording],
+    budget: FitBudget,
+    desc: str = "fit",
+    fit_nominal: bool = True,
+    new_term=None,
+) -> dict:
     """Fit the simulator's term parameters (and the nominal ones, more slowly) in place.
     ``new_term`` (a term just added) is first started from the best point of its coarse grid."""
     if new_term is not None:
@@ -112,12 +135,19 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
         groups.append({"params": list(sim.nominal.parameters()), "lr": budget.lr_nominal})
     opt = torch.optim.Adam(groups)
     half = budget.iterations / 2  # full rate for the first half, then cosine decay to 0
-    sched = (torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))) if budget.anneal else None)
+    sched = (
+        torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))
+        )
+        if budget.anneal
+        else None
+    )
     history, skipped = [], 0
     bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
-    for it in bar:
-        windows = make_windows(recordings, budget.batch, budget.horizon, budget.margin, rng, budget.transported)
+    for _ in bar:
+        windows = make_windows(
+            recordings, budget.batch, budget.horizon, budget.margin, rng, budget.transported
+        )
         opt.zero_grad(set_to_none=True)
         exprs = sim.sync()
         loss = window_loss(sim, windows, budget.horizon, budget.margin, create_graph=True)
@@ -137,11 +167,13 @@ def fit(sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: st
     return {"loss_history_m": history, "skipped": skipped}
 
 
-def coarse_nominal(sim: Simulator, recordings: list[Recording], steps: int = 150, max_recordings: int = 4) -> dict:
+def coarse_nominal(
+    sim: Simulator, recordings: list[Recording], steps: int = 150, max_recordings: int = 4
+) -> dict:
     """Log-grid search of EI (GJ tied at 0.7 EI) and damping: puts Adam in the right basin."""
     recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
     steps = min(steps, min(r.n_frames for r in recs) - 2)
-    X = torch.tensor(np.stack([r.positions[:steps + 2] for r in recs]), dtype=torch.float64)
+    X = torch.tensor(np.stack([r.positions[: steps + 2] for r in recs]), dtype=torch.float64)
     best = (math.inf, None)
     nom = sim.nominal
     for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2):
@@ -166,11 +198,15 @@ def clone_nominal(nominal: Nominal) -> Nominal:
     return copy.deepcopy(nominal)
 
 
-def laplace_uncertainty(sim: Simulator, recordings: list[Recording], budget: FitBudget, term) -> dict[str, float]:
+def laplace_uncertainty(
+    sim: Simulator, recordings: list[Recording], budget: FitBudget, term
+) -> dict[str, float]:
     """Approximate 1-sigma of the term's physical parameters: diagonal curvature of the window
     loss by finite differences, residual windows treated as independent Laplace samples."""
     rng = random.Random(budget.seed + 777)
-    windows = make_windows(recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng, budget.transported)
+    windows = make_windows(
+        recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng, budget.transported
+    )
 
     def loss() -> float:
         sim.sync()
@@ -190,7 +226,7 @@ def laplace_uncertainty(sim: Simulator, recordings: list[Recording], budget: Fit
             up = loss()
             flat[i] = orig - d
             down = loss()
-            curv = (up + down - 2 * base) / d ** 2
+            curv = (up + down - 2 * base) / d**2
             sigma_raw = math.sqrt(base / (n_eff * curv)) if curv > 0 else math.inf
             sigma_raw = min(sigma_raw, 10.0)
             flat[i] = orig + sigma_raw

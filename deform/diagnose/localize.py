@@ -4,8 +4,10 @@ Open-loop errors accumulate, which blurs what causes them; so the residual used 
 of short rollouts (``horizon`` steps) restarted from observed frames every ``stride`` frames, set
 against the observed state at the end of each short rollout.
 """
+
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -16,13 +18,15 @@ from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
 
-def short_rollout_residuals(sim: Simulator, recordings: list[Recording], horizon: int = 10, stride: int = 10) -> dict:
+def short_rollout_residuals(
+    sim: Simulator, recordings: list[Recording], horizon: int = 10, stride: int = 10
+) -> dict:
     """Per (window, vertex): error [m] after ``horizon`` steps, and the state features there."""
     sim.sync()
     wins, frames, meta = [], [], []
     for ri, r in enumerate(recordings):
         for s in range(0, r.n_frames - horizon - 2, stride):
-            wins.append(r.positions[s:s + horizon + 2])
+            wins.append(r.positions[s : s + horizon + 2])
             frames.append(r.reference_frames[s + 1])  # the reference frames a full rollout carries there
             meta.append((ri, s + horizon + 1))
     X = torch.tensor(np.stack(wins), dtype=torch.float64)
@@ -38,8 +42,12 @@ def short_rollout_residuals(sim: Simulator, recordings: list[Recording], horizon
         P = recordings[ri].positions
         a, b = max(f - 2, 0), min(f + 2, len(P) - 1)
         speed.append(np.linalg.norm(P[b] - P[a], axis=-1) / ((b - a) * recordings[ri].dt))
-        g = P[max(f - 4, 0):f + 5, idx]
-        acc = np.linalg.norm(g[8] - 2 * g[4] + g[0], axis=-1).max() / (4 * recordings[ri].dt) ** 2 if len(g) == 9 else 0.0
+        g = P[max(f - 4, 0) : f + 5, idx]
+        acc = (
+            np.linalg.norm(g[8] - 2 * g[4] + g[0], axis=-1).max() / (4 * recordings[ri].dt) ** 2
+            if len(g) == 9
+            else 0.0
+        )
         acc_grip.append(np.full(n, acc))
         z.append(P[f, :, 2])
         zlow.append(P[f, :, 2] - lowest)
@@ -48,9 +56,15 @@ def short_rollout_residuals(sim: Simulator, recordings: list[Recording], horizon
         ang = np.arccos(np.clip((t[:-1] * t[1:]).sum(-1), -1, 1))
         curv.append(np.concatenate([[0.0], ang, [0.0]]))
     time_s = np.array([f * recordings[ri].dt for ri, f in meta])
-    return {"error": err, "speed": np.array(speed), "height": np.array(z), "height_above_lowest": np.array(zlow),
-            "curvature": np.array(curv), "gripper_acceleration": np.array(acc_grip),
-            "time_s": np.repeat(time_s[:, None], n, 1)}
+    return {
+        "error": err,
+        "speed": np.array(speed),
+        "height": np.array(z),
+        "height_above_lowest": np.array(zlow),
+        "curvature": np.array(curv),
+        "gripper_acceleration": np.array(acc_grip),
+        "time_s": np.repeat(time_s[:, None], n, 1),
+    }
 
 
 def _band(profile: np.ndarray, s: np.ndarray) -> tuple[float, float]:
@@ -67,7 +81,7 @@ def _band(profile: np.ndarray, s: np.ndarray) -> tuple[float, float]:
 def _binned(feature: np.ndarray, err: np.ndarray, bins: int = 8) -> tuple[list[float], list[float]]:
     edges = np.unique(np.quantile(feature, np.linspace(0, 1, bins + 1)))
     centers, means = [], []
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in itertools.pairwise(edges):
         m = (feature >= a) & (feature <= b)
         if m.sum() >= 5:
             centers.append(float(np.median(feature[m])))
@@ -90,20 +104,31 @@ def localize(res: dict, arclength: np.ndarray) -> dict:
     profile = e.mean(0)
     lo, hi = _band(profile, s_free)
     findings = []
-    out: dict = {"residual": f"error after 10-step rollouts restarted every 10 frames ({err.shape[0]} windows)",
-                 "mean_error_m": float(e.mean()),
-                 "by_arclength": {"s": s_free.tolist(), "error_m": profile.tolist()}}
+    out: dict = {
+        "residual": f"error after 10-step rollouts restarted every 10 frames ({err.shape[0]} windows)",
+        "mean_error_m": float(e.mean()),
+        "by_arclength": {"s": s_free.tolist(), "error_m": profile.tolist()},
+    }
     ratio = float(profile.max() / profile.mean())
     if ratio > 1.3:
-        findings.append(f"error concentrated at {lo * 100:.0f}-{hi * 100:.0f} % of the length (peak {ratio:.1f}x the mean)")
+        findings.append(
+            f"error concentrated at {lo * 100:.0f}-{hi * 100:.0f} % of the length (peak {ratio:.1f}x the mean)"
+        )
     else:
-        findings.append(f"error spread along the rod (peak at {s_free[np.argmax(profile)] * 100:.0f} % of the length, only {ratio:.2f}x the mean)")
+        findings.append(
+            f"error spread along the rod (peak at {s_free[np.argmax(profile)] * 100:.0f} % of the length, only {ratio:.2f}x the mean)"
+        )
     out["peak_s"] = float(s_free[np.argmax(profile)])
     t = res["time_s"][:, free].ravel()
     c, m = _binned(t, e.ravel(), 6)
     out["by_time"] = {"t_s": c, "error_m": m}
-    for key, label in (("speed", "speed"), ("height", "height"), ("height_above_lowest", "height above the lowest point reached"),
-                       ("curvature", "curvature"), ("gripper_acceleration", "gripper acceleration")):
+    for key, label in (
+        ("speed", "speed"),
+        ("height", "height"),
+        ("height_above_lowest", "height above the lowest point reached"),
+        ("curvature", "curvature"),
+        ("gripper_acceleration", "gripper acceleration"),
+    ):
         f = res[key][:, free].ravel()
         ev = e.ravel()
         centers, means = _binned(f, ev)
@@ -121,7 +146,11 @@ def localize(res: dict, arclength: np.ndarray) -> dict:
             entry["low_threshold"] = q
             entry["low_vs_rest_ratio"] = float(low / high)
             if low / high > 1.5:
-                where = f"z = {q:.3f} m" if key == "height" else f"{q * 100:.1f} cm above the lowest point reached"
+                where = (
+                    f"z = {q:.3f} m"
+                    if key == "height"
+                    else f"{q * 100:.1f} cm above the lowest point reached"
+                )
                 findings.append(f"error {low / high:.1f}x larger when vertices are below {where}")
         elif abs(rho) > 0.3:
             findings.append(f"error {'grows' if rho > 0 else 'falls'} with {label} (Spearman {rho:.2f})")
@@ -134,13 +163,19 @@ def localize(res: dict, arclength: np.ndarray) -> dict:
 
 def plot_localization(loc: dict, path: Path) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = [("by_arclength", "s", "arc length (fraction)"), ("by_time", "t_s", "time [s]"),
-            ("by_speed", "bin_center", "speed [m/s]"), ("by_height", "bin_center", "height z [m]"),
-            ("by_height_above_lowest", "bin_center", "height above lowest [m]"), ("by_curvature", "bin_center", "turning angle [rad]"),
-            ("by_gripper_acceleration", "bin_center", "gripper acceleration [m/s^2]")]
+    keys = [
+        ("by_arclength", "s", "arc length (fraction)"),
+        ("by_time", "t_s", "time [s]"),
+        ("by_speed", "bin_center", "speed [m/s]"),
+        ("by_height", "bin_center", "height z [m]"),
+        ("by_height_above_lowest", "bin_center", "height above lowest [m]"),
+        ("by_curvature", "bin_center", "turning angle [rad]"),
+        ("by_gripper_acceleration", "bin_center", "gripper acceleration [m/s^2]"),
+    ]
     fig, axes = plt.subplots(2, 4, figsize=(14, 6))
     for ax, (k, xk, label) in zip(axes.ravel(), keys):
         d = loc[k]

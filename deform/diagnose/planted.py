@@ -5,6 +5,7 @@ with a smaller time step, gripper motions replayed from real recordings (interpo
 frames), markers a subset of the simulated nodes, and 0.3 mm motion-capture noise. One effect from
 the candidate library (or none, for controls) is added to the truth with known parameters.
 """
+
 from __future__ import annotations
 
 import math
@@ -19,8 +20,17 @@ from deform.diagnose.terms import make_term
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
-EFFECTS = ("aerodynamic_drag", "internal_damping", "ground_contact", "point_mass", "stiffness_variation",
-           "external_force", "mass_scale", "actuation_delay", "rest_curvature")
+EFFECTS = (
+    "aerodynamic_drag",
+    "internal_damping",
+    "ground_contact",
+    "point_mass",
+    "stiffness_variation",
+    "external_force",
+    "mass_scale",
+    "actuation_delay",
+    "rest_curvature",
+)
 
 
 class MarkerMass(nn.Module):
@@ -118,10 +128,21 @@ def oracle_term(effect: str | None, truth: dict, n: int, arclength: np.ndarray, 
     return term
 
 
-def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec, n_frames: int = 300,
-                     refine: int = 3, substeps: int = 5, noise_m: float = 3e-4, seed: int = 0,
-                     ei: float = 3e-3, gj: float = 2e-3, damping: float = 1.0, settle_s: float = 1.0,
-                     truth_override: dict | None = None):
+def generate_planted(
+    effect: str | None,
+    sources: list[Recording],
+    spec: RodSpec,
+    n_frames: int = 300,
+    refine: int = 3,
+    substeps: int = 5,
+    noise_m: float = 3e-4,
+    seed: int = 0,
+    ei: float = 3e-3,
+    gj: float = 2e-3,
+    damping: float = 1.0,
+    settle_s: float = 1.0,
+    truth_override: dict | None = None,
+):
     """-> (recordings, truth params). Each source recording gives the gripper motion of one output.
     ``truth_override``: planted parameter values replacing :func:`planted_truth`'s (a size study)."""
     rng = np.random.default_rng(seed)
@@ -130,7 +151,9 @@ def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec
     lowest = float(np.percentile([r.positions[:n_frames, 2:-2, 2].min() for r in sources], 80))
     truth = {**planted_truth(effect, spec, lowest), **(truth_override or {})}
     starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
-    grips_rec = np.stack([r.positions[s:s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)])
+    grips_rec = np.stack(
+        [r.positions[s : s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)]
+    )
     x0_markers = np.stack([r.positions[s] for r, s in zip(sources, starts)])
     nodes, ids = zip(*[_layout(x, refine) for x in x0_markers])
     X0 = np.stack(nodes)
@@ -139,7 +162,9 @@ def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec
     s_sim = np.concatenate([[0.0], np.cumsum(rest.mean(0))])
     s_sim /= s_sim[-1]
     sim_spec = RodSpec(length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=n_sim, dt=spec.dt / substeps)
-    terms = _truth_terms(effect, truth, n_sim, s_sim, list(ids[0]), refine, float(rest[:, 1:-1].mean() * refine))
+    terms = _truth_terms(
+        effect, truth, n_sim, s_sim, list(ids[0]), refine, float(rest[:, 1:-1].mean() * refine)
+    )
     sim = Simulator(sim_spec, Nominal(ei, gj, damping), [t for t in terms if not isinstance(t, MarkerMass)])
     for t in terms:
         if isinstance(t, MarkerMass):
@@ -149,11 +174,13 @@ def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec
     delay = truth.get("delay_frames", 0.0)
     # gripper input of the simulated rod at fractional frame f: the recorded grips at f - delay
     T = n_frames
+
     def grip_at(f: float) -> torch.Tensor:
         f = min(max(f - delay, 0.0), T - 1.0)
-        i = min(int(math.floor(f)), T - 2)
+        i = min(math.floor(f), T - 2)
         a = f - i
         return torch.tensor((1 - a) * grips_rec[:, i] + a * grips_rec[:, i + 1])
+
     state = model.static_state(torch.tensor(X0), rest=torch.tensor(rest))
     g0 = grip_at(0.0)
     out = np.empty((len(sources), T, n, 3))
@@ -169,5 +196,8 @@ def generate_planted(effect: str | None, sources: list[Recording], spec: RodSpec
     out = out + rng.normal(0, noise_m, out.shape)
     if not np.all(np.isfinite(out)):
         raise RuntimeError(f"planted {effect}: the truth simulation diverged")
-    recs = [Recording(name=f"{effect or 'control'}_{seed}_{i}", positions=out[i], dt=spec.dt) for i in range(len(sources))]
+    recs = [
+        Recording(name=f"{effect or 'control'}_{seed}_{i}", positions=out[i], dt=spec.dt)
+        for i in range(len(sources))
+    ]
     return recs, truth

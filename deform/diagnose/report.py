@@ -1,4 +1,5 @@
 """report.json (the issue's schema) and report.md with PNG plots."""
+
 from __future__ import annotations
 
 import json
@@ -14,6 +15,7 @@ from deform.io.recordings import Recording
 
 def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -24,7 +26,9 @@ def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
     fin = diag.final_sim.predict(check)
     fig, ax = plt.subplots(figsize=(6, 4))
     for preds, label in ((nom, "nominal"), (fin, "final")):
-        err = np.mean([np.abs(p - r.positions[2:2 + len(p)]).mean(axis=(1, 2)) for p, r in zip(preds, check)], 0)
+        err = np.mean(
+            [np.abs(p - r.positions[2 : 2 + len(p)]).mean(axis=(1, 2)) for p, r in zip(preds, check)], 0
+        )
         ax.plot(np.arange(1, len(err) + 1), err * 100, label=label)
     ax.set_xlabel("horizon [steps]")
     ax.set_ylabel("check L1 [cm]")
@@ -38,7 +42,7 @@ def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
     t = np.arange(2, 2 + len(p0)) * r.dt
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
     for k, ax in enumerate(axes):
-        ax.plot(t, r.positions[2:2 + len(p0), mid, k], "k", label="recorded")
+        ax.plot(t, r.positions[2 : 2 + len(p0), mid, k], "k", label="recorded")
         ax.plot(t, p0[:, mid, k], "--", label="nominal")
         ax.plot(t, p1[:, mid, k], label="final")
         ax.set_title(f"{r.name}: vertex {mid}, {'xyz'[k]} [m]")
@@ -54,8 +58,15 @@ def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
         y = np.array([c["improvement"] for c in cands]) * 100
         lo = np.array([c["improvement_ci90"][0] for c in cands]) * 100
         hi = np.array([c["improvement_ci90"][1] for c in cands]) * 100
-        ax.bar(range(len(cands)), y, yerr=[y - lo, hi - y], color=["tab:green" if c["significant"] else "tab:gray" for c in cands])
-        ax.plot([-0.5, len(cands) - 0.5], [cands[0]["threshold"] * 100] * 2, "r:", label="threshold (1-param)")
+        ax.bar(
+            range(len(cands)),
+            y,
+            yerr=[y - lo, hi - y],
+            color=["tab:green" if c["significant"] else "tab:gray" for c in cands],
+        )
+        ax.plot(
+            [-0.5, len(cands) - 0.5], [cands[0]["threshold"] * 100] * 2, "r:", label="threshold (1-param)"
+        )
         ax.set_xticks(range(len(cands)), [c["name"] for c in cands], rotation=40, ha="right", fontsize=8)
         ax.set_ylabel("check improvement [%] (90% CI)")
         fig.tight_layout()
@@ -85,41 +96,76 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
     lines = ["# Discrepancy diagnosis", ""]
     for w in nom["warnings"]:
         lines.append(f"> **Warning:** {w}")
-    lines += ["", "## Nominal model (plain DER, identified on fit/)", "",
-              f"Parameters: {_fmt(nom['params'])}", "",
-              f"Check error (500-step open loop, paper's metric): **{nom['check_l1_m'] * 100:.3f} cm**", "",
-              "## Where the nominal model is wrong", ""]
+    lines += [
+        "",
+        "## Nominal model (plain DER, identified on fit/)",
+        "",
+        f"Parameters: {_fmt(nom['params'])}",
+        "",
+        f"Check error (500-step open loop, paper's metric): **{nom['check_l1_m'] * 100:.3f} cm**",
+        "",
+        "## Where the nominal model is wrong",
+        "",
+    ]
     lines += [f"- {f}" for f in rep["localization"]["findings"]]
-    lines += ["", "![localization](localization.png)", "", "## Candidate terms", "",
-              "| round | term | params | check L1 [cm] | improvement | 90% CI | threshold | significant |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "![localization](localization.png)",
+        "",
+        "## Candidate terms",
+        "",
+        "| round | term | params | check L1 [cm] | improvement | 90% CI | threshold | significant |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for c in rep["candidates"]:
-        lines.append(f"| {c['round']} | {c['name']} | {_fmt(c['params'], c.get('params_std'))} | {c['check_l1_m'] * 100:.3f} | "
-                     f"{c['improvement'] * 100:+.1f} % | [{c['improvement_ci90'][0] * 100:+.1f}, {c['improvement_ci90'][1] * 100:+.1f}] | "
-                     f"{c['threshold'] * 100:.0f} % | {'yes' if c['significant'] else 'no'} |")
-    lines += ["", "Improvement: mean over check recordings of the relative reduction of the open-loop error against "
-              "a reference refitted with the same budget; significant when the 90 % bootstrap interval excludes 0 "
-              "and the mean exceeds the parameter-penalised threshold. ± : approximate 1-sigma (Laplace).", "",
-              "![candidates](candidates.png)" if "candidates.png" in files else "", "",
-              "## Result", "",
-              f"Selected: **{', '.join(rep['selected']) or 'none'}**", ""]
+        lines.append(
+            f"| {c['round']} | {c['name']} | {_fmt(c['params'], c.get('params_std'))} | {c['check_l1_m'] * 100:.3f} | "
+            f"{c['improvement'] * 100:+.1f} % | [{c['improvement_ci90'][0] * 100:+.1f}, {c['improvement_ci90'][1] * 100:+.1f}] | "
+            f"{c['threshold'] * 100:.0f} % | {'yes' if c['significant'] else 'no'} |"
+        )
+    lines += [
+        "",
+        "Improvement: mean over check recordings of the relative reduction of the open-loop error against "
+        "a reference refitted with the same budget; significant when the 90 % bootstrap interval excludes 0 "
+        "and the mean exceeds the parameter-penalised threshold. ± : approximate 1-sigma (Laplace).",
+        "",
+        "![candidates](candidates.png)" if "candidates.png" in files else "",
+        "",
+        "## Result",
+        "",
+        f"Selected: **{', '.join(rep['selected']) or 'none'}**",
+        "",
+    ]
     for c in rep["candidates"]:
         if "fit_noise" in c:
-            lines += [f"{c['name']} (round {c['round']}) fitted again on other windows: improvement "
-                      f"{c['fit_noise']['improvement_refit'] * 100:+.1f} % (first fit {c['improvement'] * 100:+.1f} %; "
-                      f"the fit's own noise about {c['fit_noise']['noise'] * 100:.1f} %).", ""]
+            lines += [
+                f"{c['name']} (round {c['round']}) fitted again on other windows: improvement "
+                f"{c['fit_noise']['improvement_refit'] * 100:+.1f} % (first fit {c['improvement'] * 100:+.1f} %; "
+                f"the fit's own noise about {c['fit_noise']['noise'] * 100:.1f} %).",
+                "",
+            ]
         if len(c.get("equivalence_class", [])) > 1:
-            lines += [f"Marker motion cannot tell **{c['name']}** apart from "
-                      f"{', '.join(n for n in c['equivalence_class'] if n != c['name'])} (round {c['round']}): "
-                      "either explains the held-out recordings as well; " + "; ".join(c["equivalence_why"]) + ".", ""]
+            lines += [
+                f"Marker motion cannot tell **{c['name']}** apart from "
+                f"{', '.join(n for n in c['equivalence_class'] if n != c['name'])} (round {c['round']}): "
+                "either explains the held-out recordings as well; " + "; ".join(c["equivalence_why"]) + ".",
+                "",
+            ]
     known = [(name, cls.cannot_tell_from) for name, cls in LIBRARY.items() if cls.cannot_tell_from]
     if known:
         lines += ["### What marker motion cannot tell apart", ""]
         lines += [f"- **{name}** from {why}." for name, why in known]
         lines += [""]
-    lines += [f"Check error: {nom['check_l1_m'] * 100:.3f} cm (nominal) -> **{rep['final_check_l1_m'] * 100:.3f} cm**", "",
-              "Final parameters: " + "; ".join(f"{k}: {_fmt(v)}" for k, v in nom["final_params"].items()), "",
-              "![horizon](horizon.png)", "", "![overlay](overlay.png)", "",
-              f"Run time: {nom['seconds']:.0f} s"]
+    lines += [
+        f"Check error: {nom['check_l1_m'] * 100:.3f} cm (nominal) -> **{rep['final_check_l1_m'] * 100:.3f} cm**",
+        "",
+        "Final parameters: " + "; ".join(f"{k}: {_fmt(v)}" for k, v in nom["final_params"].items()),
+        "",
+        "![horizon](horizon.png)",
+        "",
+        "![overlay](overlay.png)",
+        "",
+        f"Run time: {nom['seconds']:.0f} s",
+    ]
     (out / "report.md").write_text("\n".join(lines) + "\n")
     return out / "report.json"

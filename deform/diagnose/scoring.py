@@ -6,6 +6,7 @@ significant when the lower bound of a bootstrap interval (over recordings) of th
 positive AND the mean exceeds ``min_gain + per_param * k`` (``k`` parameters): a parameter penalty
 in the spirit of BIC; ``min_gain`` is calibrated on control datasets (``calibrate_min_gain``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,7 +29,9 @@ class Score:
     significant: bool
 
 
-def bootstrap_ci(values: np.ndarray, confidence: float = CONFIDENCE, n_boot: int = 4000, seed: int = 0) -> tuple[float, float]:
+def bootstrap_ci(
+    values: np.ndarray, confidence: float = CONFIDENCE, n_boot: int = 4000, seed: int = 0
+) -> tuple[float, float]:
     """Percentile bootstrap interval of the mean over recordings."""
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(values), size=(n_boot, len(values)))
@@ -37,8 +40,13 @@ def bootstrap_ci(values: np.ndarray, confidence: float = CONFIDENCE, n_boot: int
     return float(np.quantile(means, a)), float(np.quantile(means, 1 - a))
 
 
-def score(reference: np.ndarray, candidate: np.ndarray, n_params: int, min_gain: float = MIN_GAIN,
-          per_param: float = PER_PARAM) -> Score:
+def score(
+    reference: np.ndarray,
+    candidate: np.ndarray,
+    n_params: int,
+    min_gain: float = MIN_GAIN,
+    per_param: float = PER_PARAM,
+) -> Score:
     d = (reference - candidate) / reference
     lo, hi = bootstrap_ci(d)
     thr = min_gain + per_param * n_params
@@ -48,8 +56,10 @@ def score(reference: np.ndarray, candidate: np.ndarray, n_params: int, min_gain:
 
 # --- calibration of the significance rule over control datasets (no effect planted) -----------------
 
-def calibrate_min_gain(null_improvements, n_candidates: int, alpha: float = 0.05, per_param: float = PER_PARAM,
-                       n_params=None) -> dict:
+
+def calibrate_min_gain(
+    null_improvements, n_candidates: int, alpha: float = 0.05, per_param: float = PER_PARAM, n_params=None
+) -> dict:
     """Intercept of the threshold from the controls' distribution of candidate improvements.
 
     On a control every candidate's improvement is noise (optimisation and recording noise). Pooling
@@ -67,11 +77,20 @@ def calibrate_min_gain(null_improvements, n_candidates: int, alpha: float = 0.05
         raise ValueError("calibration needs at least 2 null improvements")
     z = NormalDist().inv_cdf(1 - alpha / n_candidates)
     mu, sd = float(x.mean()), float(x.std(ddof=1))
-    return {"min_gain": max(0.0, mu + z * sd), "mu": mu, "sd": sd, "z": z, "n_null": int(len(x)),
-            "alpha": alpha, "per_param": per_param}
+    return {
+        "min_gain": max(0.0, mu + z * sd),
+        "mu": mu,
+        "sd": sd,
+        "z": z,
+        "n_null": len(x),
+        "alpha": alpha,
+        "per_param": per_param,
+    }
 
 
-def reselect(candidates: list[dict], nominal_check: float, min_gain: float, per_param: float = PER_PARAM) -> dict:
+def reselect(
+    candidates: list[dict], nominal_check: float, min_gain: float, per_param: float = PER_PARAM
+) -> dict:
     """Re-derive forward selection from a report's stored candidate scores under another threshold.
 
     Exact for every round that was run: a round's pick is the significant candidate with the largest
@@ -88,8 +107,11 @@ def reselect(candidates: list[dict], nominal_check: float, min_gain: float, per_
         if not rows:
             no_further = bool(selected)
             break
-        sig = [c for c in rows if c["improvement_ci90"][0] > 0 and
-               c["improvement"] > min_gain + per_param * c["n_params"]]
+        sig = [
+            c
+            for c in rows
+            if c["improvement_ci90"][0] > 0 and c["improvement"] > min_gain + per_param * c["n_params"]
+        ]
         if not sig:
             break
         best = max(sig, key=lambda c: c["improvement"])

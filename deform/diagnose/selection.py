@@ -5,6 +5,7 @@ of the terms selected so far, the most promising remaining ones. Every round als
 reference (the current model with the same budget) so a candidate is only credited for what its
 physics adds, not for the extra optimisation.
 """
+
 from __future__ import annotations
 
 import copy
@@ -33,11 +34,16 @@ class DiagnoseBudget:
     progress: bool = True
 
     @classmethod
-    def quick(cls, progress: bool = True) -> "DiagnoseBudget":
+    def quick(cls, progress: bool = True) -> DiagnoseBudget:
         """About a third of the default's work: the budget of the planted benchmark, on which the
         significance threshold was calibrated (docs/diagnose.md)."""
-        return cls(nominal_iterations=40, candidate=FitBudget(iterations=25, batch=12, horizon=25),
-                   max_rounds=2, later_round_candidates=3, progress=progress)
+        return cls(
+            nominal_iterations=40,
+            candidate=FitBudget(iterations=25, batch=12, horizon=25),
+            max_rounds=2,
+            later_round_candidates=3,
+            progress=progress,
+        )
 
 
 @dataclass
@@ -52,8 +58,11 @@ def _nominal_from_model(path: str) -> Nominal:
     from deform.model import DeformModel
 
     m = DeformModel.load(path)
-    return Nominal(float(m.log_beta.exp().mean()), float(m.log_gamma.exp().mean()),
-                   min(float(m.damping), MATERIAL_DAMPING_MAX))
+    return Nominal(
+        float(m.log_beta.exp().mean()),
+        float(m.log_gamma.exp().mean()),
+        min(float(m.damping), MATERIAL_DAMPING_MAX),
+    )
 
 
 def contact_height(loc: dict) -> float | None:
@@ -62,8 +71,9 @@ def contact_height(loc: dict) -> float | None:
     return h.get("low_threshold") if h.get("low_vs_rest_ratio", 0.0) > 1.5 else None
 
 
-def equivalence_class(name: str, e_win, e_ref, others: list[tuple[str, object]],
-                      confidence: float = 0.90) -> dict:
+def equivalence_class(
+    name: str, e_win, e_ref, others: list[tuple[str, object]], confidence: float = 0.90
+) -> dict:
     """The significant candidates that marker motion cannot tell apart from the chosen one.
 
     Per check recording, the difference of relative errors ``(e_other - e_win) / e_ref``; if its
@@ -76,26 +86,39 @@ def equivalence_class(name: str, e_win, e_ref, others: list[tuple[str, object]],
         lo, hi = bootstrap_ci(d, confidence)
         if lo <= 0.0:
             members.append(other)
-            why.append(f"{other}: check error {d.mean() * 100:+.1f} % of the reference relative to {name}, "
-                       f"{confidence * 100:.0f} % interval [{lo * 100:+.1f}, {hi * 100:+.1f}] % holds 0")
+            why.append(
+                f"{other}: check error {d.mean() * 100:+.1f} % of the reference relative to {name}, "
+                f"{confidence * 100:.0f} % interval [{lo * 100:+.1f}, {hi * 100:+.1f}] % holds 0"
+            )
     return {"equivalence_class": members, "equivalence_why": why}
 
 
-def fit_noise(spec, nominal, selected, name, s, context, inputs: Inputs, budget: FitBudget,
-              improvement: float) -> dict:
+def fit_noise(
+    spec, nominal, selected, name, s, context, inputs: Inputs, budget: FitBudget, improvement: float
+) -> dict:
     """The chosen candidate and its reference fitted again on other windows of fit/ (another seed):
     how much of the improvement is the fit's own noise. -> {"improvement_refit", "noise"}"""
     other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
-    _, e_ref = fit_and_check(spec, nominal, [copy.deepcopy(t) for t in selected], inputs, other, "refit: reference")
+    _, e_ref = fit_and_check(
+        spec, nominal, [copy.deepcopy(t) for t in selected], inputs, other, "refit: reference"
+    )
     term = make_term(name, spec.n_vertices, s, context)
-    _, e = fit_and_check(spec, nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, other,
-                         f"refit: {name}", new_term=term)
+    _, e = fit_and_check(
+        spec,
+        nominal,
+        [copy.deepcopy(t) for t in selected] + [term],
+        inputs,
+        other,
+        f"refit: {name}",
+        new_term=term,
+    )
     again = float(((e_ref - e) / e_ref).mean())
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
 
-def fit_and_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None,
-                  hidden: int = 0):
+def fit_and_check(
+    spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None, hidden: int = 0
+):
     """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
     per-recording check error."""
     sim = Simulator(spec, copy.deepcopy(nominal), terms, hidden=hidden)
@@ -104,7 +127,9 @@ def fit_and_check(spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc:
     return sim, err
 
 
-def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None) -> Diagnosis:
+def diagnose(
+    inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None
+) -> Diagnosis:
     budget = budget or DiagnoseBudget()
     t0 = time.perf_counter()
     spec = inputs.spec
@@ -116,15 +141,23 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
     fit(sim, inputs.fit, nb, desc="nominal fit")
     e_nom = per_recording_l1(sim.predict(inputs.check), inputs.check)
-    loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[: budget.localization_recordings]
+    loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[
+        : budget.localization_recordings
+    ]
     res = short_rollout_residuals(sim, loc_recs)
     loc = localize(res, s)
     if sim.nominal.at_damping_bound():
-        loc["findings"].insert(0, f"the nominal fit wants more velocity damping than a rope's material damping gives "
-                                  f"(held at {sim.nominal.damping_max:g} /s, 2x the controls'): external dissipation "
-                                  "(air drag, contact friction) or strong internal damping")
-    context = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit), "peak_s": loc["peak_s"],
-               "contact_z": contact_height(loc)}
+        loc["findings"].insert(
+            0,
+            f"the nominal fit wants more velocity damping than a rope's material damping gives "
+            f"(held at {sim.nominal.damping_max:g} /s, 2x the controls'): external dissipation "
+            "(air drag, contact friction) or strong internal damping",
+        )
+    context = {
+        "lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in inputs.fit),
+        "peak_s": loc["peak_s"],
+        "contact_z": contact_height(loc),
+    }
     selected: list = []
     selected_names: list[str] = []
     base_nominal, base_err, base_sim = nominal, e_nom, sim
@@ -133,28 +166,53 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     for rnd in range(budget.max_rounds):
         if not remaining:
             break
-        ref_sim, e_ref = fit_and_check(spec, base_nominal, [copy.deepcopy(t) for t in selected], inputs, cb,
-                                    f"round {rnd + 1}: reference")
+        _ref_sim, e_ref = fit_and_check(
+            spec,
+            base_nominal,
+            [copy.deepcopy(t) for t in selected],
+            inputs,
+            cb,
+            f"round {rnd + 1}: reference",
+        )
         if e_ref.mean() > base_err.mean():  # a refit that got worse must not make candidates look good
             e_ref = base_err
         results = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context)
-            csim, e = fit_and_check(spec, base_nominal, [copy.deepcopy(t) for t in selected] + [term], inputs, cb,
-                                 f"round {rnd + 1}: {name}", new_term=term)
+            csim, e = fit_and_check(
+                spec,
+                base_nominal,
+                [copy.deepcopy(t) for t in selected] + [term],
+                inputs,
+                cb,
+                f"round {rnd + 1}: {name}",
+                new_term=term,
+            )
             sc = score(e_ref, e, term.n_params)
             results.append((name, term, csim, e, sc))
-            candidates_out.append({
-                "name": name, "params": term.params(), "check_l1_m": float(e.mean()), "improvement": sc.improvement,
-                "significant": sc.significant, "round": rnd + 1, "on_top_of": list(selected_names),
-                "n_params": term.n_params, "improvement_ci90": [sc.ci_low, sc.ci_high], "threshold": sc.threshold,
-                "reference_check_l1_m": float(e_ref.mean())})
+            candidates_out.append(
+                {
+                    "name": name,
+                    "params": term.params(),
+                    "check_l1_m": float(e.mean()),
+                    "improvement": sc.improvement,
+                    "significant": sc.significant,
+                    "round": rnd + 1,
+                    "on_top_of": list(selected_names),
+                    "n_params": term.n_params,
+                    "improvement_ci90": [sc.ci_low, sc.ci_high],
+                    "threshold": sc.threshold,
+                    "reference_check_l1_m": float(e_ref.mean()),
+                }
+            )
         sig = [r for r in results if r[4].significant]
         if not sig:
             break
         name, term, csim, e, sc = max(sig, key=lambda r: r[4].improvement)
         cls = equivalence_class(name, e, e_ref, [(r[0], r[3]) for r in sig if r[0] != name])
-        cls["fit_noise"] = fit_noise(spec, base_nominal, selected, name, s, context, inputs, cb, sc.improvement)
+        cls["fit_noise"] = fit_noise(
+            spec, base_nominal, selected, name, s, context, inputs, cb, sc.improvement
+        )
         for c in candidates_out:
             if c["name"] == name and c["round"] == rnd + 1:
                 c.update(cls)
@@ -166,17 +224,24 @@ def diagnose(inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: 
     for t in selected:
         std = laplace_uncertainty(base_sim, inputs.fit, cb, t)
         for c in candidates_out:
-            if c["name"] == t.name and c["on_top_of"] == selected_names[:selected_names.index(t.name)]:
+            if c["name"] == t.name and c["on_top_of"] == selected_names[: selected_names.index(t.name)]:
                 c["params_std"] = std
     report = {
-        "nominal": {"params": nominal.params(), "check_l1_m": float(e_nom.mean()),
-                    "check_l1_by_recording_m": dict(zip([r.name for r in inputs.check], e_nom.tolist())),
-                    "coarse_identification": coarse, "warnings": list(inputs.warnings)},
+        "nominal": {
+            "params": nominal.params(),
+            "check_l1_m": float(e_nom.mean()),
+            "check_l1_by_recording_m": dict(zip([r.name for r in inputs.check], e_nom.tolist())),
+            "coarse_identification": coarse,
+            "warnings": list(inputs.warnings),
+        },
         "localization": loc,
         "candidates": candidates_out,
         "selected": selected_names,
         "final_check_l1_m": float(base_err.mean()),
     }
-    report["nominal"]["final_params"] = {"nominal": base_nominal.params(), **{t.name: t.params() for t in selected}}
+    report["nominal"]["final_params"] = {
+        "nominal": base_nominal.params(),
+        **{t.name: t.params() for t in selected},
+    }
     report["nominal"]["seconds"] = time.perf_counter() - t0
     return Diagnosis(report=report, nominal_sim=sim, final_sim=base_sim, residuals=res)

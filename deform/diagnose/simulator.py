@@ -5,6 +5,7 @@ model's parameters are *bound*: before each rollout they are set to expressions 
 parameters (one bending and one twisting stiffness, a linear damping) and of the terms; after the
 backward pass their gradients are chained back to those expressions.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,10 +15,10 @@ import torch
 from torch import Tensor, nn
 
 from deform.config import RodConfig
-from deform.evaluate import batches_by_horizon, paper_l1
-from deform.model import DeformModel, ModelOptions, gripped_indices
 from deform.diagnose.spec import RodSpec
 from deform.diagnose.terms import MATERIAL_DAMPING_LEVEL, Term
+from deform.evaluate import batches_by_horizon, paper_l1
+from deform.model import DeformModel, ModelOptions, gripped_indices
 
 NEGLIGIBLE_MASS_RAW = -12.0  # softplus(-12) g: no marker mass in the plain model
 NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
@@ -30,8 +31,13 @@ class Nominal(nn.Module):
     """Plain DER: uniform bending EI and twisting GJ [N m^2], linear velocity damping [1/s] (at most
     ``damping_max`` when fitted: see MATERIAL_DAMPING_MAX)."""
 
-    def __init__(self, ei: float = 1e-3, gj: float = 7e-4, damping: float = 0.5,
-                 damping_max: float = MATERIAL_DAMPING_MAX):
+    def __init__(
+        self,
+        ei: float = 1e-3,
+        gj: float = 7e-4,
+        damping: float = 0.5,
+        damping_max: float = MATERIAL_DAMPING_MAX,
+    ):
         super().__init__()
         self.damping_max = damping_max
         self.log_ei = nn.Parameter(torch.tensor(math.log(ei), dtype=torch.float64))
@@ -40,8 +46,11 @@ class Nominal(nn.Module):
 
     @torch.no_grad()
     def params(self) -> dict[str, float]:
-        return {"bend_stiffness_Nm2": float(self.log_ei.exp()), "twist_stiffness_Nm2": float(self.log_gj.exp()),
-                "damping_1_per_s": float(self.log_damping.exp())}
+        return {
+            "bend_stiffness_Nm2": float(self.log_ei.exp()),
+            "twist_stiffness_Nm2": float(self.log_gj.exp()),
+            "damping_1_per_s": float(self.log_damping.exp()),
+        }
 
     def clamp_(self) -> None:
         with torch.no_grad():
@@ -64,7 +73,9 @@ def arclength_of(recordings) -> np.ndarray:
 def marker_nodes(n_markers: int, hidden: int) -> list[int]:
     """Node ids of the markers on a rod with ``hidden`` extra nodes in every free marker interval
     (none in the two gripped end edges, which the grippers hold straight)."""
-    return [0] + [1 + (hidden + 1) * k for k in range(n_markers - 2)] + [1 + (hidden + 1) * (n_markers - 3) + 1]
+    return (
+        [0] + [1 + (hidden + 1) * k for k in range(n_markers - 2)] + [1 + (hidden + 1) * (n_markers - 3) + 1]
+    )
 
 
 def refine_markers(x: Tensor, hidden: int) -> Tensor:
@@ -79,16 +90,29 @@ def refine_markers(x: Tensor, hidden: int) -> Tensor:
     n = x.shape[-2]
     h = (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1, keepdim=True).clamp_min(1e-9)  # (..., n-1, 1)
     d = (x[..., 1:, :] - x[..., :-1, :]) / h  # slopes of the intervals
-    tangent = (h[..., 1:, :] * d[..., :-1, :] + h[..., :-1, :] * d[..., 1:, :]) / (h[..., 1:, :] + h[..., :-1, :])
+    tangent = (h[..., 1:, :] * d[..., :-1, :] + h[..., :-1, :] * d[..., 1:, :]) / (
+        h[..., 1:, :] + h[..., :-1, :]
+    )
     parts = [x[..., :2, :]]
     for j in range(1, n - 2):
-        p0, p1, m0, m1, hj = x[..., j, :], x[..., j + 1, :], tangent[..., j - 1, :], tangent[..., j, :], h[..., j, :]
+        p0, p1, m0, m1, hj = (
+            x[..., j, :],
+            x[..., j + 1, :],
+            tangent[..., j - 1, :],
+            tangent[..., j, :],
+            h[..., j, :],
+        )
         for k in range(1, hidden + 1):
             t = k / (hidden + 1)
-            h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+            h00, h10, h01, h11 = (
+                2 * t**3 - 3 * t**2 + 1,
+                t**3 - 2 * t**2 + t,
+                -2 * t**3 + 3 * t**2,
+                t**3 - t**2,
+            )
             parts.append((h00 * p0 + h10 * hj * m0 + h01 * p1 + h11 * hj * m1).unsqueeze(-2))
-        parts.append(x[..., j + 1:j + 2, :])
-    parts.append(x[..., n - 1:, :])
+        parts.append(x[..., j + 1 : j + 2, :])
+    parts.append(x[..., n - 1 :, :])
     return torch.cat(parts, -2)
 
 
@@ -121,13 +145,25 @@ class Simulator:
         self.n_markers = spec.n_vertices
         self.markers = marker_nodes(spec.n_vertices, hidden)
         n = self.markers[-1] + 1
-        cfg = RodConfig(name=spec.name, length_m=spec.length_m, mass_kg=spec.mass_kg, n_vertices=n,
-                        dt=spec.dt / self.substeps, marker_mass_kg=1e-9, bend_stiffness=1e-3, twist_stiffness=7e-4)
+        cfg = RodConfig(
+            name=spec.name,
+            length_m=spec.length_m,
+            mass_kg=spec.mass_kg,
+            n_vertices=n,
+            dt=spec.dt / self.substeps,
+            marker_mass_kg=1e-9,
+            bend_stiffness=1e-3,
+            twist_stiffness=7e-4,
+        )
         self.model = DeformModel(cfg, ModelOptions(residual=False))
         self.n = n
         self.nominal = nominal
         self.terms = list(terms or [])
-        emap = [0] + [j for j in range(1, spec.n_vertices - 2) for _ in range(hidden + 1)] + [spec.n_vertices - 2]
+        emap = (
+            [0]
+            + [j for j in range(1, spec.n_vertices - 2) for _ in range(hidden + 1)]
+            + [spec.n_vertices - 2]
+        )
         self._edge_of_node_edge = emap  # marker edge each node edge lies on
         for t in self.terms:
             if hasattr(t, "set_dt"):
@@ -195,8 +231,14 @@ class Simulator:
                 return t.delay_frames
         return None
 
-    def rollout(self, frames: Tensor, steps: int, margin: int = 0, create_graph: bool = False,
-                d1: Tensor | None = None) -> Tensor:
+    def rollout(
+        self,
+        frames: Tensor,
+        steps: int,
+        margin: int = 0,
+        create_graph: bool = False,
+        d1: Tensor | None = None,
+    ) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
         frames, grippers from the recorded frames (shifted by a delay term if any; linearly
         interpolated between frames for the substeps of hidden nodes). ``d1`` (B, n-1, 3): reference
@@ -222,14 +264,17 @@ class Simulator:
             x0, x1 = x0.clone(), x1.clone()
             x0[:, idx] = grip_at(margin).to(x0.dtype)
             x1[:, idx] = grip_at(margin + 1).to(x1.dtype)
-        state = self.model.initial_state(refine_markers(x0, self.hidden), refine_markers(x1, self.hidden),
-                                         dt=self.model.dt * self.substeps)
+        state = self.model.initial_state(
+            refine_markers(x0, self.hidden), refine_markers(x1, self.hidden), dt=self.model.dt * self.substeps
+        )
         if d1 is not None:
             from deform.rod import geometry as G
 
             emap = self._edge_of_node_edge
             t_rec = G.normalize(G.edges(frames[:, margin + 1]))[:, emap]
-            d1 = G.time_transport(d1[:, emap].to(state.d1.dtype), t_rec.to(state.d1.dtype), G.normalize(G.edges(state.x)))
+            d1 = G.time_transport(
+                d1[:, emap].to(state.d1.dtype), t_rec.to(state.d1.dtype), G.normalize(G.edges(state.x))
+            )
             state = type(state)(x=state.x, v=state.v, d1=d1, theta=state.theta, rest=state.rest)
         out = []
         for k in range(steps):
@@ -255,4 +300,6 @@ class Simulator:
 
 def per_recording_l1(predictions: list[np.ndarray], recordings) -> np.ndarray:
     """Paper's metric per recording: mean |pred - truth| over steps, vertices and axes."""
-    return np.array([paper_l1(p, r.positions[2:2 + len(p)], nan_as=1.0) for p, r in zip(predictions, recordings)])
+    return np.array(
+        [paper_l1(p, r.positions[2 : 2 + len(p)], nan_as=1.0) for p, r in zip(predictions, recordings)]
+    )

@@ -3,6 +3,7 @@
 A diagnosis on inconsistent inputs would name spurious physics, so contradictions are errors (the
 data cannot be used) or warnings carried into the report (it can, but the user should know).
 """
+
 from __future__ import annotations
 
 import json
@@ -62,7 +63,9 @@ def polyline_length(rec: Recording) -> float:
     return float(np.median(seg))
 
 
-def marker_span_spec(spec: RodSpec, span_m: float, source: str | Path = "ROD.json") -> tuple[RodSpec, str | None]:
+def marker_span_spec(
+    spec: RodSpec, span_m: float, source: str | Path = "ROD.json"
+) -> tuple[RodSpec, str | None]:
     """The rod the tool simulates: the part between the outer markers.
 
     Real ropes run past their outer markers (DLO1 is 1.152 m long, its markers span about 1.035 m),
@@ -72,46 +75,71 @@ def marker_span_spec(spec: RodSpec, span_m: float, source: str | Path = "ROD.jso
     contradicts the data: an error. -> (spec to simulate, warning or None)."""
     rel = (span_m - spec.length_m) / spec.length_m
     if rel > LENGTH_TOLERANCE:
-        raise RecordingError(f"{source}: length_m={spec.length_m} but the markers span {span_m:.3f} m, "
-                             f"{rel * 100:+.0f} % longer than the rope (tolerance {LENGTH_TOLERANCE * 100:.0f} %)")
+        raise RecordingError(
+            f"{source}: length_m={spec.length_m} but the markers span {span_m:.3f} m, "
+            f"{rel * 100:+.0f} % longer than the rope (tolerance {LENGTH_TOLERANCE * 100:.0f} %)"
+        )
     if rel >= 0:
-        note = (f"ROD.json length {spec.length_m} m is {rel * 100:.1f} % shorter than the marker polyline "
-                f"{span_m:.3f} m") if rel > 0.05 else None
+        note = (
+            (
+                f"ROD.json length {spec.length_m} m is {rel * 100:.1f} % shorter than the marker polyline "
+                f"{span_m:.3f} m"
+            )
+            if rel > 0.05
+            else None
+        )
         return spec, note
     scaled = spec.model_copy(update={"length_m": span_m, "mass_kg": spec.mass_kg * span_m / spec.length_m})
-    note = (f"the rope ({spec.length_m} m, {spec.mass_kg * 1e3:.1f} g) runs {-rel * 100:.0f} % past its markers: "
+    note = (
+        (
+            f"the rope ({spec.length_m} m, {spec.mass_kg * 1e3:.1f} g) runs {-rel * 100:.0f} % past its markers: "
             f"simulating the {span_m:.3f} m between the outer markers with {scaled.mass_kg * 1e3:.1f} g "
-            f"(mass per length kept)") if rel < -0.02 else None
+            f"(mass per length kept)"
+        )
+        if rel < -0.02
+        else None
+    )
     return scaled, note
 
 
-def load_inputs(rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min_fit: int = 2,
-                min_check: int = 1) -> Inputs:
+def load_inputs(
+    rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min_fit: int = 2, min_check: int = 1
+) -> Inputs:
     """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed."""
     spec = load_rod_spec(rod)
     fit = load_recordings(fit_dir)
     check = load_recordings(check_dir)
-    for name, recs, d in (("fit", fit, fit_dir), ("check", check, check_dir)):
+    for _, recs, d in (("fit", fit, fit_dir), ("check", check, check_dir)):
         n = recs[0].n_vertices
         if n != spec.n_vertices:
             raise RecordingError(f"{d}: recordings have {n} markers, {rod} says n_vertices={spec.n_vertices}")
     if len(fit) < min_fit:
         raise RecordingError(f"{fit_dir}: {len(fit)} recording(s); at least {min_fit} are needed to fit")
     if len(check) < min_check:
-        raise RecordingError(f"{check_dir}: {len(check)} recording(s); at least {min_check} are needed for a held-out check")
+        raise RecordingError(
+            f"{check_dir}: {len(check)} recording(s); at least {min_check} are needed for a held-out check"
+        )
     short = [r.name for r in fit + check if r.n_frames < 40]
     if short:
-        raise RecordingError(f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} have fewer than 40 frames")
+        raise RecordingError(
+            f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} have fewer than 40 frames"
+        )
     warnings: list[str] = []
     lengths = np.array([polyline_length(r) for r in fit + check])
     spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
     if note:
         warnings.append(note)
     if len(check) < 3:
-        warnings.append(f"only {len(check)} check recording(s): the bootstrap interval over recordings is unreliable")
+        warnings.append(
+            f"only {len(check)} check recording(s): the bootstrap interval over recordings is unreliable"
+        )
     names = {r.name for r in fit} & {r.name for r in check}
-    if names and any(np.array_equal(a.positions, b.positions) for a in fit for b in check if a.name == b.name):
-        warnings.append(f"fit/ and check/ share identical recordings {sorted(names)}: the check is not held out")
+    if names and any(
+        np.array_equal(a.positions, b.positions) for a in fit for b in check if a.name == b.name
+    ):
+        warnings.append(
+            f"fit/ and check/ share identical recordings {sorted(names)}: the check is not held out"
+        )
     jumps = []
     for r in fit + check:
         v = np.linalg.norm(np.diff(r.positions, axis=0), axis=-1) / spec.dt

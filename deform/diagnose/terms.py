@@ -13,6 +13,7 @@ Adam learning rate suits all). A term acts on the simulator in one or more of th
 tries before gradient descent, so that a term whose effect is orders of magnitude away from its
 default start (drag, damping, a delay of frames) is not limited by Adam's step size x iterations.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,7 +25,6 @@ from torch.nn.functional import softplus
 
 from deform.model import inv_softplus
 from deform.rod.geometry import normal_velocity
-
 
 # The most linear velocity damping the nominal model may hold [1/s]: what a nominal fit gives when
 # nothing but a rope's own material damping (and the model's discretisation) dissipates. A damping of
@@ -42,7 +42,11 @@ MATERIAL_DAMPING_LEVEL = 1.03
 # How much of the nominal linear damping a dissipative candidate (drag, contact friction, internal
 # damping) is tried with: all of it, half, or only the material level (coarse_start's "nominal="
 # lowers it to that level, never raises it)
-_DAMPING_SHARES = ({}, {"nominal:log_damping": math.log(0.5)}, {"nominal=log_damping": math.log(MATERIAL_DAMPING_LEVEL)})
+_DAMPING_SHARES = (
+    {},
+    {"nominal:log_damping": math.log(0.5)},
+    {"nominal=log_damping": math.log(MATERIAL_DAMPING_LEVEL)},
+)
 
 
 def _logit(p: float) -> float:
@@ -84,9 +88,11 @@ class Term(nn.Module):
 class AerodynamicDrag(Term):
     name = "aerodynamic_drag"
     description = "air drag on the velocity across the rod, linear and quadratic in speed"
-    cannot_tell_from = ("the nominal linear damping, for its linear part: both take a force proportional to "
-                        "the velocity; only the quadratic part, or more than a rope's material damping, is "
-                        "drag by itself")
+    cannot_tell_from = (
+        "the nominal linear damping, for its linear part: both take a force proportional to "
+        "the velocity; only the quadratic part, or more than a rope's material damping, is "
+        "drag by itself"
+    )
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -103,8 +109,12 @@ class AerodynamicDrag(Term):
         # with the nominal linear damping kept or halved: drag and damping are the same dissipation, so
         # a drag term is only seen as better if it may take over part of what the nominal fit gave to
         # its damping
-        return [{"log_quad": math.log(q), "log_lin": math.log(lin), **nominal}
-                for q in (0.03, 0.3, 1.0, 3.0, 10.0) for lin in (0.02, 1.0, 4.0) for nominal in _DAMPING_SHARES]
+        return [
+            {"log_quad": math.log(q), "log_lin": math.log(lin), **nominal}
+            for q in (0.03, 0.3, 1.0, 3.0, 10.0)
+            for lin in (0.02, 1.0, 4.0)
+            for nominal in _DAMPING_SHARES
+        ]
 
     @torch.no_grad()
     def params(self):
@@ -125,8 +135,10 @@ class InternalDamping(Term):
 
     name = "internal_damping"
     description = "damping of the bending rate (Kelvin-Voigt internal friction of the rod's curvature)"
-    cannot_tell_from = ("the nominal linear damping, where the motion is mostly one slow bending mode: "
-                        "damping that mode's rate and damping the velocity look the same at the markers")
+    cannot_tell_from = (
+        "the nominal linear damping, where the motion is mostly one slow bending mode: "
+        "damping that mode's rate and damping the velocity look the same at the markers"
+    )
     scale = 1e-5  # m^4/s per exp(raw): about 0.1 /s in units of a 10 cm marker spacing
 
     def __init__(self, n, arclength):
@@ -173,7 +185,11 @@ class InternalDamping(Term):
         return -si.unsqueeze(-1) * (U @ (rate.to(v.dtype).unsqueeze(-1) * modal))
 
     def grid(self):  # nu over 4 decades, with the nominal damping kept or halved (both are dissipation)
-        return [{"log_nu": math.log(e), **nominal} for e in (0.1, 0.5, 2.0, 5.0, 20.0, 100.0) for nominal in _DAMPING_SHARES]
+        return [
+            {"log_nu": math.log(e), **nominal}
+            for e in (0.1, 0.5, 2.0, 5.0, 20.0, 100.0)
+            for nominal in _DAMPING_SHARES
+        ]
 
     @torch.no_grad()
     def params(self):
@@ -203,8 +219,13 @@ class GroundContact(Term):
         offsets = [-0.005, 0.0, 0.005, 0.01, 0.02]
         if getattr(self, "contact_z", None) is not None:
             offsets.append(float(self.contact_z) - float(self.h0))
-        return [{"raw_h": dz / 0.02, "log_k": math.log(k), **nominal} for dz in offsets if abs(dz) <= 0.1
-                for k in (2000.0, 10000.0) for nominal in _DAMPING_SHARES]
+        return [
+            {"raw_h": dz / 0.02, "log_k": math.log(k), **nominal}
+            for dz in offsets
+            if abs(dz) <= 0.1
+            for k in (2000.0, 10000.0)
+            for nominal in _DAMPING_SHARES
+        ]
 
     @property
     def height(self) -> Tensor:
@@ -220,8 +241,11 @@ class GroundContact(Term):
 
     @torch.no_grad()
     def params(self):
-        return {"height_m": float(self.height), "stiffness_1_per_s2": float(self.log_k.exp()),
-                "friction": float(torch.sigmoid(self.raw_mu))}
+        return {
+            "height_m": float(self.height),
+            "stiffness_1_per_s2": float(self.log_k.exp()),
+            "friction": float(torch.sigmoid(self.raw_mu)),
+        }
 
 
 class PointMass(Term):
@@ -248,7 +272,10 @@ class PointMass(Term):
 
     @torch.no_grad()
     def params(self):
-        return {"mass_kg": float(5e-3 * softplus(self.raw_g)), "position_s": float(torch.sigmoid(self.raw_pos))}
+        return {
+            "mass_kg": float(5e-3 * softplus(self.raw_g)),
+            "position_s": float(torch.sigmoid(self.raw_pos)),
+        }
 
 
 class StiffnessVariation(Term):
@@ -278,13 +305,21 @@ class StiffnessVariation(Term):
     @torch.no_grad()
     def params(self):
         c, w = float(torch.sigmoid(self.raw_c)), float(0.05 + 0.9 * torch.sigmoid(self.raw_w))
-        return {"stiffness_ratio": float(torch.exp(2.0 * self.log_ratio)), "start_s": c - w / 2, "end_s": c + w / 2}
+        return {
+            "stiffness_ratio": float(torch.exp(2.0 * self.log_ratio)),
+            "start_s": c - w / 2,
+            "end_s": c + w / 2,
+        }
 
 
 class ExternalForce(Term):
     name = "external_force"
-    description = "a uniform horizontal force field per unit mass (wind); a vertical one is only a gravity error"
-    cannot_tell_from = "a tilt of the gravity vector (a mis-levelled motion-capture frame): the same force per mass"
+    description = (
+        "a uniform horizontal force field per unit mass (wind); a vertical one is only a gravity error"
+    )
+    cannot_tell_from = (
+        "a tilt of the gravity vector (a mis-levelled motion-capture frame): the same force per mass"
+    )
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -307,9 +342,13 @@ class MassScale(Term):
     a uniform factor only through the rod's mass distribution; the report says so."""
 
     name = "mass_scale"
-    description = "mass of the markers (a point mass at every marker); a uniform mass factor is not observable"
-    cannot_tell_from = ("a stiffness scale: at marker resolution a mass on every marker is a uniform mass "
-                        "factor, and the motion depends on EI / mass only, so the fitted EI and GJ absorb it")
+    description = (
+        "mass of the markers (a point mass at every marker); a uniform mass factor is not observable"
+    )
+    cannot_tell_from = (
+        "a stiffness scale: at marker resolution a mass on every marker is a uniform mass "
+        "factor, and the motion depends on EI / mass only, so the fitted EI and GJ absorb it"
+    )
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -364,7 +403,10 @@ class ActuationDelay(Term):
         return self.max_frames * torch.tanh(self.scale * self.raw / self.max_frames)
 
     def grid(self):  # whole frames from -2 to +4 (raw values of those delays)
-        return [{"raw": self.max_frames / self.scale * math.atanh(d / self.max_frames)} for d in (-2, -1, 0, 1, 2, 3, 4)]
+        return [
+            {"raw": self.max_frames / self.scale * math.atanh(d / self.max_frames)}
+            for d in (-2, -1, 0, 1, 2, 3, 4)
+        ]
 
     @torch.no_grad()
     def params(self):
@@ -390,7 +432,11 @@ class RestCurvature(Term):
         return exprs
 
     def grid(self):  # turning per vertex 0.05 and 0.15 rad in 4 material directions
-        return [{"raw": [c * m / 0.05, d * m / 0.05]} for m in (0.05, 0.15) for c, d in ((1, 0), (0, 1), (-1, 0), (0, -1))]
+        return [
+            {"raw": [c * m / 0.05, d * m / 0.05]}
+            for m in (0.05, 0.15)
+            for c, d in ((1, 0), (0, 1), (-1, 0), (0, -1))
+        ]
 
     @torch.no_grad()
     def params(self):
@@ -398,9 +444,20 @@ class RestCurvature(Term):
         return {"kappa1_per_vertex": w[0], "kappa2_per_vertex": w[1]}
 
 
-LIBRARY: dict[str, type[Term]] = {c.name: c for c in (
-    AerodynamicDrag, InternalDamping, GroundContact, PointMass, StiffnessVariation, ExternalForce, MassScale,
-    ActuationDelay, RestCurvature)}
+LIBRARY: dict[str, type[Term]] = {
+    c.name: c
+    for c in (
+        AerodynamicDrag,
+        InternalDamping,
+        GroundContact,
+        PointMass,
+        StiffnessVariation,
+        ExternalForce,
+        MassScale,
+        ActuationDelay,
+        RestCurvature,
+    )
+}
 
 
 def make_term(name: str, n: int, arclength: np.ndarray, context: dict | None = None) -> Term:

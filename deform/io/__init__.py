@@ -1,5 +1,5 @@
 """Reading recordings safely: DEFORM pickles are untrusted input."""
-from deform.io.safe_pickle import UnsafePickleError, safe_load_pickle
+
 from deform.io.recordings import (
     Recording,
     RecordingError,
@@ -8,14 +8,15 @@ from deform.io.recordings import (
     load_recordings,
     save_recording,
 )
+from deform.io.safe_pickle import UnsafePickleError, safe_load_pickle
 
 __all__ = [
-    "UnsafePickleError",
-    "safe_load_pickle",
     "Recording",
     "RecordingError",
+    "UnsafePickleError",
     "find_data_root",
     "load_recording",
     "load_recordings",
+    "safe_load_pickle",
     "save_recording",
 ]

@@ -3,6 +3,7 @@
 A file is a pickle of T arrays of shape (3, n) (x, y, z in metres). In memory a recording is an
 array of shape (T, n, 3), vertex-major, which is what the model consumes.
 """
+
 from __future__ import annotations
 
 import os
@@ -91,9 +92,7 @@ def load_recording(path: str | Path, n_vertices: int | None = None) -> Recording
         raise RecordingError(f"{path}: {exc}") from None
     positions = _to_array(obj, path)
     if n_vertices is not None and positions.shape[1] != n_vertices:
-        raise RecordingError(
-            f"{path}: has {positions.shape[1]} markers, the rod has {n_vertices}"
-        )
+        raise RecordingError(f"{path}: has {positions.shape[1]} markers, the rod has {n_vertices}")
     return Recording(name=path.stem, positions=positions)
 
 

@@ -4,6 +4,7 @@
 global except the few numpy needs to rebuild an ndarray. Why by hand: no maintained library offers
 an allow-list unpickler for numpy, and the standard library documents exactly this pattern.
 """
+
 from __future__ import annotations
 
 import io
@@ -25,7 +26,7 @@ class UnsafePickleError(pickle.UnpicklingError):
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str):  # noqa: D401 - pickle hook
+    def find_class(self, module: str, name: str):
         if (module, name) in _ALLOWED:
             return super().find_class(module, name)
         raise UnsafePickleError(f"refusing to load global {module}.{name}")

@@ -12,6 +12,7 @@ budget. Why not the dense (n, n) product: compiled, the diagonals fuse into the 
 element-wise kernels, while a batched matrix product stays a library call per layer (0.93-0.96x
 per predict step at 64 rods, scratch A/B of 2026-11-23; values equal to float32 rounding).
 """
+
 from __future__ import annotations
 
 import torch
@@ -50,8 +51,12 @@ class ResidualGNN(nn.Module):
         adjacency = gcn_dense_adjacency(n_vertices)
         # A_hat[i, i], A_hat[i, i-1] (0 for the first vertex), A_hat[i, i+1] (0 for the last), as (n, 1)
         self.register_buffer("adj_self", torch.diagonal(adjacency)[:, None].clone(), persistent=False)
-        self.register_buffer("adj_prev", F.pad(torch.diagonal(adjacency, -1), (1, 0))[:, None], persistent=False)
-        self.register_buffer("adj_next", F.pad(torch.diagonal(adjacency, 1), (0, 1))[:, None], persistent=False)
+        self.register_buffer(
+            "adj_prev", F.pad(torch.diagonal(adjacency, -1), (1, 0))[:, None], persistent=False
+        )
+        self.register_buffer(
+            "adj_next", F.pad(torch.diagonal(adjacency, 1), (0, 1))[:, None], persistent=False
+        )
         self.register_buffer("edge_index", chain_edge_index(n_vertices), persistent=False)
 
     @staticmethod
@@ -63,10 +68,14 @@ class ResidualGNN(nn.Module):
         r"""GCN layer on the chain: :math:`\hat A (h W^T) + b`, :math:`\hat A` tridiagonal."""
         y = conv.lin(h)
         prev = F.pad(y[..., :-1, :], (0, 0, 1, 0))  # row i holds y[i-1] (zeros for i = 0)
-        nxt = F.pad(y[..., 1:, :], (0, 0, 0, 1))    # row i holds y[i+1] (zeros for i = n-1)
+        nxt = F.pad(y[..., 1:, :], (0, 0, 0, 1))  # row i holds y[i+1] (zeros for i = n-1)
         dtype = y.dtype
-        return (self.adj_self.to(dtype) * y + self.adj_prev.to(dtype) * prev + self.adj_next.to(dtype) * nxt
-                + conv.bias)
+        return (
+            self.adj_self.to(dtype) * y
+            + self.adj_prev.to(dtype) * prev
+            + self.adj_next.to(dtype) * nxt
+            + conv.bias
+        )
 
     def forward(self, x: Tensor, v: Tensor) -> Tensor:
         """(..., n, 3) positions and velocities -> (..., n, 3) velocity correction."""

@@ -13,6 +13,7 @@ twisting stiffness GJ [N m^2], ``wbar`` the rest (natural) curvature and ``m_ref
 twist. Forces are ``-dE/dx`` at the energy-minimising ``theta`` (envelope theorem), taken by autograd
 so that they are the exact gradient by construction.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -73,7 +74,9 @@ def left_right(theta: Tensor) -> Tensor:
     return torch.stack([theta[..., :-1], theta[..., 1:]], dim=-1)
 
 
-def bending_energy(a: Tensor, b: Tensor, theta: Tensor, beta: Tensor, rest_vor: Tensor, wbar: Tensor) -> Tensor:
+def bending_energy(
+    a: Tensor, b: Tensor, theta: Tensor, beta: Tensor, rest_vor: Tensor, wbar: Tensor
+) -> Tensor:
     w1, w2 = material_curvature(a, b, left_right(theta))
     sq = (w1 - wbar[..., 0]) ** 2 + (w2 - wbar[..., 1]) ** 2  # (..., n-2, 2)
     return (beta / (2.0 * rest_vor) * sq.sum(-1)).sum(-1)
@@ -101,7 +104,9 @@ class ElasticParams:
     rest_vor: Tensor  # (..., n-2) rest Voronoi lengths [m]
 
 
-def total_energy(x: Tensor, theta: Tensor, d1_prev: Tensor, t_prev: Tensor, p: ElasticParams, mass: Tensor) -> Tensor:
+def total_energy(
+    x: Tensor, theta: Tensor, d1_prev: Tensor, t_prev: Tensor, p: ElasticParams, mass: Tensor
+) -> Tensor:
     """Total potential energy (..,) at positions ``x`` and edge angles ``theta`` (ends included)."""
     geo = rod_geometry(x, d1_prev, t_prev)
     a, b = curvature_projections(geo)

@@ -14,6 +14,7 @@ Vertex gradients are ``dE/dx_i = dE/de_{i-1} - dE/de_i``. A test checks all of i
 of :func:`deform.rod.energy.total_energy`; written out because a first-order closed form makes the
 step and the training backward pass several times cheaper than differentiating twice.
 """
+
 from __future__ import annotations
 
 import torch
@@ -29,8 +30,16 @@ def edge_gradient_to_vertices(g_e: Tensor) -> Tensor:
     return torch.cat([zero, g_e], dim=-2) - torch.cat([g_e, zero], dim=-2)
 
 
-def rod_forces(x: Tensor, geo: RodGeometry, a: Tensor, b: Tensor, theta: Tensor, p: ElasticParams,
-               mass: Tensor, g: float = GRAVITY) -> Tensor:
+def rod_forces(
+    x: Tensor,
+    geo: RodGeometry,
+    a: Tensor,
+    b: Tensor,
+    theta: Tensor,
+    p: ElasticParams,
+    mass: Tensor,
+    g: float = GRAVITY,
+) -> Tensor:
     """Forces (..., n, 3): bending, twisting and gravity, at angles ``theta`` (..., m)."""
     e = G.edges(x)
     e0, e1 = e[..., :-1, :], e[..., 1:, :]
@@ -52,8 +61,16 @@ def rod_forces(x: Tensor, geo: RodGeometry, a: Tensor, b: Tensor, theta: Tensor,
     tw = (2.0 * p.gamma / p.rest_vor * twist_of(theta, geo.m_ref)).unsqueeze(-1)
     half_kb_tw = 0.5 * tw * geo.kb
     gk = G.dot(gvec, geo.kb).unsqueeze(-1)
-    d_e0 = 2.0 / denom * torch.linalg.cross(e1, gvec, dim=-1) - gk / denom * (n1 * e0 / n0 + e1) + half_kb_tw / n0
-    d_e1 = 2.0 / denom * torch.linalg.cross(gvec, e0, dim=-1) - gk / denom * (n0 * e1 / n1 + e0) + half_kb_tw / n1
+    d_e0 = (
+        2.0 / denom * torch.linalg.cross(e1, gvec, dim=-1)
+        - gk / denom * (n1 * e0 / n0 + e1)
+        + half_kb_tw / n0
+    )
+    d_e1 = (
+        2.0 / denom * torch.linalg.cross(gvec, e0, dim=-1)
+        - gk / denom * (n0 * e1 / n1 + e0)
+        + half_kb_tw / n1
+    )
     zero = torch.zeros_like(d_e0[..., :1, :])
     grad_e = torch.cat([d_e0, zero], dim=-2) + torch.cat([zero, d_e1], dim=-2)  # (..., m, 3)
     force = -edge_gradient_to_vertices(grad_e)

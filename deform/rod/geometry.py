@@ -8,6 +8,7 @@ Parallel transport of ``u`` from unit tangent ``a`` to unit tangent ``b`` is the
 ``a x b`` that takes ``a`` to ``b``; with ``c = a.b`` and ``w = a x b`` it is the branch-free
 Rodrigues form  ``P u = c u + w x u + (w.u) w / (1 + c)``  (valid for ``c > -1``).
 """
+
 from __future__ import annotations
 
 import torch
@@ -32,8 +33,16 @@ def dot(a: Tensor, b: Tensor) -> Tensor:
 def normal_velocity(x: Tensor, v: Tensor) -> Tensor:
     """(..., n, 3) vertex velocity across the rod: ``v - (v . t) t`` with central-difference unit
     tangents ``t`` (one-sided at the ends). What air drag acts on."""
-    t = normalize(torch.cat([x[..., 1:2, :] - x[..., :1, :], x[..., 2:, :] - x[..., :-2, :],
-                             x[..., -1:, :] - x[..., -2:-1, :]], dim=-2))
+    t = normalize(
+        torch.cat(
+            [
+                x[..., 1:2, :] - x[..., :1, :],
+                x[..., 2:, :] - x[..., :-2, :],
+                x[..., -1:, :] - x[..., -2:-1, :],
+            ],
+            dim=-2,
+        )
+    )
     return v - dot(v, t).unsqueeze(-1) * t
 
 
@@ -70,7 +79,7 @@ def up_perpendicular(t: Tensor) -> Tensor:
     up = torch.zeros_like(t)
     up[..., 2] = 1.0
     d = up - dot(up, t).unsqueeze(-1) * t
-    ok = (d.norm(dim=-1, keepdim=True) > 1e-3)
+    ok = d.norm(dim=-1, keepdim=True) > 1e-3
     return torch.where(ok, normalize(d), any_perpendicular(t))
 
 

@@ -15,6 +15,7 @@ Two ways to choose ``l``, both vectorised over vertices and batch:
 
 Sweeps repeat until the largest relative edge error is below ``tol``.
 """
+
 from __future__ import annotations
 
 import torch
@@ -24,7 +25,9 @@ from deform.rod.geometry import dot
 from deform.rod.tridiagonal import solve_tridiagonal
 
 
-def max_relative_error(x: Tensor, rest: Tensor, inv_mass: Tensor | None = None, per_rod: bool = False) -> Tensor:
+def max_relative_error(
+    x: Tensor, rest: Tensor, inv_mass: Tensor | None = None, per_rod: bool = False
+) -> Tensor:
     """Largest ``| |e_j| / L_j - 1 |`` over edges that can move (an edge between two fixed vertices,
     such as the one between the two markers of a gripper, is whatever the inputs make it); over
     everything, or per rod (shape ``x.shape[:-2]``)."""
@@ -69,8 +72,14 @@ SWEEPS = {"projection": _projection_sweep, "gauss_seidel": _gauss_seidel_sweep}
 
 
 def enforce_inextensibility(
-    x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float = 1e-3, max_sweeps: int = 50, method: str = "projection",
-    branch_free: int = 0, report: dict | None = None,
+    x: Tensor,
+    inv_mass: Tensor,
+    rest: Tensor,
+    tol: float = 1e-3,
+    max_sweeps: int = 50,
+    method: str = "projection",
+    branch_free: int = 0,
+    report: dict | None = None,
 ) -> Tensor:
     """Project ``x`` (..., n, 3) so every edge has its rest length (..., m) within relative ``tol``.
 
@@ -104,7 +113,9 @@ def enforce_inextensibility(
     return x
 
 
-def _sweep_and_measure(sweep, x: Tensor, inv_mass: Tensor, rest: Tensor, per_rod: bool = False) -> tuple[Tensor, Tensor]:
+def _sweep_and_measure(
+    sweep, x: Tensor, inv_mass: Tensor, rest: Tensor, per_rod: bool = False
+) -> tuple[Tensor, Tensor]:
     """One sweep and the error it leaves, in one function so compiled code fuses them."""
     x = sweep(x, inv_mass, rest)
     return x, max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod)

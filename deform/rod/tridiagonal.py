@@ -8,6 +8,7 @@ definite (all pivots positive), which the Newton solver uses to pick its step.
 Compiled code always takes the Thomas algorithm: inductor fuses its unrolled recursion into one
 loop, where each LAPACK call would be a separate library call with its own checks.
 """
+
 from __future__ import annotations
 
 import torch

@@ -15,6 +15,7 @@ Gradients (implicit function theorem): at the minimiser ``g(theta*, p) = 0``, so
 ``theta* - H^{-1} g(theta*, p)`` with ``theta*`` and ``H`` detached: its value is ``theta*`` and its
 derivative is the IFT one. No iterations are unrolled.
 """
+
 from __future__ import annotations
 
 import torch
@@ -25,7 +26,14 @@ from deform.rod.tridiagonal import solve_tridiagonal, solve_tridiagonal_pd
 
 
 def gradient_and_hessian(
-    theta: Tensor, a: Tensor, b: Tensor, m_ref: Tensor, beta: Tensor, gamma: Tensor, rest_vor: Tensor, wbar: Tensor
+    theta: Tensor,
+    a: Tensor,
+    b: Tensor,
+    m_ref: Tensor,
+    beta: Tensor,
+    gamma: Tensor,
+    rest_vor: Tensor,
+    wbar: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Gradient (..., k), Hessian diagonal (..., k) and off-diagonal (..., k-1) over the free edges."""
     w1, w2 = material_curvature(a, b, left_right(theta))
@@ -96,8 +104,9 @@ def newton_theta(
         if branch_free:
             active = torch.ones(free.shape[:-1], dtype=torch.bool, device=free.device)
             for _ in range(branch_free):
-                new, size, exact = _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar,
-                                                  max_step, per_rod=True)
+                new, size, exact = _newton_update(
+                    free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step, per_rod=True
+                )
                 free = torch.where(active.unsqueeze(-1), new, free)
                 active = active & ~((size < tol) | (exact & (size * size < tol)))
             # compiled code cannot branch on data: it returns here and its caller checks convergence
@@ -108,7 +117,9 @@ def newton_theta(
                 return _with_free(theta_ends, free)
             max_iter -= branch_free
         for _ in range(max_iter):
-            free, size, exact = _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step)
+            free, size, exact = _newton_update(
+                free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step
+            )
             size, exact = float(size), bool(exact)
             # exact Newton converges quadratically: the error left after a step of size s is ~s^2
             if size < tol or (exact and size * size < tol):
@@ -116,8 +127,9 @@ def newton_theta(
         return _with_free(theta_ends, free)
 
 
-def _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step: float,
-                   per_rod: bool = False):
+def _newton_update(
+    free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step: float, per_rod: bool = False
+):
     """One damped Newton update -> (free angles, largest step, whether the exact Hessian was used).
     One function, so that compiled code fuses the whole iteration. ``per_rod``: step size and
     exactness per rod, and no data-dependent branch (the safe step is always computed)."""
@@ -136,8 +148,16 @@ def _newton_update(free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, m
 
 
 def attach_implicit_gradient(
-    theta_star: Tensor, a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor,
-    beta: Tensor, gamma: Tensor, rest_vor: Tensor, wbar: Tensor, converged_tol: float = 1e-4,
+    theta_star: Tensor,
+    a: Tensor,
+    b: Tensor,
+    m_ref: Tensor,
+    theta_ends: Tensor,
+    beta: Tensor,
+    gamma: Tensor,
+    rest_vor: Tensor,
+    wbar: Tensor,
+    converged_tol: float = 1e-4,
 ) -> Tensor:
     """Value ``theta*``; derivative ``-H^{-1} dg/dp`` (implicit function theorem).
 
@@ -159,13 +179,36 @@ def attach_implicit_gradient(
 
 
 def solve_theta(
-    a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor, beta: Tensor, gamma: Tensor,
-    rest_vor: Tensor, wbar: Tensor, theta_init: Tensor | None = None, tol: float = 1e-10, max_iter: int = 30,
-    branch_free: int = 0, report: dict | None = None,
+    a: Tensor,
+    b: Tensor,
+    m_ref: Tensor,
+    theta_ends: Tensor,
+    beta: Tensor,
+    gamma: Tensor,
+    rest_vor: Tensor,
+    wbar: Tensor,
+    theta_init: Tensor | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 30,
+    branch_free: int = 0,
+    report: dict | None = None,
 ) -> Tensor:
     """Fast batched solver; differentiable through the implicit function theorem when needed."""
-    theta_star = newton_theta(a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter,
-                              branch_free=branch_free, report=report)
+    theta_star = newton_theta(
+        a,
+        b,
+        m_ref,
+        theta_ends,
+        beta,
+        gamma,
+        rest_vor,
+        wbar,
+        theta_init,
+        tol,
+        max_iter,
+        branch_free=branch_free,
+        report=report,
+    )
     inputs = (a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
         return attach_implicit_gradient(theta_star, *inputs)

@@ -15,6 +15,7 @@ as the fast Newton solver; gradients come from Theseus's implicit backward mode.
 optimiser per call): tests and the ``--theta-solver theseus`` training option use it, the run-time
 path never does.
 """
+
 from __future__ import annotations
 
 import torch
@@ -25,8 +26,17 @@ from deform.rod.twist_solver import twist_only_minimiser
 
 
 def theseus_theta(
-    a: Tensor, b: Tensor, m_ref: Tensor, theta_ends: Tensor, beta: Tensor, gamma: Tensor, rest_vor: Tensor,
-    wbar: Tensor, theta_init: Tensor | None = None, max_iterations: int = 300, tol: float = 1e-20,
+    a: Tensor,
+    b: Tensor,
+    m_ref: Tensor,
+    theta_ends: Tensor,
+    beta: Tensor,
+    gamma: Tensor,
+    rest_vor: Tensor,
+    wbar: Tensor,
+    theta_init: Tensor | None = None,
+    max_iterations: int = 300,
+    tol: float = 1e-20,
     backward_mode: str = "implicit",
 ) -> Tensor:
     """Same contract as :func:`deform.rod.twist_solver.solve_theta` for a batch (B, ...)."""
@@ -58,7 +68,9 @@ def theseus_theta(
         (free,) = optim_vars
         av, bv, mr, ends, bwv, twv, wbv = aux_vars
         theta = torch.cat([ends.tensor[:, :1], free.tensor, ends.tensor[:, 1:]], dim=-1)
-        w1, w2 = material_curvature(av.tensor.view(-1, n_int, 2), bv.tensor.view(-1, n_int, 2), left_right(theta))
+        w1, w2 = material_curvature(
+            av.tensor.view(-1, n_int, 2), bv.tensor.view(-1, n_int, 2), left_right(theta)
+        )
         wbr = wbv.tensor.view(-1, n_int, 2, 2)
         w = torch.stack([w1, w2], dim=-1)
         w_norm = w.norm(dim=-1, keepdim=True)
@@ -70,16 +82,27 @@ def theseus_theta(
 
     dim = n_int * 4 + n_int
     cost = th.AutoDiffCostFunction(
-        [theta_var], residual, dim, aux_vars=list(aux.values()), name="rod_twist",
+        [theta_var],
+        residual,
+        dim,
+        aux_vars=list(aux.values()),
+        name="rod_twist",
         cost_weight=th.ScaleCostWeight(torch.ones(1, 1, dtype=dtype)),
     )
     objective = th.Objective(dtype=dtype)
     objective.add(cost)
-    optimizer = th.GaussNewton(objective, max_iterations=max_iterations, step_size=1.0, abs_err_tolerance=tol,
-                               rel_err_tolerance=1e-16)
+    optimizer = th.GaussNewton(
+        objective,
+        max_iterations=max_iterations,
+        step_size=1.0,
+        abs_err_tolerance=tol,
+        rel_err_tolerance=1e-16,
+    )
     layer = th.TheseusLayer(optimizer)
     inputs = {"theta": init}
     inputs.update({name: var.tensor for name, var in aux.items()})
-    solution, _ = layer.forward(inputs, optimizer_kwargs={"backward_mode": backward_mode, "track_best_solution": False})
+    solution, _ = layer.forward(
+        inputs, optimizer_kwargs={"backward_mode": backward_mode, "track_best_solution": False}
+    )
     free = solution["theta"]
     return torch.cat([theta_ends[..., :1], free, theta_ends[..., 1:]], dim=-1)

@@ -2,6 +2,7 @@
 
 Used to test and benchmark the tracker against known ground truth, with occlusions of a chosen size.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,7 +15,7 @@ from perception.render.mesh import catmull_rom
 from perception.render.occluder import arc_window, occluder_box
 from perception.render.scene import RenderedFrame, render_frame
 
-__all__ = ["RenderedFrame", "render_recording", "default_camera", "camera_steps"]
+__all__ = ["RenderedFrame", "camera_steps", "default_camera", "render_recording"]
 
 
 def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:
@@ -40,8 +41,15 @@ def camera_steps(n_steps: int, dt: float, fps: float) -> list[int]:
     return [int(s) for s in steps if s < n_steps]
 
 
-def render_recording(positions: np.ndarray, dt: float = 0.01, fps: float = 30.0, config=None,
-                     camera: Camera | None = None, seed: int = 0, steps=None) -> list[RenderedFrame]:
+def render_recording(
+    positions: np.ndarray,
+    dt: float = 0.01,
+    fps: float = 30.0,
+    config=None,
+    camera: Camera | None = None,
+    seed: int = 0,
+    steps=None,
+) -> list[RenderedFrame]:
     """Render a trajectory ``positions`` (T, n, 3) (world, metres) at ``fps`` (or at given ``steps``).
 
     ``config``: a :class:`RenderConfig`, a :class:`PerceptionConfig` or anything :func:`load_config` takes.
@@ -68,7 +76,7 @@ def render_recording(positions: np.ndarray, dt: float = 0.01, fps: float = 30.0,
         active = f > 0 and cfg.occlusion_start <= phase <= cfg.occlusion_end
         if active:
             n = len(x)
-            free = catmull_rom(x[1:n - 1])
+            free = catmull_rom(x[1 : n - 1])
             c = centre0 + 0.04 * math.sin(2 * math.pi * drift_hz * s * dt)
             window = arc_window(free, c - f / 2, c + f / 2)
             occluder = occluder_box(catmull_rom(x), window, camera, cfg.rope_radius, cfg.occluder_gap)

@@ -3,6 +3,7 @@
 The rope is drawn through a centripetal Catmull-Rom spline (no overshoot at the short gripped edges)
 so that the rendered rope bends smoothly between markers like a real one.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -56,13 +57,29 @@ def tube(centre: np.ndarray, radius: float, sides: int = 8) -> tuple[np.ndarray,
     i, k = np.meshgrid(np.arange(len(c) - 1), np.arange(sides), indexing="ij")
     a = i * sides + k
     b = i * sides + (k + 1) % sides
-    tris = np.concatenate([np.stack([a, b, a + sides], -1), np.stack([b, b + sides, a + sides], -1)]).reshape(-1, 3)
+    tris = np.concatenate([np.stack([a, b, a + sides], -1), np.stack([b, b + sides, a + sides], -1)]).reshape(
+        -1, 3
+    )
     return verts, tris
 
 
 _BOX_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-_BOX_TRIS = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+_BOX_TRIS = np.array(
+    [
+        [0, 1, 3],
+        [0, 3, 2],
+        [4, 6, 7],
+        [4, 7, 5],
+        [0, 4, 5],
+        [0, 5, 1],
+        [2, 3, 7],
+        [2, 7, 6],
+        [0, 2, 6],
+        [0, 6, 4],
+        [1, 5, 7],
+        [1, 7, 3],
+    ]
+)
 
 
 def box(centre: np.ndarray, axes: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -83,5 +100,12 @@ def frame_from_axis(axis: np.ndarray) -> np.ndarray:
 
 def plane(z: float, half: float = 3.0, centre=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     cx, cy = centre
-    verts = np.array([[cx - half, cy - half, z], [cx + half, cy - half, z], [cx + half, cy + half, z], [cx - half, cy + half, z]])
+    verts = np.array(
+        [
+            [cx - half, cy - half, z],
+            [cx + half, cy - half, z],
+            [cx + half, cy + half, z],
+            [cx - half, cy + half, z],
+        ]
+    )
     return verts, np.array([[0, 1, 2], [0, 2, 3]])

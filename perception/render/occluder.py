@@ -4,6 +4,7 @@ The box is built in the camera frame so that its front face covers the image of 
 window (plus a small margin) and then extends sideways, away from the rest of the rope, like an arm
 reaching in. How much of the rope it really hides is measured by the renderer's ground truth.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,12 +20,19 @@ def arc_window(curve: np.ndarray, start: float, stop: float) -> np.ndarray:
     keep = (s >= start) & (s <= stop)
     if keep.sum() < 2:
         i = int(np.argmin(np.abs(s - 0.5 * (start + stop))))
-        keep[max(i - 1, 0): i + 2] = True
+        keep[max(i - 1, 0) : i + 2] = True
     return curve[keep]
 
 
-def occluder_box(curve: np.ndarray, window: np.ndarray, camera: Camera, radius: float, gap: float,
-                 arm_length: float = 0.5, thickness: float = 0.06) -> tuple[np.ndarray, np.ndarray]:
+def occluder_box(
+    curve: np.ndarray,
+    window: np.ndarray,
+    camera: Camera,
+    radius: float,
+    gap: float,
+    arm_length: float = 0.5,
+    thickness: float = 0.06,
+) -> tuple[np.ndarray, np.ndarray]:
     """World-frame vertices and triangles of a box hiding ``window`` (K, 3) of ``curve`` (M, 3)."""
     p = camera.to_camera(window)
     z_front = max(float(p[:, 2].min()) - gap, 0.3)
@@ -48,6 +56,9 @@ def occluder_box(curve: np.ndarray, window: np.ndarray, camera: Camera, radius: 
     centre_cam[:2] = 0.5 * (a_lo + a_hi) * u + 0.5 * (b_lo + b_hi) * w
     axes_cam = np.array([[u[0], w[0], 0.0], [u[1], w[1], 0.0], [0.0, 0.0, 1.0]])
     r = camera.world_from_camera[:3, :3]
-    verts, tris = box(camera.to_world(centre_cam), r @ axes_cam,
-                      np.array([0.5 * (a_hi - a_lo), 0.5 * (b_hi - b_lo), thickness / 2]))
+    verts, tris = box(
+        camera.to_world(centre_cam),
+        r @ axes_cam,
+        np.array([0.5 * (a_hi - a_lo), 0.5 * (b_hi - b_lo), thickness / 2]),
+    )
     return verts, tris

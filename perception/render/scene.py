@@ -4,6 +4,7 @@ Sensor effects that matter for the tracker are imitated: depth noise growing wit
 missing pixels on the far side of depth edges (and some on the near side), random dropouts,
 shading and colour noise. Ground-truth visibility of each vertex comes from a ray to its centre.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,8 +35,10 @@ class RenderedFrame:
 def scene_meshes(x: np.ndarray, cfg: RenderConfig, occluder=None):
     """Vertices, triangles and a per-triangle label of the rope, table, grippers (and occluder)."""
     n = len(x)
-    parts = [(mesh.tube(mesh.catmull_rom(x), cfg.rope_radius), ROPE),
-             (mesh.plane(cfg.table_z, centre=x[:, :2].mean(0)), TABLE)]
+    parts = [
+        (mesh.tube(mesh.catmull_rom(x), cfg.rope_radius), ROPE),
+        (mesh.plane(cfg.table_z, centre=x[:, :2].mean(0)), TABLE),
+    ]
     for a, b in ((0, 1), (n - 1, n - 2)):
         axis = x[b] - x[a]
         half = np.array([0.5 * np.linalg.norm(axis) + 0.015, 0.025, 0.03])
@@ -68,7 +71,9 @@ def vertex_visibility(x: np.ndarray, camera: Camera, verts, tris, labels, radius
     hit_rope = np.isfinite(t) & (prim != o3d.t.geometry.RaycastingScene.INVALID_ID)
     hit_rope &= labels[np.where(hit_rope, prim, 0)] == ROPE
     uv, z = camera.project(camera.to_camera(x))
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    inside = (
+        (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
     return hit_rope & (t > dist - 3 * radius) & inside
 
 
@@ -83,7 +88,9 @@ def render_frame(x: np.ndarray, camera: Camera, cfg: RenderConfig, rng: np.rando
     lab = np.where(hit, labels[np.where(hit, prim, 0)], -1)
     depth = np.where(hit, t, np.inf)
     # sensor noise grows with distance
-    noisy = depth + rng.normal(0.0, 1.0, depth.shape) * (cfg.noise_base + cfg.noise_quad * np.where(hit, depth, 0) ** 2)
+    noisy = depth + rng.normal(0.0, 1.0, depth.shape) * (
+        cfg.noise_base + cfg.noise_quad * np.where(hit, depth, 0) ** 2
+    )
     valid = hit.copy()
     # depth edges: the far pixel of a jump is lost, the near one sometimes
     far_side = np.zeros_like(valid)

@@ -1,5 +1,6 @@
 """The PyElastica planted-effect generator (benchmarks/elastica_planted.py) on small synthetic
 gripper motions: no dataset needed; skipped without PyElastica (the `bench` extra)."""
+
 import math
 
 import numpy as np
@@ -7,10 +8,10 @@ import pytest
 
 pytest.importorskip("elastica")
 
-from benchmarks.elastica_planted import detectability, generate_elastica  # noqa: E402
-from deform.diagnose.spec import RodSpec  # noqa: E402
-from deform.io.recordings import Recording  # noqa: E402
-from deform.model import gripped_indices  # noqa: E402
+from benchmarks.elastica_planted import detectability, generate_elastica
+from deform.diagnose.spec import RodSpec
+from deform.io.recordings import Recording
+from deform.model import gripped_indices
 
 N, FRAMES, WINDOW = 10, 60, 40
 SPEC = RodSpec(length_m=1.0, mass_kg=0.05, n_vertices=N, dt=0.01)
@@ -27,8 +28,8 @@ def _source(phase: float) -> Recording:
     t = np.arange(FRAMES) * SPEC.dt
     pos = np.repeat(base[None], FRAMES, axis=0)
     sway = 0.04 * np.sin(2 * math.pi * t + phase)
-    pos[:, :N // 2, 1] += sway[:, None]
-    pos[:, N // 2:, 1] -= sway[:, None]
+    pos[:, : N // 2, 1] += sway[:, None]
+    pos[:, N // 2 :, 1] -= sway[:, None]
     return Recording(name=f"synthetic_{phase}", positions=pos, dt=SPEC.dt)
 
 
@@ -51,10 +52,10 @@ def test_control_is_a_hanging_rope_held_by_its_grippers(sources, control):
     for rec, src, start in zip(recs, sources, truth["numerics"]["starts"]):
         p = rec.positions
         assert p.shape == (WINDOW, N, 3) and np.all(np.isfinite(p))
-        np.testing.assert_array_equal(p[:, g], src.positions[start:start + WINDOW][:, g])
+        np.testing.assert_array_equal(p[:, g], src.positions[start : start + WINDOW][:, g])
         # hangs in a U: every inner marker below the grippers, the middle lowest
         assert np.all(p[:, inner, 2] < p[:, g, 2].min(axis=1, keepdims=True))
-        assert p[:, N // 2 - 1:N // 2 + 1, 2].mean() < p[:, inner, 2].mean()
+        assert p[:, N // 2 - 1 : N // 2 + 1, 2].mean() < p[:, inner, 2].mean()
         # material points: the distance between neighbouring inner markers stays constant
         e = np.linalg.norm(np.diff(p[:, inner], axis=1), axis=-1)
         assert np.all(np.abs(e / np.median(e, axis=0) - 1) < 0.03)
@@ -62,7 +63,9 @@ def test_control_is_a_hanging_rope_held_by_its_grippers(sources, control):
 
 
 def test_planted_wind_moves_markers_more_than_noise(sources, control):
-    recs, truth = generate_elastica("external_force", sources, SPEC, "light", n_frames=WINDOW, seed=0, noise_m=0.0)
+    recs, truth = generate_elastica(
+        "external_force", sources, SPEC, "light", n_frames=WINDOW, seed=0, noise_m=0.0
+    )
     assert truth["ax_m_per_s2"] > 0 and truth["effect"] == "external_force"
     d = detectability(recs, control[0])
     assert d > 3e-3  # markers moved by more than 10x the 0.3 mm mocap noise
@@ -70,7 +73,9 @@ def test_planted_wind_moves_markers_more_than_noise(sources, control):
     # the wind pushes the rope along +x, +y
     g = gripped_indices(N)
     inner = [k for k in range(N) if k not in g]
-    shift = np.mean([r.positions[:, inner] - c.positions[:, inner] for r, c in zip(recs, control[0])], axis=(0, 1, 2))
+    shift = np.mean(
+        [r.positions[:, inner] - c.positions[:, inner] for r, c in zip(recs, control[0])], axis=(0, 1, 2)
+    )
     assert shift[0] > 0 and shift[1] > 0
 
 

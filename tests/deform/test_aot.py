@@ -2,6 +2,7 @@
 and reused from disk, never runs with weights the model no longer has, and falls back to
 torch.compile when it cannot be built. Packages go to the session's own ``$DEFORM_CACHE`` (see
 tests/conftest.py), so the first test builds one: nothing is reused from, or left in, the user's cache."""
+
 import os
 from pathlib import Path
 
@@ -89,12 +90,16 @@ def test_changed_parameters_are_never_run_with_the_old_package(start, built, mon
     assert loads == [model]
 
 
-@pytest.mark.parametrize("broken_part, warning", [
-    ("__init__", "ahead-of-time step unavailable"),  # cannot be built here
-    ("__call__", "ahead-of-time step failed"),  # built, but fails when called: not eager either
-])
-def test_package_that_cannot_run_falls_back_to_torch_compile(model, start, built, monkeypatch, caplog,
-                                                             broken_part, warning):
+@pytest.mark.parametrize(
+    "broken_part, warning",
+    [
+        ("__init__", "ahead-of-time step unavailable"),  # cannot be built here
+        ("__call__", "ahead-of-time step failed"),  # built, but fails when called: not eager either
+    ],
+)
+def test_package_that_cannot_run_falls_back_to_torch_compile(
+    model, start, built, monkeypatch, caplog, broken_part, warning
+):
     def broken(*args, **kwargs):
         raise RuntimeError("no AOTInductor")
 

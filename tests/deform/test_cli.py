@@ -1,4 +1,5 @@
 """The command line: clear one-line errors, non-zero exit, nothing written; eval JSON fields."""
+
 import json
 import os
 import pickle
@@ -14,8 +15,14 @@ from deform.cli import main
 
 def _run(*args, cwd=None):
     env = dict(os.environ, PYTHONPATH=os.getcwd())
-    return subprocess.run([sys.executable, "-m", "deform.cli", *args], capture_output=True, text=True, cwd=cwd, env=env,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "deform.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=300,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +56,9 @@ def test_eval_json_on_a_directory_of_unseen_recordings(synthetic_dir):
         ("empty", ["train", "--rod", "DLO2", "--iterations", "1"], "no .pkl recordings"),
     ],
 )
-def test_bad_input_gives_one_error_line_and_writes_nothing(tmp_path, monkeypatch, capsys, setup, args, message):
+def test_bad_input_gives_one_error_line_and_writes_nothing(
+    tmp_path, monkeypatch, capsys, setup, args, message
+):
     d = tmp_path / "recs"
     d.mkdir()
     if setup == "hostile":
@@ -63,7 +72,9 @@ def test_bad_input_gives_one_error_line_and_writes_nothing(tmp_path, monkeypatch
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)
-    code = main([*args, "--recordings", str(d), *(["--out", str(work / "run")] if args[0] == "train" else [])])
+    code = main(
+        [*args, "--recordings", str(d), *(["--out", str(work / "run")] if args[0] == "train" else [])]
+    )
     assert code == 2
     err = capsys.readouterr().err
     lines = err.strip().splitlines()

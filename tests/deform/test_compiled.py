@@ -1,6 +1,7 @@
 """The compiled inference step gives the eager step's values (it is only faster), pads batches to
 bucket sizes without changing results, and falls back to eager when compilation fails. Tests that
 compile are marked ``compile`` (skipped without a C++ compiler, see tests/conftest.py)."""
+
 import math
 
 import pytest
@@ -74,7 +75,7 @@ def test_unconverged_flags_only_rods_off_tolerance(model, start):
     stretched = RodState(new.x.clone(), new.v, new.d1, new.theta, new.rest)
     stretched.x[1, 6, 2] -= 0.01  # a free vertex of rod 1 off by 1 cm: two edges stretched
     twisted = RodState(new.x, new.v, new.d1, new.theta.clone(), new.rest)
-    twisted.theta[2, 5] += 0.05    # rod 2's angles off the minimum
+    twisted.theta[2, 5] += 0.05  # rod 2's angles off the minimum
     assert model.unconverged(state, stretched).tolist() == [False, True, False]
     assert model.unconverged(state, twisted).tolist() == [False, False, True]
 
@@ -93,7 +94,7 @@ def test_sudden_jump_is_redone_eagerly(model, start):
     out = step(state, jump)
     assert step.redone == 1
     for r in range(3):  # each rod as the eager step gives it alone (rod 0 is exactly that step)
-        eager = model.step(state.index([r]), jump[r:r + 1])
+        eager = model.step(state.index([r]), jump[r : r + 1])
         assert (out.x[r] - eager.x[0]).abs().max() < (1e-15 if r == 0 else 1e-6)
     assert not model.unconverged(state, out).any()
 
@@ -103,12 +104,15 @@ def test_rollout_step_one_graph_while_converged(model, start):
     """Predict's rollout: steps that converge in the one-graph step keep it, and each rod then
     gets what the eager step gives it alone."""
     state, grips = start
-    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
+    state, grips = (
+        model.step(state, grips[:, 0]),
+        grips[:, 1:],
+    )  # the twist angles solved (the start has none)
     step = RolloutStep(model)
     out = rollout(step, state, grips)
     assert step.active and step.redone == 0
     for r in range(3):
-        alone = rollout(model, state.index([r]), grips[r:r + 1])
+        alone = rollout(model, state.index([r]), grips[r : r + 1])
         assert (out[r] - alone[0]).abs().max() < 1e-6
 
 
@@ -118,7 +122,10 @@ def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, st
     compiled step's (whole batch), not the unconverged one-graph result, and the following steps
     go back to the one graph."""
     state, grips = start
-    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
+    state, grips = (
+        model.step(state, grips[:, 0]),
+        grips[:, 1:],
+    )  # the twist angles solved (the start has none)
     jump = grips.clone()
     jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
     step = RolloutStep(model)
@@ -141,8 +148,9 @@ def test_rollout_step_pauses_the_fast_graph_after_misses_in_a_row(model, start, 
     state, grips = start
     step = RolloutStep(model)
     real = step.fast.attempt
-    monkeypatch.setattr(step.fast, "attempt",
-                        lambda s, g: (real(s, g)[0], torch.ones(s.x.shape[0], dtype=torch.bool)))
+    monkeypatch.setattr(
+        step.fast, "attempt", lambda s, g: (real(s, g)[0], torch.ones(s.x.shape[0], dtype=torch.bool))
+    )
     out = rollout(step, state, grips)
     steps = grips.shape[1]  # 38: tried at steps 0, 1, 2, then after pauses at 4, 7, 12, 21
     assert step.redone == step.max_misses + 4 and step.paused == 5
@@ -157,7 +165,10 @@ def test_rollout_step_does_not_redo_an_overstretched_rod(model, start):
     graph's result stands (the checked step would only sweep longer without converging), while
     the rods beside it keep what they get alone."""
     state, grips = start
-    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]  # the twist angles solved (the start has none)
+    state, grips = (
+        model.step(state, grips[:, 0]),
+        grips[:, 1:],
+    )  # the twist angles solved (the start has none)
     pulled = grips.clone()
     pulled[0, :, 2:, 0] += 0.6
     assert overstretched(pulled[0], state.rest[0]).all()
@@ -165,7 +176,7 @@ def test_rollout_step_does_not_redo_an_overstretched_rod(model, start):
     out = rollout(step, state, pulled)
     assert step.redone == 0
     for r in (1, 2):
-        alone = rollout(model, state.index([r]), pulled[r:r + 1])
+        alone = rollout(model, state.index([r]), pulled[r : r + 1])
         assert (out[r] - alone[0]).abs().max() < 1e-6
 
 
@@ -178,6 +189,8 @@ def test_solver_flags_agree_with_a_recomputed_check(model, start):
     jump = grips[:, 1].clone()
     jump[1, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
     for g, expected in ((grips[:, 1], [False, False, False]), (jump, [False, True, False])):
-        flags = [CompiledStep(model, branch_free=(2, 1), check=c).attempt(state, g)[1].tolist()
-                 for c in ("report", "recompute")]
+        flags = [
+            CompiledStep(model, branch_free=(2, 1), check=c).attempt(state, g)[1].tolist()
+            for c in ("report", "recompute")
+        ]
         assert flags[0] == flags[1] == expected

@@ -2,8 +2,15 @@ import numpy as np
 import pytest
 import torch
 
-from deform import (DeformModel, ModelOptions, generate_recording, gripped_indices, load_model, load_rod_config,
-                    overstretched)
+from deform import (
+    DeformModel,
+    ModelOptions,
+    generate_recording,
+    gripped_indices,
+    load_model,
+    load_rod_config,
+    overstretched,
+)
 from deform.rod.inextensibility import max_relative_error
 
 
@@ -72,7 +79,9 @@ def test_hanging_rod_settles_to_rest(model):
     x = torch.zeros(1, model.n, 3, dtype=torch.float64)
     x[0, :, 0] = torch.linspace(-0.45, 0.45, model.n)
     x[0, :, 2] = 0.5 - 0.3 * torch.sin(torch.linspace(0, np.pi, model.n))
-    state = model.static_state(x, rest=torch.full((1, model.n - 1), 0.996 / (model.n - 1) * 1.0, dtype=torch.float64))
+    state = model.static_state(
+        x, rest=torch.full((1, model.n - 1), 0.996 / (model.n - 1) * 1.0, dtype=torch.float64)
+    )
     with torch.no_grad():
         state = model.settle(state, x[:, gripped_indices(model.n)], max_steps=3000, tol=1e-4)
     assert float(state.v.abs().max()) < 1e-4
@@ -118,7 +127,9 @@ def test_reposition_projects_a_correction_onto_the_rest_lengths(model, recording
     corrected = X[1:2].clone()
     corrected[0, model.n // 2] += torch.tensor([0.0, 0.03, 0.0], dtype=torch.float64)
     moved = model.reposition(state, corrected)
-    assert float(max_relative_error(moved.x, state.rest, 1.0 - model.gripped.double())) < model.options.pbd_tol
+    assert (
+        float(max_relative_error(moved.x, state.rest, 1.0 - model.gripped.double())) < model.options.pbd_tol
+    )
     grip = gripped_indices(model.n)
     assert torch.equal(moved.x[0, grip], corrected[0, grip])
     assert torch.equal(moved.v, state.v)
@@ -143,7 +154,9 @@ def test_nominal_rest_lengths_come_from_training_recordings(tmp_path, recording)
 
     model = DeformModel(load_rod_config("DLO2"))
     rest = nominal_rest_lengths([recording])
-    assert torch.allclose(rest, torch.tensor(np.linalg.norm(np.diff(recording.positions[0], axis=0), axis=-1)))
+    assert torch.allclose(
+        rest, torch.tensor(np.linalg.norm(np.diff(recording.positions[0], axis=0), axis=-1))
+    )
     model.nominal_rest.copy_(rest)
     model.save(tmp_path / "m.pt")
     loaded = load_model(tmp_path / "m.pt")
@@ -188,5 +201,5 @@ def test_overstretched_rod_is_stretched_evenly_instead_of_flung_about():
             speeds.append(float(state.v.norm(dim=-1).max()))
     assert torch.isfinite(state.x).all()
     assert max(speeds[50:]) < 0.5
-    stretch = (state.x[0, 2:n - 1] - state.x[0, 1:n - 2]).norm(dim=-1) / rest[1:-1]
+    stretch = (state.x[0, 2 : n - 1] - state.x[0, 1 : n - 2]).norm(dim=-1) / rest[1:-1]
     assert ((stretch > 1.048) & (stretch < 1.053)).all()

@@ -14,8 +14,16 @@ def test_training_on_generated_data_reduces_loss_and_resumes(tmp_path):
     recs = [generate_recording(truth, n_frames=60, seed=s) for s in range(3)]
     model = DeformModel(cfg)
     before = validation_l1(model, recs[2:], 58)
-    tcfg = TrainConfig(iterations=16, batch=4, horizon=30, curriculum=(), lr_physics=1.5e-1, log_every=4, seed=1,
-                       coarse_sysid=False)
+    tcfg = TrainConfig(
+        iterations=16,
+        batch=4,
+        horizon=30,
+        curriculum=(),
+        lr_physics=1.5e-1,
+        log_every=4,
+        seed=1,
+        coarse_sysid=False,
+    )
     train(model, recs[:2], recs[2:], tcfg, tmp_path, progress=False)
     log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     vals = [e["val_l1_m"] for e in log if "val_l1_m" in e]
@@ -30,7 +38,9 @@ def test_training_on_generated_data_reduces_loss_and_resumes(tmp_path):
 
 def test_coarse_identification_finds_the_stiffness_decade():
     cfg = load_rod_config("DLO2")
-    truth = DeformModel(cfg.model_copy(update={"bend_stiffness": 1e-2, "twist_stiffness": 7e-3, "damping": 1.0}))
+    truth = DeformModel(
+        cfg.model_copy(update={"bend_stiffness": 1e-2, "twist_stiffness": 7e-3, "damping": 1.0})
+    )
     recs = [generate_recording(truth, n_frames=80, seed=s) for s in range(2)]
     model = DeformModel(cfg.model_copy(update={"bend_stiffness": 1e-4, "twist_stiffness": 7e-5}))
     found = coarse_identification(model, recs, steps=60, progress=False)
@@ -85,4 +95,6 @@ def test_a_horizon_longer_than_every_recording_is_a_clear_error_before_any_work(
         train(model, [short], [], TrainConfig(iterations=1, horizon=50), tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
     X, _ = sample_windows([short, long], 6, 50, random.Random(0))
-    assert X.shape[1] == 52 and all((X[b, 0].numpy() == long.positions).all(axis=(1, 2)).any() for b in range(6))
+    assert X.shape[1] == 52 and all(
+        (X[b, 0].numpy() == long.positions).all(axis=(1, 2)).any() for b in range(6)
+    )

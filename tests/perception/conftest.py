@@ -1,4 +1,5 @@
 """Shared fixtures: a synthetic recording (no dataset needed) and its rendered clouds, built once."""
+
 from dataclasses import replace
 
 import numpy as np
@@ -36,7 +37,9 @@ def grip_idx(model):
 
 def occluded_config(fraction=0.3, start=0.0, end=1.0):
     cfg = load_config()
-    return replace(cfg, render=replace(cfg.render, occlusion=fraction, occlusion_start=start, occlusion_end=end))
+    return replace(
+        cfg, render=replace(cfg.render, occlusion=fraction, occlusion_start=start, occlusion_end=end)
+    )
 
 
 @pytest.fixture(scope="session")
@@ -54,5 +57,5 @@ def swung(x: np.ndarray, angle: float) -> np.ndarray:
     p = x - a
     rot = p * np.cos(angle) + np.cross(k, p) * np.sin(angle) + np.outer(p @ k, k) * (1 - np.cos(angle))
     out = x.copy()
-    out[2:n - 2] = (rot + a)[2:n - 2]
+    out[2 : n - 2] = (rot + a)[2 : n - 2]
     return out

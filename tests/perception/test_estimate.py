@@ -1,4 +1,5 @@
 """Segmentation, clustering, mixture fitting and one camera update, on rendered clouds with ground truth."""
+
 import numpy as np
 from sklearn.cluster import DBSCAN
 
@@ -66,10 +67,12 @@ def test_update_moves_visible_and_keeps_occluded(recording, occluded_frames):
     pred = truth + np.concatenate([np.zeros((2, 3)), rng.normal(0, 0.012, (n - 4, 3)), np.zeros((2, 3))])
     cfg = load_config()
     pts = f.camera.to_world(segment_rope(f.xyz, f.rgb, cfg.segmentation))
-    x, observed = correct_vertices(pred, pts, depth_image(f.xyz, f.camera), f.camera, cfg.estimation, _movable(n))
+    x, observed = correct_vertices(
+        pred, pts, depth_image(f.xyz, f.camera), f.camera, cfg.estimation, _movable(n)
+    )
     assert observed.sum() >= 2
-    assert not np.any(observed & ~f.visible)                 # never claims a hidden vertex
-    assert np.array_equal(x[~observed], pred[~observed])     # occluded ones keep the prediction
+    assert not np.any(observed & ~f.visible)  # never claims a hidden vertex
+    assert np.array_equal(x[~observed], pred[~observed])  # occluded ones keep the prediction
     err_before = np.linalg.norm(pred - truth, axis=1)[observed].mean()
     err_after = np.linalg.norm(x - truth, axis=1)[observed].mean()
     assert err_after < 0.6 * err_before

@@ -1,8 +1,8 @@
 """The tracker: camera updates beat open loop, occlusion handling, initialisation, and bad input."""
+
 from dataclasses import replace
 
 import numpy as np
-import pytest
 
 from deform import gripped_indices, load_model, load_recording
 from perception import Camera, Tracker, load_config, render_recording
@@ -13,10 +13,10 @@ def _run(tracker, positions, frames, grip_idx):
     by_step = {f.step: f for f in frames}
     errors = []
     for k in range(2, len(positions)):
-        x, observed = tracker.step(positions[k, grip_idx])
+        x, _ = tracker.step(positions[k, grip_idx])
         if k in by_step:
             f = by_step[k]
-            x, observed = tracker.correct(f.xyz, f.rgb, f.camera)
+            x, _observed = tracker.correct(f.xyz, f.rgb, f.camera)
         errors.append(np.abs(x - positions[k]).mean())
     return float(np.mean(errors))
 
@@ -95,7 +95,10 @@ def _bad_clouds(camera: Camera):
         "nan_points": (rng.normal(0, 1, (500, 3)).astype(np.float32) * np.nan, None),
         "filtered_out": (far, orange),
         "wrong_colour_everywhere": (table_only, np.zeros((h, w, 3), np.uint8)),
-        "wrong_camera_size": (rng.normal([0, 0, 1], 0.2, (100, 120, 3)).astype(np.float32), orange[:100, :120]),
+        "wrong_camera_size": (
+            rng.normal([0, 0, 1], 0.2, (100, 120, 3)).astype(np.float32),
+            orange[:100, :120],
+        ),
         "rgb_wrong_shape": (table_only, orange[:10]),
         "not_a_cloud": (np.zeros(7, np.float32), None),
         "none": (None, None),
@@ -119,7 +122,9 @@ def test_bad_input_never_raises_nor_returns_nan(model, recording, occluded_frame
     for grip in (np.full((4, 3), np.nan), np.zeros(5), None):
         x, observed = t.step(grip)
         assert np.all(np.isfinite(x))
-    x, _ = t.correct(occluded_frames[0].xyz, occluded_frames[0].rgb, camera=None)  # falls back to the default camera
+    x, _ = t.correct(
+        occluded_frames[0].xyz, occluded_frames[0].rgb, camera=None
+    )  # falls back to the default camera
     assert np.all(np.isfinite(x))
 
 

@@ -1,12 +1,15 @@
 """Shared fixtures: the model, a free loopback endpoint, a short simulated recording and its stream."""
+
 from __future__ import annotations
 
 import pytest
 import torch
 
+
 @pytest.fixture(scope="session")
 def model():
     from deform import load_model
+
     torch.set_num_threads(1)
     return load_model("DLO1")
 
@@ -14,26 +17,34 @@ def model():
 @pytest.fixture
 def endpoint():
     from service.demo import free_port
+
     return f"tcp/127.0.0.1:{free_port()}"
 
 
 @pytest.fixture(scope="session")
 def sim_positions(model):
     from deform import generate_recording
+
     return generate_recording(model, n_frames=60, seed=3, warmup_s=1.0).positions
 
 
 @pytest.fixture(scope="session")
 def sim_stream(sim_positions):
     from service import scenario
+
     grippers = scenario.offsets_for(sim_positions)
     return grippers, scenario.build_stream(sim_positions, grippers, fps=30.0)
 
 
 def make_config(endpoint=None, connect=None, **over):
     from service.config import load_config
-    z = {"mode": "peer", "multicast_scouting": False, "listen": [endpoint] if endpoint else [],
-         "connect": [connect] if connect else []}
+
+    z = {
+        "mode": "peer",
+        "multicast_scouting": False,
+        "listen": [endpoint] if endpoint else [],
+        "connect": [connect] if connect else [],
+    }
     # compiling the predict rollout costs ~30 s per batch size: tests/deform/test_compiled.py covers it
     over.setdefault("workers", {"compile_predict": False})
     over.setdefault("compile_step", False)

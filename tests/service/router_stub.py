@@ -1,6 +1,7 @@
 """Stands in for zenohd (not installable from PyPI): a Zenoh peer listening on an endpoint that
 clients connect to. Counts the messages on ``key`` until it has seen ``enough`` of them (an event
 set by the subscriber) or ``seconds`` have passed, prints the count, then exits."""
+
 import sys
 import threading
 

@@ -1,5 +1,6 @@
 """Bad inputs are rejected with a counter and the loop goes on; modes follow the inputs. Wall time is a
 fake clock throughout: nothing here depends on how fast the machine is."""
+
 import threading
 
 import numpy as np
@@ -24,17 +25,24 @@ def est(model):
 def test_bad_poses_counted_and_loop_continues(est):
     assert est.on_poses(M.pose_array(T0, GOOD))
     assert est.tick(T0) is not None
-    bad = [b"not cdr at all", M.pose_array(T0 + 1, np.where(np.eye(2, 7, dtype=bool), np.nan, GOOD)),
-           M.pose_array(T0 - 10**7, GOOD),                     # out of order
-           M.pose_array(T0 + 2, GOOD[:1])]                     # one pose
+    bad = [
+        b"not cdr at all",
+        M.pose_array(T0 + 1, np.where(np.eye(2, 7, dtype=bool), np.nan, GOOD)),
+        M.pose_array(T0 - 10**7, GOOD),  # out of order
+        M.pose_array(T0 + 2, GOOD[:1]),
+    ]  # one pose
     for raw in bad:
         assert not est.on_poses(raw)
     assert est.on_poses(M.pose_array(T0 + 10**7, GOOD))
     for k in range(3):
         assert est.tick(T0 + (k + 1) * 10**7) is not None
     rejected = est.status()["rejected"]
-    assert rejected == {"ee_poses:malformed_cdr": 1, "ee_poses:nan_pose": 1, "ee_poses:out_of_order": 1,
-                        "ee_poses:wrong_pose_count": 1}
+    assert rejected == {
+        "ee_poses:malformed_cdr": 1,
+        "ee_poses:nan_pose": 1,
+        "ee_poses:out_of_order": 1,
+        "ee_poses:wrong_pose_count": 1,
+    }
     assert np.isfinite(est.estimate.x).all()
 
 
@@ -49,11 +57,16 @@ def test_stale_stamp_rejected(est):
 def test_bad_clouds_rejected(est):
     worker = FusionWorker(est)
     est.cfg.limits.max_cloud_bytes = 10_000
-    worker.submit(bytes(20_000))                                  # too large
-    for raw, reason in [(b"garbage", "malformed_cdr"),
-                        (M.vertices_cloud(T0, np.zeros((5, 3)), np.zeros(5)), "unorganized_cloud"),
-                        (M.point_cloud(T0, np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.uint8)), "empty_cloud"),
-                        (M.point_cloud(T0, np.zeros((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8)), "no_camera_info")]:
+    worker.submit(bytes(20_000))  # too large
+    for raw, reason in [
+        (b"garbage", "malformed_cdr"),
+        (M.vertices_cloud(T0, np.zeros((5, 3)), np.zeros(5)), "unorganized_cloud"),
+        (
+            M.point_cloud(T0, np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.uint8)),
+            "empty_cloud",
+        ),
+        (M.point_cloud(T0, np.zeros((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8)), "no_camera_info"),
+    ]:
         with pytest.raises(M.InputError) as err:
             est.decode_cloud(raw)
         assert err.value.reason == reason
@@ -62,7 +75,7 @@ def test_bad_clouds_rejected(est):
 
 def test_cloud_flood_rejected(est):
     """Token bucket at ``max_cloud_rate_hz`` (60), burst of 3: exact counts on a fake clock."""
-    worker = FusionWorker(est)   # not started: nothing consumes the slot
+    worker = FusionWorker(est)  # not started: nothing consumes the slot
     raw = M.point_cloud(T0, np.zeros((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8))
     rate = est.cfg.limits.max_cloud_rate_hz
     assert rate == 60
@@ -70,15 +83,15 @@ def test_cloud_flood_rejected(est):
     def flooded():
         return est.status()["rejected"].get("points:flood", 0)
 
-    for _ in range(20):          # all at one instant: the burst of 3 passes, the rest is refused
+    for _ in range(20):  # all at one instant: the burst of 3 passes, the rest is refused
         worker.submit(raw)
     assert flooded() == 17
-    assert est.status()["dropped"]["cloud_superseded"] == 2   # the burst replaced each other in the slot
+    assert est.status()["dropped"]["cloud_superseded"] == 2  # the burst replaced each other in the slot
     est.clock.advance(1.5 / rate)  # a token and a half: one more cloud, not two
     worker.submit(raw)
     worker.submit(raw)
     assert flooded() == 18
-    est.clock.advance(10.0)      # a long pause refills only up to the burst
+    est.clock.advance(10.0)  # a long pause refills only up to the burst
     for _ in range(4):
         worker.submit(raw)
     assert flooded() == 19
@@ -91,17 +104,17 @@ def test_modes_follow_inputs(model):
     assert est.mode() == "waiting"
     est.on_poses(M.pose_array(T0, GOOD))
     est.tick(T0)
-    assert est.mode() == "open-loop"        # poses, no clouds
+    assert est.mode() == "open-loop"  # poses, no clouds
     est.fused_at = est.now()
     assert est.mode() == "tracking"
-    clock.advance(0.25)                      # poses and the cloud still within their timeouts
+    clock.advance(0.25)  # poses and the cloud still within their timeouts
     assert est.mode() == "tracking"
-    clock.advance(0.15)                      # poses stop: 0.4 s > pose_s
+    clock.advance(0.15)  # poses stop: 0.4 s > pose_s
     assert est.mode() == "waiting"
     assert est.status()["input_age_s"]["ee_poses"] == pytest.approx(0.4)
-    est.on_poses(M.pose_array(T0 + 4 * 10**8, GOOD))   # poses again; the last cloud is 0.4 s old
+    est.on_poses(M.pose_array(T0 + 4 * 10**8, GOOD))  # poses again; the last cloud is 0.4 s old
     assert est.mode() == "tracking"
-    clock.advance(0.2)                       # the cloud is 0.6 s old (> cloud_s), the poses 0.2 s
+    clock.advance(0.2)  # the cloud is 0.6 s old (> cloud_s), the poses 0.2 s
     assert est.mode() == "open-loop"
 
 
@@ -111,10 +124,13 @@ def test_fused_tracker_keeps_the_compiled_step(est, model):
     est.on_poses(M.pose_array(T0, GOOD))
     est.tick(T0)
     from deform.compiled import CompiledStep
+
     step = CompiledStep(model, enabled=False)  # the eager fallback: no compile time in the test
     est.use_step(step)
     est.on_camera_info(M.camera_info(T0, np.diag([100.0, 100, 1]), 4, 4))
-    cloud = est.decode_cloud(M.point_cloud(T0 + 1, np.ones((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8)))
+    cloud = est.decode_cloud(
+        M.point_cloud(T0 + 1, np.ones((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8))
+    )
     before = est.tracker
     FusionWorker(est).fuse(cloud)
     assert est.tracker is not before and est.tracker.step_fn is step

@@ -1,10 +1,11 @@
 """CDR round trips of every message the service speaks, and rejection of malformed ones."""
+
 import numpy as np
 import pytest
 
 from service import messages as M
-from service.geometry import grips_from_poses, matrix_to_pose, pose_matrix, poses_from_vertices
 from service.config import Grippers
+from service.geometry import grips_from_poses, matrix_to_pose, pose_matrix, poses_from_vertices
 
 
 def test_pose_array_round_trip():
@@ -68,7 +69,9 @@ def test_wrong_point_fields_rejected():
     with pytest.raises(M.InputError) as err:
         M.parse_point_cloud(M.vertices_cloud(1, np.zeros((4, 3)), np.zeros(4)))
     assert err.value.reason == "unorganized_cloud"
-    msg = M.decode(M.point_cloud(1, np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.uint8)), M.POINT_CLOUD2)
+    msg = M.decode(
+        M.point_cloud(1, np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.uint8)), M.POINT_CLOUD2
+    )
     msg.fields[3].name = "intensity"
     with pytest.raises(M.InputError, match="wrong_point_fields"):
         M.parse_point_cloud(M.encode(msg, M.POINT_CLOUD2))

@@ -1,10 +1,10 @@
 """Send order across keys: the attachment round trip, the reorder buffer, and a message-clock service
 that gives the same estimates bit for bit whatever order the transport delivers a replay in."""
+
 import random
 import threading
 
 import numpy as np
-import pytest
 
 from service.node import Service
 from service.ordering import Order, SequenceBuffer, decode_order, encode_order, new_stream_id
@@ -17,7 +17,7 @@ def test_attachment_round_trip_and_foreign_attachments_ignored():
     assert decode_order(encode_order(sid, 7, last=True)) == Order(sid, 7, True)
     assert decode_order(None) is None
     assert decode_order(b"") is None
-    assert decode_order(b"XXXX" + encode_order(sid, 1)[4:]) is None   # another protocol's 17 bytes
+    assert decode_order(b"XXXX" + encode_order(sid, 1)[4:]) is None  # another protocol's 17 bytes
     assert decode_order(encode_order(sid, 1)[:-1]) is None
 
 
@@ -25,8 +25,8 @@ def test_buffer_releases_in_send_order_per_stream():
     buf = SequenceBuffer(patience_s=1.0)
     a, b = b"a" * 8, b"b" * 8
     assert buf.push("a2", (a, 2), 0.0) == []
-    assert buf.push("b0", (b, 0), 0.0) == ["b0"]            # streams are independent
-    assert buf.push("x", None, 0.0) == ["x"]                # unordered: as it arrives
+    assert buf.push("b0", (b, 0), 0.0) == ["b0"]  # streams are independent
+    assert buf.push("x", None, 0.0) == ["x"]  # unordered: as it arrives
     assert buf.push("a1", (a, 1), 0.0) == []
     assert buf.holding()
     assert buf.push("a0", (a, 0), 0.0) == ["a0", "a1", "a2"]
@@ -38,9 +38,9 @@ def test_buffer_gives_up_on_a_lost_sample_after_patience():
     buf = SequenceBuffer(patience_s=0.5)
     s = b"s" * 8
     assert buf.push(0, (s, 0), 0.0) == [0]
-    assert buf.push(2, (s, 2), 1.0) == []                   # 1 lost
+    assert buf.push(2, (s, 2), 1.0) == []  # 1 lost
     assert buf.push(3, (s, 3), 1.2) == []
-    assert buf.expire(1.4) == []                            # the gap opened at 1.0
+    assert buf.expire(1.4) == []  # the gap opened at 1.0
     assert buf.expire(1.5) == [2, 3] and buf.gaps == 1
     assert buf.push(4, (s, 4), 1.6) == [4]
 
@@ -49,10 +49,13 @@ def _run_message_clock(model, inbox_items, pause_after: int | None = None):
     """A message-clock service fed ``inbox_items`` as the transport would; -> published estimates.
     ``pause_after``: the sender stops for longer than ``reorder_s`` after that many items."""
     import time
+
     from service import messages as M
-    cfg = make_config(clock="message", timeouts={"reorder_s": 0.3},
-                      workers={"processes": False, "compile_predict": False})
-    svc = Service(cfg, model=model)        # not started: only its message loop runs, into a stub
+
+    cfg = make_config(
+        clock="message", timeouts={"reorder_s": 0.3}, workers={"processes": False, "compile_predict": False}
+    )
+    svc = Service(cfg, model=model)  # not started: only its message loop runs, into a stub
     out = []
     svc.pub = type("Pub", (), {"put": lambda self, payload: out.append(M.parse_vertices(payload)[1])})()
     loop = threading.Thread(target=svc._message_loop, daemon=True)
@@ -61,11 +64,11 @@ def _run_message_clock(model, inbox_items, pause_after: int | None = None):
         for k, item in enumerate(inbox_items):
             svc._idle = False
             svc.inbox.put(item)
-            if k == pause_after:   # once the loop has caught up, the sender stops for a while
+            if k == pause_after:  # once the loop has caught up, the sender stops for a while
                 deadline = time.monotonic() + 30
                 while svc.inbox.unfinished_tasks and time.monotonic() < deadline:
                     time.sleep(0.01)
-                time.sleep(0.5)    # the pause itself (a loaded machine): not a wait for anything
+                time.sleep(0.5)  # the pause itself (a loaded machine): not a wait for anything
         assert svc.drain(30.0)
     finally:
         svc._stop.set()
@@ -79,7 +82,7 @@ def test_message_clock_is_bit_exact_under_reordered_delivery(model, sim_stream):
     tick (fused a tick late). With the replay's send order restored, any delivery order gives the
     same estimates."""
     _, stream = sim_stream
-    stream = stream[:2 + 4 * 20]                             # camera_info, camera_pose, ~20 ticks
+    stream = stream[: 2 + 4 * 20]  # camera_info, camera_pose, ~20 ticks
     sid = new_stream_id()
     items = [(m.name, m.data, Order(sid, k, k == len(stream) - 1)) for k, m in enumerate(stream)]
     in_order, snap = _run_message_clock(model, items)
@@ -99,8 +102,12 @@ def test_message_clock_is_bit_exact_under_reordered_delivery(model, sim_stream):
             shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
         assert shuffled != items
         # trial 1: the sender also pauses right after a pose whose cloud comes next
-        pause = next(k for k in range(10, len(items)) if items[k][0] == "ee_poses" and items[k + 1][0] == "points")
-        got, snap = _run_message_clock(model, shuffled if trial == 0 else items, pause_after=pause if trial else None)
+        pause = next(
+            k for k in range(10, len(items)) if items[k][0] == "ee_poses" and items[k + 1][0] == "points"
+        )
+        got, snap = _run_message_clock(
+            model, shuffled if trial == 0 else items, pause_after=pause if trial else None
+        )
         assert snap["rejected"] == {}
         assert np.array_equal(got, in_order), f"trial {trial}"
 
@@ -108,7 +115,7 @@ def test_message_clock_is_bit_exact_under_reordered_delivery(model, sim_stream):
 def test_without_send_order_a_cloud_before_its_camera_info_is_rejected(model, sim_stream):
     """Why the attachment is needed: the same overtaking without it loses the first cloud."""
     _, stream = sim_stream
-    stream = stream[:2 + 4 * 5]
+    stream = stream[: 2 + 4 * 5]
     items = [(m.name, m.data, None) for m in stream]
     first_cloud = next(i for i, it in enumerate(items) if it[0] == "points")
     items.insert(0, items.pop(first_cloud))

@@ -1,4 +1,5 @@
 """`{ns}/predict`: requests validated before any work; prediction is batched and leaves the state alone."""
+
 import json
 
 import numpy as np
@@ -16,8 +17,18 @@ T0 = 1_700_000_000 * 10**9
 
 @pytest.fixture(scope="module")
 def est(model):
-    e = Estimator(make_config(limits={"max_plans": 8, "max_steps": 20, "max_plan_steps_total": 100,
-                                      "max_request_bytes": 100_000}), model, OpenLoopTracker(model, settle_steps=50))
+    e = Estimator(
+        make_config(
+            limits={
+                "max_plans": 8,
+                "max_steps": 20,
+                "max_plan_steps_total": 100,
+                "max_request_bytes": 100_000,
+            }
+        ),
+        model,
+        OpenLoopTracker(model, settle_steps=50),
+    )
     e.on_poses(M.pose_array(T0, GOOD))
     e.tick(T0)
     return e
@@ -29,6 +40,7 @@ _WORKERS: dict = {}
 def handle(est, raw):
     """``predict.handle`` with an inline worker (the rollout in this thread), one per estimator."""
     from service.workers import InlineWorker
+
     worker = _WORKERS.setdefault(id(est), InlineWorker(est.model, est.cfg))
     return predict.handle(est, raw, worker)
 
@@ -37,20 +49,23 @@ def body(plans, **extra):
     return json.dumps({"plans": np.asarray(plans).tolist(), **extra}).encode()
 
 
-@pytest.mark.parametrize("raw,reason", [
-    (b"{not json", "bad_json"),
-    (b'{"plan": []}', "bad_request"),
-    (b"[1, 2]", "bad_request"),
-    (body(np.zeros((2, 3, 2, 6))), "bad_shape"),
-    (b'{"plans": [[[[0,0,0,0,0,0,1],[0,0,0,0,0,0,1]]], [[[0,0,0]]]]}', "bad_shape"),
-    (body(np.tile(GOOD, (9, 2, 1, 1))), "too_large"),
-    (body(np.tile(GOOD, (1, 21, 1, 1))), "too_large"),
-    (body(np.tile(GOOD, (6, 20, 1, 1))), "too_large"),
-    (b'{"plans": [' + b"0," * 60_000 + b"0]}", "too_large"),
-    (body(np.tile(GOOD, (1, 2, 1, 1)), dt=0.02), "bad_dt"),
-    (b'{"plans": [[[[NaN,0,0,0,0,0,1],[0,0,0,0,0,0,1]]]]}', "nan_pose"),
-    (body(np.tile(GOOD * [1, 1, 1, 5, 5, 5, 5], (1, 2, 1, 1))), "bad_quaternion"),
-])
+@pytest.mark.parametrize(
+    "raw,reason",
+    [
+        (b"{not json", "bad_json"),
+        (b'{"plan": []}', "bad_request"),
+        (b"[1, 2]", "bad_request"),
+        (body(np.zeros((2, 3, 2, 6))), "bad_shape"),
+        (b'{"plans": [[[[0,0,0,0,0,0,1],[0,0,0,0,0,0,1]]], [[[0,0,0]]]]}', "bad_shape"),
+        (body(np.tile(GOOD, (9, 2, 1, 1))), "too_large"),
+        (body(np.tile(GOOD, (1, 21, 1, 1))), "too_large"),
+        (body(np.tile(GOOD, (6, 20, 1, 1))), "too_large"),
+        (b'{"plans": [' + b"0," * 60_000 + b"0]}", "too_large"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), dt=0.02), "bad_dt"),
+        (b'{"plans": [[[[NaN,0,0,0,0,0,1],[0,0,0,0,0,0,1]]]]}', "nan_pose"),
+        (body(np.tile(GOOD * [1, 1, 1, 5, 5, 5, 5], (1, 2, 1, 1))), "bad_quaternion"),
+    ],
+)
 def test_invalid_requests_rejected(est, raw, reason):
     before = dict(est.stats.rejected)
     ok, reply = handle(est, raw)
@@ -61,15 +76,15 @@ def test_invalid_requests_rejected(est, raw, reason):
 def test_prediction_batched_and_state_untouched(est):
     x_before = est.tracker.state.x.clone()
     plans = np.tile(GOOD, (3, 5, 1, 1))
-    plans[1, :, :, 2] -= np.linspace(0, 0.05, 5)[:, None]   # plan 1 lowers both grippers
+    plans[1, :, :, 2] -= np.linspace(0, 0.05, 5)[:, None]  # plan 1 lowers both grippers
     ok, reply = handle(est, body(plans, dt=0.01))
     assert ok
     out = json.loads(reply)
     v = np.array(out["vertices"])
     assert v.shape == (3, 5, 13, 3) and out["stamp"] == pytest.approx(T0 / 1e9)
     assert np.array_equal(est.tracker.state.x, x_before)
-    np.testing.assert_allclose(v[0], v[2], atol=1e-5)            # same plan, same answer
-    assert v[1, -1, 0, 2] == pytest.approx(0.45, abs=1e-4)       # the gripped vertex follows the plan
+    np.testing.assert_allclose(v[0], v[2], atol=1e-5)  # same plan, same answer
+    assert v[1, -1, 0, 2] == pytest.approx(0.45, abs=1e-4)  # the gripped vertex follows the plan
     # one plan alone gives the same as within the batch
     ok, single = handle(est, body(plans[1:2]))
     np.testing.assert_allclose(np.array(json.loads(single)["vertices"])[0], v[1], atol=2e-5)

@@ -1,5 +1,6 @@
 """Worker processes: the tracker crosses the process boundary intact, a job gives the same answer in
 a child process as inline, errors come back as errors, and a hung job restarts the child."""
+
 import json
 
 import numpy as np
@@ -53,7 +54,7 @@ def test_predict_in_child_process_equals_inline(est, child, model):
 def test_errors_come_back_and_the_child_keeps_serving(est, child):
     ok, reply = predict.handle(est, b"{not json", child)
     assert not ok and json.loads(reply)["error"] == "bad_json"
-    with pytest.raises(WorkerError, match="UnpicklingError|Error"):
+    with pytest.raises(WorkerError, match=r"Error"):
         child.call("fuse", b"not a tracker", None)
     assert child.call("ping") is True
 
@@ -119,7 +120,11 @@ def test_the_service_lowers_its_fusion_worker_not_predict(model):
     try:
         assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
         base = os.getpriority(os.PRIO_PROCESS, 0)
-        assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) == base + svc.cfg.workers.fusion_nice > base
+        assert (
+            os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid)
+            == base + svc.cfg.workers.fusion_nice
+            > base
+        )
         assert os.getpriority(os.PRIO_PROCESS, svc.predict_worker.pid) == base
     finally:
         svc.fusion_worker.close()

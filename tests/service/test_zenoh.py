@@ -3,6 +3,7 @@ second namespace, the live loop with bad input, client-mode reconnection, MCAP r
 
 Waits for samples are events set by the subscriber callbacks (``Received``, Zenoh matching
 listeners), with generous timeouts: no fixed sleep assumes the machine is fast."""
+
 import json
 import subprocess
 import sys
@@ -67,6 +68,7 @@ class CountingSession:
                 self.count += 1
                 if self.count >= self.expected:
                     self.all_in.set()
+
         return self.session.declare_subscriber(key, counted)
 
 
@@ -100,11 +102,15 @@ NO_COMPILE = {"compile_predict": False}  # compiling is tested in tests/deform/t
 
 def test_replay_is_deterministic_and_tracks(sim_positions, sim_stream):
     _, stream = sim_stream
-    runs = [demo.run(sim_positions, rrd=None, stream=stream, predict_plans=4, predict_steps=10,
-                     workers=NO_COMPILE) for _ in range(2)]
+    runs = [
+        demo.run(
+            sim_positions, rrd=None, stream=stream, predict_plans=4, predict_steps=10, workers=NO_COMPILE
+        )
+        for _ in range(2)
+    ]
     a, b = runs
     assert a["frames"] == len(sim_positions)
-    assert np.array_equal(a["estimates"], b["estimates"])        # bit for bit
+    assert np.array_equal(a["estimates"], b["estimates"])  # bit for bit
     assert a["status"]["counts"]["clouds_fused"] == sum(m.name == "points" for m in stream)
     assert a["status"]["rejected"] == {}
     assert a["mae_cm"] < 2.0, a["mae_cm"]
@@ -113,25 +119,29 @@ def test_replay_is_deterministic_and_tracks(sim_positions, sim_stream):
 
 def test_real_recording_end_to_end(data_root, tmp_path):
     from deform import load_recording
+
     rec = load_recording(sorted((data_root / "DLO1" / "eval").glob("*.pkl"))[0])
-    res = demo.run(rec.positions[:150], rrd=str(tmp_path / "t.rrd"), predict_plans=2, predict_steps=5,
-                   workers=NO_COMPILE)
+    res = demo.run(
+        rec.positions[:150], rrd=str(tmp_path / "t.rrd"), predict_plans=2, predict_steps=5, workers=NO_COMPILE
+    )
     assert res["frames"] == 150
-    assert res["mae_cm"] < 3.5, res["mae_cm"]      # holding the first frame scores about 5 cm
+    assert res["mae_cm"] < 3.5, res["mae_cm"]  # holding the first frame scores about 5 cm
     assert (tmp_path / "t.rrd").stat().st_size > 0
 
 
 def test_live_loop_two_namespaces_and_bad_input(model, endpoint):
     # pose_s: the feeder thread shares the interpreter with two services; on a loaded machine it can
     # stall for a few hundred ms, which must not read as "poses stopped"
-    cfg1 = make_config(endpoint, namespace="deform/rod1", timeouts={"pose_s": 2.0, "cloud_s": 0.5, "stale_s": 1.0})
+    cfg1 = make_config(
+        endpoint, namespace="deform/rod1", timeouts={"pose_s": 2.0, "cloud_s": 0.5, "stale_s": 1.0}
+    )
     cfg2 = make_config(connect=endpoint, namespace="deform/rod2")
-    with Service(cfg1, model=model) as s1, Service(cfg2, model=model) as s2:
+    with Service(cfg1, model=model), Service(cfg2, model=model):
         client = open_session(make_config(connect=endpoint).zenoh)
         got = Received()
         client.declare_subscriber("deform/*/vertices", got)
         for ns in ("deform/rod1", "deform/rod2"):
-            assert wait_for(lambda: query_json(client, f"{ns}/status") is not None)
+            assert wait_for(lambda ns=ns: query_json(client, f"{ns}/status") is not None)
         poses = client.declare_publisher("deform/rod1/ee_poses")
         points = client.declare_publisher("deform/rod1/points")
         stop = threading.Event()
@@ -151,27 +161,36 @@ def test_live_loop_two_namespaces_and_bad_input(model, endpoint):
             poses.put(M.pose_array(time.time_ns(), np.full((2, 7), np.nan)))
             for _ in range(5):
                 points.put(b"\x00\x01\x00\x00 not a cloud")
-        assert wait_for(lambda: query_json(client, "deform/rod1/status")["rejected"].get("ee_poses:nan_pose") == 6)
+        assert wait_for(
+            lambda: query_json(client, "deform/rod1/status")["rejected"].get("ee_poses:nan_pose") == 6
+        )
         assert got.wait_until(lambda keys: "deform/rod1/vertices" in keys)
         st1 = query_json(client, "deform/rod1/status")
         st2 = query_json(client, "deform/rod2/status")
         assert st1["mode"] == "open-loop" and st1["ticks"] > 20 and st1["rate_hz"] > 0
         assert st1["rejected"]["ee_poses:malformed_cdr"] == 6 and st1["rejected"]["ee_poses:nan_pose"] == 6
+
         def clouds_refused():
             st = query_json(client, "deform/rod1/status")
-            return (st["rejected"].get("points:flood", 0) + st["rejected"].get("points:malformed_cdr", 0)
-                    + st["dropped"].get("cloud_superseded", 0))
-        assert wait_for(lambda: clouds_refused() == 30)   # every bad cloud is counted somewhere
+            return (
+                st["rejected"].get("points:flood", 0)
+                + st["rejected"].get("points:malformed_cdr", 0)
+                + st["dropped"].get("cloud_superseded", 0)
+            )
+
+        assert wait_for(lambda: clouds_refused() == 30)  # every bad cloud is counted somewhere
         assert st2["mode"] == "waiting" and st2["ticks"] == 0
         assert "deform/rod2/vertices" not in got.keys
         for r in client.get("deform/rod1/vertices", timeout=5.0):
-            stamp, x, observed = M.parse_vertices(r.ok.payload.to_bytes())
+            _stamp, x, observed = M.parse_vertices(r.ok.payload.to_bytes())
             assert x.shape == (13, 3) and np.isfinite(x).all() and not observed.any()
         stop.set()
         feeder.join()
-        assert wait_for(lambda: query_json(client, "deform/rod1/status")["mode"] == "waiting")  # poses stopped
+        assert wait_for(
+            lambda: query_json(client, "deform/rod1/status")["mode"] == "waiting"
+        )  # poses stopped
         n = len(got.keys)
-        assert got.wait_until(lambda keys: len(keys) > n + 10)       # still published every tick
+        assert got.wait_until(lambda keys: len(keys) > n + 10)  # still published every tick
         client.close()
 
 
@@ -183,8 +202,11 @@ def test_client_mode_reconnects_after_router_restart(model, endpoint):
     def router():
         # exits as soon as it has seen 11 messages; 60 s is only the bound for a service that never
         # reaches it (on a loaded machine starting and connecting takes seconds)
-        p = subprocess.Popen([sys.executable, script, endpoint, "deform/rod1/vertices", "60", "11"],
-                             stdout=subprocess.PIPE, text=True)
+        p = subprocess.Popen(
+            [sys.executable, script, endpoint, "deform/rod1/vertices", "60", "11"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         assert p.stdout.readline().strip() == "ready"
         return p
 
@@ -204,7 +226,7 @@ def test_client_mode_reconnects_after_router_restart(model, endpoint):
     threading.Thread(target=feed, daemon=True).start()
     try:
         assert int(first.communicate(timeout=90)[0].strip()) > 10
-        time.sleep(0.5)                                 # the router is down for a while (not a wait for anything)
+        time.sleep(0.5)  # the router is down for a while (not a wait for anything)
         second = router()
         assert int(second.communicate(timeout=90)[0].strip()) > 10
     finally:
@@ -232,6 +254,7 @@ def test_mcap_record_then_replay(tmp_path, endpoint, sim_stream):
     back = bag.read_messages(path)
     assert sorted(m.data for m in back) == sorted(m.data for m in sent)
     from mcap.reader import make_reader
+
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
@@ -245,15 +268,20 @@ def test_message_clock_waits_wall_time_for_a_cloud_in_transit(model):
     """A fast replay puts a second of poses ahead in milliseconds: the tick at t must still wait for
     a cloud stamped >= t (or for `reorder_s` of wall time), or the result depends on transit time."""
     from service import messages as M2
-    cfg = make_config(clock="message", timeouts={"reorder_s": 1.0}, workers={"processes": False, "compile_predict": False})
-    svc = Service(cfg, model=model)   # not started: ticks run here, published into a stub
+
+    cfg = make_config(
+        clock="message", timeouts={"reorder_s": 1.0}, workers={"processes": False, "compile_predict": False}
+    )
+    svc = Service(cfg, model=model)  # not started: ticks run here, published into a stub
     svc.pub = type("Pub", (), {"put": lambda self, payload: None})()
     t0 = 1_700_000_000 * 10**9
-    queue = [(svc.est.parse_poses(M2.pose_array(t0 + k * 10**7, GOOD), None), time.perf_counter(), False)
-             for k in range(150)]   # not in send order (no replay attachment): the wall-time rule
+    queue = [
+        (svc.est.parse_poses(M2.pose_array(t0 + k * 10**7, GOOD), None), time.perf_counter(), False)
+        for k in range(150)
+    ]  # not in send order (no replay attachment): the wall-time rule
     svc._advance(queue, window=int(1e9))
-    assert svc.est.tick_index == 0 and len(queue) == 150   # 1.5 s of poses ahead, but no wall time waited
+    assert svc.est.tick_index == 0 and len(queue) == 150  # 1.5 s of poses ahead, but no wall time waited
     queue = [(p, arrived - 2.0, o) for p, arrived, o in queue]  # the same poses, received two seconds ago
     svc._advance(queue, window=int(1e9))
-    assert svc.est.tick_index == 50 and len(queue) == 100   # gave up on clouds up to 1 s behind the newest
+    assert svc.est.tick_index == 50 and len(queue) == 100  # gave up on clouds up to 1 s behind the newest
     svc.stop()

@@ -1,5 +1,6 @@
 """Baselines (issue 6): interface, gripped inputs followed exactly, finite output, XPBD edge lengths,
 Bi-LSTM training on synthetic data, load_baseline errors, `deform eval --method` end to end."""
+
 import json
 
 import numpy as np
@@ -8,10 +9,13 @@ import torch
 
 from deform import DeformModel, ModelOptions, generate_recording, gripped_indices, load_rod_config
 from deform.baselines import BASELINES, load_baseline
-from deform.baselines.bilstm import BiLSTMDynamics, train_bilstm, weight_path as bilstm_weights
+from deform.baselines.bilstm import BiLSTMDynamics, train_bilstm
+from deform.baselines.bilstm import weight_path as bilstm_weights
+from deform.baselines.der import der_initial
+from deform.baselines.der import weight_path as der_weights
 from deform.baselines.hold_shape import HoldShape
-from deform.baselines.xpbd import XPBDParams, XPBDRope, weight_path as xpbd_weights
-from deform.baselines.der import der_initial, weight_path as der_weights
+from deform.baselines.xpbd import XPBDParams, XPBDRope
+from deform.baselines.xpbd import weight_path as xpbd_weights
 from deform.cli import main
 from deform.errors import UsageError
 from deform.evaluate import evaluate
@@ -78,11 +82,22 @@ def test_bilstm_loss_falls_on_synthetic_data(recordings):
 
     def loss(m):
         with torch.no_grad():
-            return float((m.rollout(m.initial_state(W[:, 0], W[:, 1]), W[:, 2:, idx]) - W[:, 2:]).abs().mean())
+            return float(
+                (m.rollout(m.initial_state(W[:, 0], W[:, 1]), W[:, 2:, idx]) - W[:, 2:]).abs().mean()
+            )
 
     before = loss(BiLSTMDynamics(recordings[0].n_vertices, hidden=32))
-    model, info = train_bilstm(recordings, [], recordings[0].n_vertices, iterations=80, batch=8, hidden=32,
-                               curriculum=((0, 5), (20, 20)), lr=3e-3, val_every=20)
+    model, info = train_bilstm(
+        recordings,
+        [],
+        recordings[0].n_vertices,
+        iterations=80,
+        batch=8,
+        hidden=32,
+        curriculum=((0, 5), (20, 20)),
+        lr=3e-3,
+        val_every=20,
+    )
     after = loss(model)
     assert np.isfinite(after) and after < 0.7 * before, (before, after, info["log"])
 
@@ -102,7 +117,11 @@ def test_load_baseline_builds_untrained_methods():
 
 @pytest.mark.parametrize("rod", ["DLO1", "DLO2", "DLO3", "DLO4", "DLO5"])
 def test_shipped_weights_load(rod):
-    for name, path in (("bilstm", bilstm_weights(rod)), ("xpbd", xpbd_weights(rod)), ("der_identified", der_weights(rod))):
+    for name, path in (
+        ("bilstm", bilstm_weights(rod)),
+        ("xpbd", xpbd_weights(rod)),
+        ("der_identified", der_weights(rod)),
+    ):
         if not path.is_file():
             pytest.skip(f"{path} not trained yet")
         model = load_baseline(name, rod)
@@ -132,6 +151,22 @@ def test_module_cli_unknown_method_is_a_one_line_error(tmp_path):
     model = DeformModel(load_rod_config("DLO2"), ModelOptions(residual=False))
     save_recording(tmp_path / "0.pkl", generate_recording(model, n_frames=10, seed=0, warmup_s=0.1).positions)
     env = dict(os.environ, PYTHONPATH=os.getcwd())
-    out = subprocess.run([sys.executable, "-m", "deform.cli", "eval", "--rod", "DLO2", "--recordings", str(tmp_path),
-                          "--method", "nope"], capture_output=True, text=True, env=env, timeout=120)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deform.cli",
+            "eval",
+            "--rod",
+            "DLO2",
+            "--recordings",
+            str(tmp_path),
+            "--method",
+            "nope",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert out.returncode == 2 and "unknown method 'nope'" in out.stderr and "Traceback" not in out.stderr

@@ -1,5 +1,5 @@
 """Tiny synthetic datasets for the diagnosis tests (seconds, not minutes)."""
-import numpy as np
+
 import pytest
 import torch
 
@@ -15,7 +15,9 @@ SPEC = RodSpec(length_m=0.6, mass_kg=0.04, n_vertices=N, name="tiny")
 @pytest.fixture(scope="session")
 def sources():
     torch.set_num_threads(1)
-    cfg = RodConfig(name="tiny", length_m=0.6, mass_kg=0.04, n_vertices=N, bend_stiffness=2e-3, twist_stiffness=1.4e-3)
+    cfg = RodConfig(
+        name="tiny", length_m=0.6, mass_kg=0.04, n_vertices=N, bend_stiffness=2e-3, twist_stiffness=1.4e-3
+    )
     model = DeformModel(cfg)
     model.options.residual = False
     return [generate_recording(model, n_frames=90, seed=s, warmup_s=1.0, amplitude=0.25) for s in range(6)]
@@ -24,5 +26,11 @@ def sources():
 def tiny_budget(candidates):
     # 25 iterations as in the quick budget: at 15 the strong wind scored +7.2 % against its 7.7 %
     # threshold once windows started in transported frames (nominal fits of 15 iterations are noisy)
-    return DiagnoseBudget(nominal_iterations=25, candidate=FitBudget(iterations=25, batch=6, horizon=15, lr_terms=0.15),
-                          max_rounds=1, candidates=tuple(candidates), localization_recordings=3, progress=False)
+    return DiagnoseBudget(
+        nominal_iterations=25,
+        candidate=FitBudget(iterations=25, batch=6, horizon=15, lr_terms=0.15),
+        max_rounds=1,
+        candidates=tuple(candidates),
+        localization_recordings=3,
+        progress=False,
+    )

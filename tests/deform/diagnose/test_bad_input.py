@@ -1,4 +1,5 @@
 """Bad inputs: one clear error naming the file (exit code 2, nothing written) or a report warning."""
+
 import json
 
 import numpy as np
@@ -35,12 +36,15 @@ def _cli(rod, fit, check, out):
     return main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check), "--out", str(out)])
 
 
-@pytest.mark.parametrize("kwargs, needle", [
-    ({"check_n": 9}, "markers"),
-    ({"nan": True}, "NaN"),
-    ({"n_fit": 1}, "at least"),
-    ({"length": 0.5}, "length_m"),   # a rope shorter than its markers' span
-])
+@pytest.mark.parametrize(
+    "kwargs, needle",
+    [
+        ({"check_n": 9}, "markers"),
+        ({"nan": True}, "NaN"),
+        ({"n_fit": 1}, "at least"),
+        ({"length": 0.5}, "length_m"),  # a rope shorter than its markers' span
+    ],
+)
 def test_bad_input_is_one_error_line_and_nothing_written(tmp_path, capsys, kwargs, needle):
     rod, fit, check = _write(tmp_path, **kwargs)
     out = tmp_path / "out"
@@ -58,7 +62,7 @@ def test_bad_rod_json_names_the_file(tmp_path, capsys):
 
 
 def test_length_off_by_a_little_is_a_warning(tmp_path):
-    rod, fit, check = _write(tmp_path, length=0.57)   # 5 % shorter than the 0.6 m the markers span
+    rod, fit, check = _write(tmp_path, length=0.57)  # 5 % shorter than the 0.6 m the markers span
     inputs = load_inputs(rod, fit, check)
     assert any("length" in w for w in inputs.warnings)
     assert inputs.spec.length_m == 0.57
@@ -94,11 +98,37 @@ def test_budget_option_picks_the_budget(tmp_path, monkeypatch):
     monkeypatch.setattr(selection, "diagnose", fake_diagnose)
     for choice in ("quick", "full"):
         with pytest.raises(SystemExit):
-            main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check),
-                  "--out", str(tmp_path / "out"), "--budget", choice])
+            main(
+                [
+                    "diagnose",
+                    "--rod",
+                    str(rod),
+                    "--fit",
+                    str(fit),
+                    "--check",
+                    str(check),
+                    "--out",
+                    str(tmp_path / "out"),
+                    "--budget",
+                    choice,
+                ]
+            )
     assert used[0] == DiagnoseBudget.quick() and used[1] == DiagnoseBudget()
     assert used[0].candidate.iterations < used[1].candidate.iterations
     with pytest.raises(SystemExit) as bad:
-        main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check),
-              "--out", str(tmp_path / "out"), "--budget", "huge"])
+        main(
+            [
+                "diagnose",
+                "--rod",
+                str(rod),
+                "--fit",
+                str(fit),
+                "--check",
+                str(check),
+                "--out",
+                str(tmp_path / "out"),
+                "--budget",
+                "huge",
+            ]
+        )
     assert bad.value.code == 2

@@ -1,4 +1,5 @@
 """The significance rule calibrated on controls, and re-selection from stored candidate scores."""
+
 import numpy as np
 import pytest
 
@@ -22,13 +23,24 @@ def test_parameter_penalty_is_removed_before_pooling_and_intercept_never_negativ
 
 
 def _cand(name, rnd, on_top, imp, lo, check, k=1):
-    return {"name": name, "round": rnd, "on_top_of": on_top, "improvement": imp, "improvement_ci90": [lo, imp + 0.05],
-            "n_params": k, "check_l1_m": check}
+    return {
+        "name": name,
+        "round": rnd,
+        "on_top_of": on_top,
+        "improvement": imp,
+        "improvement_ci90": [lo, imp + 0.05],
+        "n_params": k,
+        "check_l1_m": check,
+    }
 
 
 def test_reselect_follows_rounds_and_threshold():
-    cands = [_cand("a", 1, [], 0.30, 0.2, 0.7), _cand("b", 1, [], 0.08, 0.01, 0.92), _cand("c", 1, [], 0.5, -0.1, 0.5),
-             _cand("b", 2, ["a"], 0.06, 0.02, 0.65)]
+    cands = [
+        _cand("a", 1, [], 0.30, 0.2, 0.7),
+        _cand("b", 1, [], 0.08, 0.01, 0.92),
+        _cand("c", 1, [], 0.5, -0.1, 0.5),
+        _cand("b", 2, ["a"], 0.06, 0.02, 0.65),
+    ]
     low = reselect(cands, 1.0, min_gain=0.03, per_param=0.01)
     assert low["selected"] == ["a", "b"] and low["final_check_l1_m"] == 0.65
     mid = reselect(cands, 1.0, min_gain=0.06, per_param=0.01)

@@ -1,5 +1,5 @@
 """A strong planted effect is named; a control gives none; the report has the issue's schema."""
-import numpy as np
+
 import pytest
 
 from deform.diagnose.planted import generate_planted
@@ -20,8 +20,18 @@ WIND = {"ax_m_per_s2": 1.6, "ay_m_per_s2": 1.0}
 
 
 def _inputs(effect, sources):
-    recs, truth = generate_planted(effect, sources, SPEC, n_frames=80, refine=2, substeps=2, settle_s=0.5, seed=1,
-                                   damping=0.2, truth_override=WIND if effect == "external_force" else None)
+    recs, truth = generate_planted(
+        effect,
+        sources,
+        SPEC,
+        n_frames=80,
+        refine=2,
+        substeps=2,
+        settle_s=0.5,
+        seed=1,
+        damping=0.2,
+        truth_override=WIND if effect == "external_force" else None,
+    )
     return Inputs(spec=SPEC, fit=recs[:3], check=recs[3:]), truth
 
 
@@ -32,10 +42,12 @@ def wind(sources):
 
 
 def test_strong_wind_is_named_and_improves_the_check_error(wind):
-    diag, truth = wind
+    diag, _truth = wind
     rep = diag.report
     assert rep["selected"] == ["external_force"]
-    assert rep["final_check_l1_m"] < 0.9 * rep["nominal"]["check_l1_m"]  # 0.85 before transported window frames
+    assert (
+        rep["final_check_l1_m"] < 0.9 * rep["nominal"]["check_l1_m"]
+    )  # 0.85 before transported window frames
     found = next(c for c in rep["candidates"] if c["name"] == "external_force")["params"]
     assert found["ax_m_per_s2"] > 0.4  # right direction (truth 1.6)
 
@@ -66,6 +78,6 @@ def test_report_files_name_what_cannot_be_told_apart(wind, sources, tmp_path):
     assert (tmp_path / "report.json").is_file() and (tmp_path / "localization.png").is_file()
     assert "Selected: **external_force**" in md
     assert "What marker motion cannot tell apart" in md and "**mass_scale** from a stiffness scale" in md
-    assert "fitted again on other windows" in md   # the selected term's own fit noise
+    assert "fitted again on other windows" in md  # the selected term's own fit noise
     chosen = next(c for c in diag.report["candidates"] if c["name"] == "external_force")
     assert chosen["equivalence_class"][0] == "external_force" and "noise" in chosen["fit_noise"]

@@ -1,4 +1,5 @@
 """Simulator with unobserved nodes between the markers (the mass_scale identifiability study)."""
+
 import numpy as np
 import torch
 
@@ -41,7 +42,9 @@ def test_one_hidden_node_rollout_holds_the_grips_and_stays_close_to_the_marker_m
 
 def test_marker_mass_of_a_hidden_node_model_sits_on_the_markers_only(sources):
     sim = Simulator(SPEC, Nominal(), hidden=1)
-    term = make_term("mass_scale", sim.n, sim.node_arclength(arclength_of(sources)), {"rod_mass_kg": SPEC.mass_kg})
+    term = make_term(
+        "mass_scale", sim.n, sim.node_arclength(arclength_of(sources)), {"rod_mass_kg": SPEC.mass_kg}
+    )
     sim = Simulator(SPEC, Nominal(), [term], hidden=1)
     base = torch.ones(1, sim.n)
     added = term.mass(base) - base
@@ -51,5 +54,9 @@ def test_marker_mass_of_a_hidden_node_model_sits_on_the_markers_only(sources):
     # the grid raises EI and GJ by the mass each point adds to the free markers
     point = term.grid()[-1]
     free = len(sim.markers) - 4
-    expected = np.log1p(free * 1e-3 * float(torch.nn.functional.softplus(torch.tensor(point["raw_g"]))) / SPEC.mass_kg)
-    assert abs(point["nominal:log_ei"] - expected) < 1e-9 and point["nominal:log_gj"] == point["nominal:log_ei"]
+    expected = np.log1p(
+        free * 1e-3 * float(torch.nn.functional.softplus(torch.tensor(point["raw_g"]))) / SPEC.mass_kg
+    )
+    assert (
+        abs(point["nominal:log_ei"] - expected) < 1e-9 and point["nominal:log_gj"] == point["nominal:log_ei"]
+    )

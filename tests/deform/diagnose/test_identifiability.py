@@ -1,5 +1,6 @@
 """Identifiability in the report: explanations the held-out data cannot tell apart are named together,
 and localisation's contact height is among the contact term's starting points."""
+
 import numpy as np
 
 from deform.diagnose.selection import contact_height, equivalence_class
@@ -10,8 +11,8 @@ def test_equally_good_explanations_form_one_class_and_a_worse_one_does_not():
     rng = np.random.default_rng(0)
     e_ref = np.full(6, 1.0)
     e_win = 0.7 + 0.02 * rng.standard_normal(6)
-    twin = e_win + 0.02 * rng.standard_normal(6)          # the same fit up to noise
-    worse = e_win + 0.15                                   # 15 % of the reference worse on every recording
+    twin = e_win + 0.02 * rng.standard_normal(6)  # the same fit up to noise
+    worse = e_win + 0.15  # 15 % of the reference worse on every recording
     out = equivalence_class("a", e_win, e_ref, [("twin", twin), ("worse", worse)])
     assert out["equivalence_class"] == ["a", "twin"]
     assert len(out["equivalence_why"]) == 1 and "twin" in out["equivalence_why"][0]

@@ -1,4 +1,5 @@
 """Planted-effect generators produce what they claim, and the tool's terms can represent them."""
+
 import math
 
 import numpy as np
@@ -15,7 +16,9 @@ from .conftest import SPEC
 
 
 def _planted(effect, sources):
-    return generate_planted(effect, sources[:2], SPEC, n_frames=60, refine=2, substeps=2, settle_s=0.3, seed=3)
+    return generate_planted(
+        effect, sources[:2], SPEC, n_frames=60, refine=2, substeps=2, settle_s=0.3, seed=3
+    )
 
 
 def test_delayed_rollout_moves_the_rod_ends_with_the_grips_of_earlier_frames(sources):
@@ -42,7 +45,9 @@ def test_marker_mass_truth_puts_mass_on_marker_nodes_only(sources):
 
 def test_drag_grid_trades_nominal_damping_for_drag(sources):
     recs, truth = _planted("aerodynamic_drag", sources)
-    sim = Simulator(SPEC, Nominal(3e-3, 2e-3, 1.0), [make_term("aerodynamic_drag", SPEC.n_vertices, arclength_of(recs))])
+    sim = Simulator(
+        SPEC, Nominal(3e-3, 2e-3, 1.0), [make_term("aerodynamic_drag", SPEC.n_vertices, arclength_of(recs))]
+    )
     term = sim.terms[0]
     out = coarse_start(sim, term, recs, FitBudget(batch=4, horizon=15))
     assert out["chosen"] is not None
@@ -102,13 +107,19 @@ def test_windows_start_in_the_reference_frame_a_full_rollout_carries(sources):
     P = np.asarray(sources[0].positions, dtype=np.float64)
     D = G.transported_frames(torch.tensor(P)).numpy()
     t = G.normalize(G.edges(torch.tensor(P)))
-    assert float((torch.tensor(D[1:]) * t[1:]).sum(-1).abs().max()) < 1e-9  # perpendicular to the edges (frame 0 unused)
+    assert (
+        float((torch.tensor(D[1:]) * t[1:]).sum(-1).abs().max()) < 1e-9
+    )  # perpendicular to the edges (frame 0 unused)
     # the same as what the model's own rollout carries when driven along the recorded positions
     model = Simulator(SPEC, Nominal()).model
     state = model.initial_state(torch.tensor(P[:1]), torch.tensor(P[1:2]))
     d1 = state.d1
     for k in range(2, 40):
-        d1 = G.time_transport(d1, G.normalize(G.edges(torch.tensor(P[k - 1:k]))), G.normalize(G.edges(torch.tensor(P[k:k + 1]))))
+        d1 = G.time_transport(
+            d1,
+            G.normalize(G.edges(torch.tensor(P[k - 1 : k]))),
+            G.normalize(G.edges(torch.tensor(P[k : k + 1]))),
+        )
     assert torch.allclose(d1[0], torch.tensor(D[39]), atol=1e-9)
     fresh = G.space_parallel_frame(t[60])
     # the grippers have turned: fresh frames would start the window with a different material frame

@@ -39,7 +39,7 @@ def test_hostile_pickle_is_refused_without_running_code(tmp_path):
     path.write_bytes(pickle.dumps([_Evil()]))
     if os.path.exists("/tmp/deform_pwned"):
         os.remove("/tmp/deform_pwned")
-    with pytest.raises(RecordingError, match="evil.pkl.*posix.system|evil.pkl.*os.system"):
+    with pytest.raises(RecordingError, match=r"evil\.pkl.*posix\.system|evil\.pkl.*os\.system"):
         load_recording(path)
     assert not os.path.exists("/tmp/deform_pwned")
     with pytest.raises(UnsafePickleError):
@@ -65,7 +65,7 @@ def test_malformed_files_name_the_file_and_problem(tmp_path, payload, message):
 
 
 def test_directory_checks(tmp_path):
-    with pytest.raises(RecordingError, match="no .pkl"):
+    with pytest.raises(RecordingError, match=r"no \.pkl"):
         load_recordings(tmp_path)
     (tmp_path / "a.pkl").write_bytes(pickle.dumps(_frames(n=7)))
     (tmp_path / "b.pkl").write_bytes(pickle.dumps(_frames(n=8)))

@@ -1,4 +1,5 @@
 """Random bent and twisted rods for the physics tests."""
+
 import torch
 
 from deform.rod import geometry as G
@@ -7,7 +8,9 @@ from deform.rod.energy import ElasticParams
 
 def random_rod(batch: int = 4, n: int = 11, bend: float = 0.4, seed: int = 0, dtype=torch.float64):
     gen = torch.Generator().manual_seed(seed)
-    steps = torch.tensor([1.0, 0, 0], dtype=dtype) + bend * torch.randn(batch, n, 3, generator=gen, dtype=dtype)
+    steps = torch.tensor([1.0, 0, 0], dtype=dtype) + bend * torch.randn(
+        batch, n, 3, generator=gen, dtype=dtype
+    )
     x = torch.cumsum(G.normalize(steps) * 0.1, dim=1)
     return x, gen
 

@@ -70,7 +70,6 @@ def test_projection_gradient_matches_finite_differences(method):
     assert torch.autograd.gradcheck(project, (xp, rest, inv), eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
-
 def test_branch_free_sweeps_stop_each_rod_by_the_checked_rule():
     """Sync-free sweeps (for compiled code) stop each rod once its own error is below tol: with
     enough of them each rod ends exactly as when projected alone; with a single one, the checked
@@ -79,8 +78,8 @@ def test_branch_free_sweeps_stop_each_rod_by_the_checked_rule():
     xp[0] = (xp[0] - xp[0, :1]) * 1.0002 + xp[0, :1]  # one rod nearly right: fewer sweeps than the others
     y = enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4, branch_free=20)
     for r in range(4):
-        alone = enforce_inextensibility(xp[r:r + 1], 1.0 / mass[r:r + 1], rest[r:r + 1], tol=1e-4)
-        assert torch.equal(y[r:r + 1], alone)
+        alone = enforce_inextensibility(xp[r : r + 1], 1.0 / mass[r : r + 1], rest[r : r + 1], tol=1e-4)
+        assert torch.equal(y[r : r + 1], alone)
     assert max_relative_error(y, rest) < 1e-4
     plain = enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4)
     assert torch.equal(enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4, branch_free=1), plain)

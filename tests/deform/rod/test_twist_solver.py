@@ -20,9 +20,11 @@ def _problem(seed, batch=4, n=11, wbar=0.15):
 
 
 def test_analytic_theta_gradient_and_hessian_match_autograd():
-    a, b, m_ref, ends, p = _problem(0, batch=2)
+    a, b, m_ref, _ends, p = _problem(0, batch=2)
     theta = torch.randn(2, a.shape[1] + 1, dtype=torch.float64, requires_grad=True)
-    energy = bending_energy(a, b, theta, p.beta, p.rest_vor, p.wbar) + twisting_energy(theta, m_ref, p.gamma, p.rest_vor)
+    energy = bending_energy(a, b, theta, p.beta, p.rest_vor, p.wbar) + twisting_energy(
+        theta, m_ref, p.gamma, p.rest_vor
+    )
     (g_auto,) = torch.autograd.grad(energy.sum(), theta, create_graph=True)
     g, diag, off = gradient_and_hessian(theta, a, b, m_ref, p.beta, p.gamma, p.rest_vor, p.wbar)
     assert torch.allclose(g, g_auto[:, 1:-1], atol=1e-12)
@@ -65,13 +67,16 @@ def test_implicit_gradients_match_finite_differences_and_theseus():
         for i in range(3):
             dm = torch.zeros_like(m_ref)
             dm[1, i] = h
-            fd = (objective(p.beta, m_ref + dm, solve_theta) - objective(p.beta, m_ref - dm, solve_theta)) / (2 * h)
+            fd = (objective(p.beta, m_ref + dm, solve_theta) - objective(p.beta, m_ref - dm, solve_theta)) / (
+                2 * h
+            )
             assert abs(float(fd) - float(gm_fast[1, i])) < 1e-5 * max(1.0, abs(float(fd)))
             db = torch.zeros_like(p.beta)
             db[i + 2] = h * 1e-3
-            fd = (objective(p.beta + db, m_ref, solve_theta) - objective(p.beta - db, m_ref, solve_theta)) / (2 * h * 1e-3)
+            fd = (objective(p.beta + db, m_ref, solve_theta) - objective(p.beta - db, m_ref, solve_theta)) / (
+                2 * h * 1e-3
+            )
             assert abs(float(fd) - float(gb_fast[i + 2])) < 1e-4 * max(1.0, abs(float(fd)))
-
 
 
 def test_branch_free_iterations_stop_each_rod_by_the_checked_rule():
@@ -86,8 +91,15 @@ def test_branch_free_iterations_stop_each_rod_by_the_checked_rule():
     warm = exact + 1e-3 * noise
     batch = solve_theta(a, b, *args, theta_init=warm, branch_free=6)
     for r in range(a.shape[0]):
-        one = (m_ref[r:r + 1], ends[r:r + 1], p.beta, p.gamma, p.rest_vor[r:r + 1], p.wbar)  # beta, gamma, wbar shared
-        alone = solve_theta(a[r:r + 1], b[r:r + 1], *one, theta_init=warm[r:r + 1])
-        assert torch.equal(batch[r:r + 1], alone)
+        one = (
+            m_ref[r : r + 1],
+            ends[r : r + 1],
+            p.beta,
+            p.gamma,
+            p.rest_vor[r : r + 1],
+            p.wbar,
+        )  # beta, gamma, wbar shared
+        alone = solve_theta(a[r : r + 1], b[r : r + 1], *one, theta_init=warm[r : r + 1])
+        assert torch.equal(batch[r : r + 1], alone)
     plain = solve_theta(a, b, *args, theta_init=warm)
     assert torch.equal(solve_theta(a, b, *args, theta_init=warm, branch_free=1), plain)
