@@ -13,6 +13,8 @@ from deform.diagnose.spec import RodSpec
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
+pytestmark = pytest.mark.slow  # numba start-up and rod integration take seconds
+
 N, FRAMES, WINDOW = 10, 60, 40
 SPEC = RodSpec(length_m=1.0, mass_kg=0.05, n_vertices=N, dt=0.01)
 

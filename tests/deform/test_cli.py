@@ -34,6 +34,7 @@ def synthetic_dir(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_eval_json_on_a_directory_of_unseen_recordings(synthetic_dir):
     out = _run("eval", "--rod", "DLO2", "--recordings", str(synthetic_dir), "--json", "--steps", "30")
     assert out.returncode == 0, out.stderr

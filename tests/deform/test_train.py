@@ -7,6 +7,7 @@ from deform import DeformModel, generate_recording, load_rod_config
 from deform.train import TrainConfig, coarse_identification, train, validation_l1
 
 
+@pytest.mark.slow
 def test_training_on_generated_data_reduces_loss_and_resumes(tmp_path):
     """The 'truth' is the model with stiffer bending and more damping; training starts from the default."""
     cfg = load_rod_config("DLO2")
@@ -36,6 +37,7 @@ def test_training_on_generated_data_reduces_loss_and_resumes(tmp_path):
     assert len((tmp_path / "log.jsonl").read_text().splitlines()) == 18
 
 
+@pytest.mark.slow
 def test_coarse_identification_finds_the_stiffness_decade():
     cfg = load_rod_config("DLO2")
     truth = DeformModel(

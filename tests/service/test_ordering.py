@@ -5,6 +5,7 @@ import random
 import threading
 
 import numpy as np
+import pytest
 
 from service.node import Service
 from service.ordering import Order, SequenceBuffer, decode_order, encode_order, new_stream_id
@@ -77,6 +78,7 @@ def _run_message_clock(model, inbox_items, pause_after: int | None = None):
     return np.stack(out), svc.est.stats.snapshot()
 
 
+@pytest.mark.slow
 def test_message_clock_is_bit_exact_under_reordered_delivery(model, sim_stream):
     """The root cause of replays that differed: a cloud overtook its camera_info (rejected) or its
     tick (fused a tick late). With the replay's send order restored, any delivery order gives the

@@ -40,6 +40,7 @@ def test_tracker_round_trip_keeps_state_and_shares_model(est, model):
     assert not np.array_equal(copy.state.x.numpy(), est.tracker.state.x.numpy())
 
 
+@pytest.mark.slow
 def test_predict_in_child_process_equals_inline(est, child, model):
     plans = np.tile(GOOD, (2, 4, 1, 1))
     plans[1, :, :, 2] -= 0.01
@@ -59,6 +60,7 @@ def test_errors_come_back_and_the_child_keeps_serving(est, child):
     assert child.call("ping") is True
 
 
+@pytest.mark.slow
 def test_hung_job_times_out_and_restarts_the_child(child):
     with pytest.raises(WorkerError, match="longer than"):
         child.call("ping", 30.0, timeout=0.2)
@@ -98,6 +100,7 @@ def test_use_step_switches_the_tracker_and_status(model):
     assert calls == [1]
 
 
+@pytest.mark.slow
 def test_a_worker_can_run_at_lower_cpu_priority(model):
     """The fusion worker runs ``workers.fusion_nice`` below the service so that predict gets the
     core first on a busy machine; a worker started without it keeps the service's priority."""
@@ -111,6 +114,7 @@ def test_a_worker_can_run_at_lower_cpu_priority(model):
         low.close()
 
 
+@pytest.mark.slow
 def test_the_service_lowers_its_fusion_worker_not_predict(model):
     import os
 

@@ -100,6 +100,7 @@ def query_json(session, key):
 NO_COMPILE = {"compile_predict": False}  # compiling is tested in tests/deform/test_compiled.py
 
 
+@pytest.mark.slow
 def test_replay_is_deterministic_and_tracks(sim_positions, sim_stream):
     _, stream = sim_stream
     runs = [
@@ -129,6 +130,7 @@ def test_real_recording_end_to_end(data_root, tmp_path):
     assert (tmp_path / "t.rrd").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_live_loop_two_namespaces_and_bad_input(model, endpoint):
     # pose_s: the feeder thread shares the interpreter with two services; on a loaded machine it can
     # stall for a few hundred ms, which must not read as "poses stopped"
@@ -194,6 +196,7 @@ def test_live_loop_two_namespaces_and_bad_input(model, endpoint):
         client.close()
 
 
+@pytest.mark.slow
 def test_client_mode_reconnects_after_router_restart(model, endpoint):
     """zenohd is not on PyPI: a peer in a subprocess stands in for the router; it is killed and started
     again on the same endpoint and must see the service's output both times."""

@@ -141,6 +141,7 @@ def test_cli_eval_rejects_unknown_method(data_root, capsys):
     assert "known" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_module_cli_unknown_method_is_a_one_line_error(tmp_path):
     import os
     import subprocess
