@@ -35,6 +35,11 @@ def cmd_train(args) -> int:
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)  # the residual network's initial weights
+    from deform.terms import check_names, describe
+
+    check_names(args.term + args.without)  # before any data is read
+    for name in args.term:
+        print(describe(name), file=sys.stderr)
     cfg = load_rod_config(args.rod)
     recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices)
     train_recs, val_recs = split_validation(recs, args.val_every)
@@ -60,6 +65,8 @@ def cmd_train(args) -> int:
         lr_network=args.lr_network,
         coarse_sysid=not args.init,  # a given starting model is already identified
         drag=not args.no_drag,
+        terms=tuple(args.term),
+        without=tuple(args.without),
         transported_frames=not args.fresh_frames,
     )
     out = Path(args.out or f"runs/{args.rod}")
@@ -158,6 +165,23 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="start every training window in fresh space-parallel reference frames instead of "
         "the ones a rollout from the recording's start carries there",
+    )
+    t.add_argument(
+        "--term",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="physics `deform diagnose` named, trained into the model (repeatable): internal_damping, "
+        "ground_contact, external_force are added; aerodynamic_drag, stiffness_variation, rest_curvature, "
+        "point_mass are already in DEFORM",
+    )
+    t.add_argument(
+        "--without",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="ablation: train without a built-in term (aerodynamic_drag, stiffness_variation, "
+        "rest_curvature, point_mass)",
     )
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
     t.add_argument("--lr-physics", type=float, default=2e-2)

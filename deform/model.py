@@ -447,6 +447,10 @@ class DeformModel(nn.Module):
             "options": vars(self.options),
             "state_dict": self.state_dict(),
         }
+        if len(self.extensions):  # physics terms trained into the model (deform.terms)
+            from deform.terms import attached_names
+
+            payload["terms"] = attached_names(self)
         payload.update(extra or {})
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         torch.save(payload, path)
@@ -455,6 +459,10 @@ class DeformModel(nn.Module):
     def load(cls, path: str | Path) -> DeformModel:
         payload = torch.load(path, map_location="cpu", weights_only=True)
         model = cls(RodConfig(**payload["config"]), ModelOptions(**payload["options"]))
+        if payload.get("terms"):
+            from deform.terms import rebuild
+
+            rebuild(model, payload["terms"])
         missing, unexpected = model.load_state_dict(payload["state_dict"], strict=False)
         if unexpected or any(k not in ("log_drag", "nominal_rest") for k in missing):
             raise RuntimeError(

@@ -2,8 +2,8 @@
 
 Loss: open-loop L1 over a horizon (100 steps by default) of windows cut from the train recordings,
 each started from two observed frames with the gripped vertices given at every step, exactly as
-evaluation does. Gradients flow through the whole rollout (forces by autograd with
-``create_graph``, twist angles by the implicit function theorem, PBD by plain autograd).
+evaluation does. Gradients flow through the whole rollout (the closed-form forces of
+:mod:`deform.rod.forces` differentiated by autograd with ``create_graph``, twist angles by the implicit function theorem, PBD by plain autograd).
 Checkpoints hold the model, the optimiser, the step and the RNG state, so a run resumes exactly.
 """
 
@@ -23,6 +23,7 @@ from tqdm import tqdm
 from deform.errors import UsageError
 from deform.io.recordings import Recording
 from deform.model import DeformModel, gripped_indices
+from deform.terms import attach, coarse_start, tie, without
 
 
 @dataclass
@@ -47,6 +48,8 @@ class TrainConfig:
     transported_frames: bool = (
         True  # windows start in the reference frames evaluation carries (sample_windows)
     )
+    terms: tuple[str, ...] = ()  # physics added to the model (deform.terms.ADDED); built-in ones are on
+    without: tuple[str, ...] = ()  # built-in physics removed, for an ablation (deform.terms.BUILT_IN)
     extra: dict = field(default_factory=dict)
 
 
@@ -146,7 +149,9 @@ def coarse_identification(
 
 def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
     physics = [model.log_beta, model.log_gamma, model.extra_mass_raw, model.log_damping]
-    if cfg.drag:
+    physics += list(model.extensions.parameters())  # physics terms attached by deform.terms
+    physics = [p for p in physics if p.requires_grad]  # frozen by an ablation (deform.terms.without)
+    if cfg.drag and "aerodynamic_drag" not in cfg.without:
         physics.append(model.log_drag)
     else:
         with torch.no_grad():
@@ -157,7 +162,8 @@ def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
         groups.append({"params": physics, "lr": cfg.lr_physics})
         # the rest curvature is poorly identifiable (its effect depends on the unobserved twist):
         # it moves slowly so that it only captures what is consistent across recordings
-        groups.append({"params": [model.wbar], "lr": cfg.lr_physics * cfg.rest_curvature_lr_scale})
+        if model.wbar.requires_grad:
+            groups.append({"params": [model.wbar], "lr": cfg.lr_physics * cfg.rest_curvature_lr_scale})
     else:
         for p in physics + [model.wbar]:
             p.requires_grad_(False)
@@ -191,6 +197,95 @@ def validation_l1(model: DeformModel, recordings: list[Recording], steps: int) -
     return metrics(predict_recordings(model, recordings, steps))["l1_m"]
 
 
+@dataclass
+class Progress:
+    """Where a run stands: what a checkpoint restores besides the model and the optimiser."""
+
+    iteration: int = 0
+    best_val_l1_m: float = math.inf
+    skipped: int = 0
+
+
+def make_optimizer(
+    model: DeformModel, cfg: TrainConfig
+) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam over the parameter groups, with a cosine decay to ``lr_final_fraction`` of the rates."""
+    opt = torch.optim.Adam(parameter_groups(model, cfg))
+    floor = cfg.lr_final_fraction
+
+    def rate(it: int) -> float:
+        return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it / max(cfg.iterations, 1), 1.0)))
+
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, rate)
+
+
+def save_checkpoint(
+    path: Path, model: DeformModel, opt, scheduler, progress: Progress, rng: random.Random
+) -> None:
+    """Everything :func:`resume_from` needs to continue exactly: model, optimiser, schedule, RNG states."""
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "iteration": progress.iteration,
+            "scheduler": scheduler.state_dict(),
+            "best": progress.best_val_l1_m,
+            "rng": rng.getstate(),
+            "torch_rng": torch.get_rng_state(),
+        },
+        path,
+    )
+
+
+def resume_from(path: Path, model: DeformModel, opt, scheduler, rng: random.Random) -> Progress:
+    """Restore a checkpoint written by :func:`save_checkpoint` (a fresh Progress when there is none)."""
+    if not path.is_file():
+        return Progress()
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    model.load_state_dict(ck["model"])
+    opt.load_state_dict(ck["optimizer"])
+    scheduler.load_state_dict(ck["scheduler"])
+    rng.setstate(ck["rng"])
+    torch.set_rng_state(ck["torch_rng"])
+    return Progress(iteration=ck["iteration"], best_val_l1_m=ck["best"])
+
+
+def train_step(
+    model: DeformModel,
+    opt: torch.optim.Optimizer,
+    windows: torch.Tensor,
+    d1: torch.Tensor | None,
+    cfg: TrainConfig,
+) -> tuple[float, bool]:
+    """One update on a batch of windows (B, h + 2, n, 3). Returns the fit loss [m] and whether the
+    update was applied: a non-finite loss or gradient (an unstable window) skips it rather than
+    poison the parameters."""
+    opt.zero_grad(set_to_none=True)
+    fit = rollout_loss(model, windows, d1)
+    loss = fit + cfg.rest_curvature_penalty * model.wbar.pow(2).mean()
+    params = [p for g in opt.param_groups for p in g["params"]]
+    if torch.isfinite(loss):
+        loss.backward()
+    ok = bool(torch.isfinite(loss)) and all(p.grad is None or torch.isfinite(p.grad).all() for p in params)
+    if ok:
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        clamp_physical(model)
+        tie(model, cfg.without)
+    return fit.item(), ok
+
+
+def validate(
+    model: DeformModel, val_recs: list[Recording], steps: int, progress: Progress, out_dir: Path
+) -> float:
+    """Validation L1 [m]; a new best is saved to ``out_dir/best.pt``."""
+    val = validation_l1(model, val_recs, steps)
+    if val < progress.best_val_l1_m:
+        progress.best_val_l1_m = val
+        model.save(out_dir / "best.pt", {"val_l1_m": val, "iteration": progress.iteration})
+    return val
+
+
 def train(
     model: DeformModel,
     train_recs: list[Recording],
@@ -200,36 +295,28 @@ def train(
     resume: bool = True,
     progress: bool = True,
 ) -> dict:
-    """Train in place; writes ``out_dir/checkpoint.pt`` (resumable), ``best.pt`` and ``log.jsonl``."""
+    """Train in place; writes ``out_dir/checkpoint.pt`` (resumable), ``best.pt`` and ``log.jsonl``.
+
+    ``cfg.terms`` are attached to the model first and ``cfg.without`` removed (:mod:`deform.terms`)."""
     long_enough(train_recs, cfg.horizon)  # before any work: the first training batch could not be cut
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    attach(model, cfg.terms, train_recs)
+    without(model, cfg.without)
     model.options.residual = cfg.residual
     torch.manual_seed(cfg.seed)
     rng = random.Random(cfg.seed)
-    opt = torch.optim.Adam(parameter_groups(model, cfg))
-    floor = cfg.lr_final_fraction
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        opt,
-        lambda it: (
-            floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(it / max(cfg.iterations, 1), 1.0)))
-        ),
-    )
-    start, best = 0, math.inf
+    opt, scheduler = make_optimizer(model, cfg)
     ckpt_path = out_dir / "checkpoint.pt"
-    if resume and ckpt_path.is_file():
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        scheduler.load_state_dict(ck["scheduler"])
-        start, best = ck["iteration"], ck["best"]
-        rng.setstate(ck["rng"])
-        torch.set_rng_state(ck["torch_rng"])
+    state = resume_from(ckpt_path, model, opt, scheduler, rng) if resume else Progress()
+    start = state.iteration
     with torch.no_grad():
         model.nominal_rest.copy_(nominal_rest_lengths(train_recs))
     coarse = None
     if start == 0 and cfg.sysid and cfg.coarse_sysid:
         coarse = coarse_identification(model, train_recs, progress=progress)
+        tie(model, cfg.without)
+    term_starts = coarse_start(model, cfg.terms, train_recs) if start == 0 and cfg.terms else None
     val_steps = min(cfg.horizon * 5, min(r.n_frames for r in val_recs) - 2) if val_recs else 0
     t_start = time.perf_counter()
     iter_times = []
@@ -241,67 +328,44 @@ def train(
         desc=f"train {model.cfg.name}",
         unit="it",
     )
-    log = (out_dir / "log.jsonl").open("a")
-    skipped = 0
     last = {}
-    for it in bar:
-        t0 = time.perf_counter()
-        horizon = horizon_at(it, cfg)
-        windows, d1 = sample_windows(train_recs, cfg.batch, horizon, rng, cfg.transported_frames)
-        opt.zero_grad(set_to_none=True)
-        fit = rollout_loss(model, windows, d1)
-        loss = fit + cfg.rest_curvature_penalty * model.wbar.pow(2).mean()
-        params = [p for g in opt.param_groups for p in g["params"]]
-        if torch.isfinite(loss):
-            loss.backward()
-        if torch.isfinite(loss) and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
-            torch.nn.utils.clip_grad_norm_(params, 1.0)
-            opt.step()
-            clamp_physical(model)
-        else:  # an unstable window: skip the update rather than poison the parameters
-            skipped += 1
-        iter_times.append(time.perf_counter() - t0)
-        scheduler.step()
-        bar.set_postfix(loss=f"{fit.item() * 100:.3f}cm", h=horizon)
-        last = {
-            "iteration": it + 1,
-            "loss_m": fit.item(),
-            "horizon": horizon,
-            "seconds": iter_times[-1],
-            "skipped": skipped,
-        }
-        done = it + 1 == cfg.iterations or (
-            cfg.time_limit_s and time.perf_counter() - t_start > cfg.time_limit_s
-        )
-        if val_recs and ((it + 1) % cfg.log_every == 0 or done):
-            val = validation_l1(model, val_recs, val_steps)
-            last["val_l1_m"] = val
-            if val < best:
-                best = val
-                model.save(out_dir / "best.pt", {"val_l1_m": val, "iteration": it + 1})
-        log.write(json.dumps(last) + "\n")
-        log.flush()
-        if (it + 1) % cfg.log_every == 0 or done:
-            torch.save(
-                {
-                    "model": model.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "iteration": it + 1,
-                    "scheduler": scheduler.state_dict(),
-                    "best": best,
-                    "rng": rng.getstate(),
-                    "torch_rng": torch.get_rng_state(),
-                },
-                ckpt_path,
+    with (out_dir / "log.jsonl").open("a") as log:
+        for it in bar:
+            t0 = time.perf_counter()
+            horizon = horizon_at(it, cfg)
+            windows, d1 = sample_windows(train_recs, cfg.batch, horizon, rng, cfg.transported_frames)
+            fit, ok = train_step(model, opt, windows, d1, cfg)
+            state.skipped += not ok
+            state.iteration = it + 1
+            iter_times.append(time.perf_counter() - t0)
+            scheduler.step()
+            bar.set_postfix(loss=f"{fit * 100:.3f}cm", h=horizon)
+            last = {
+                "iteration": it + 1,
+                "loss_m": fit,
+                "horizon": horizon,
+                "seconds": iter_times[-1],
+                "skipped": state.skipped,
+            }
+            done = it + 1 == cfg.iterations or (
+                cfg.time_limit_s and time.perf_counter() - t_start > cfg.time_limit_s
             )
-        if done:
-            break
-    log.close()
+            if val_recs and ((it + 1) % cfg.log_every == 0 or done):
+                last["val_l1_m"] = validate(model, val_recs, val_steps, state, out_dir)
+            log.write(json.dumps(last) + "\n")
+            log.flush()
+            if (it + 1) % cfg.log_every == 0 or done:
+                save_checkpoint(ckpt_path, model, opt, scheduler, state, rng)
+            if done:
+                break
     if not val_recs:
         model.save(out_dir / "best.pt", {"iteration": last.get("iteration", start)})
     return {
-        "best_val_l1_m": best,
+        "best_val_l1_m": state.best_val_l1_m,
         "last": last,
         "coarse_identification": coarse,
         "seconds_per_iteration_p50": float(np.median(iter_times)) if iter_times else None,
+        "terms": list(cfg.terms),
+        "term_starts": term_starts,
+        "without": list(cfg.without),
     }

@@ -1,0 +1,178 @@
+"""Physics terms in the trained model: the loop from ``deform diagnose`` back into DEFORM.
+
+The discrepancy tool fits candidate effects on a plain DER model and names the ones the recordings
+need. DEFORM itself is richer than that plain model, so a named effect is one of three kinds:
+
+* **built in**: DEFORM already identifies it as free parameters (:data:`BUILT_IN`). Training with
+  the term is ordinary training; training *without* it (``without=``, an ablation) ties or freezes
+  those parameters, which is how its worth on held-out recordings is measured.
+* **added**: a force the model lacks (:data:`ADDED`). The tool's own term module is attached to
+  ``DeformModel.extensions`` (its ``acceleration``/``mass`` hooks), trained with the physical
+  parameters and saved in the checkpoint (:func:`attached_names`, :func:`attach`).
+* **not trainable here** (:data:`NOT_TRAINABLE`): the reason is given instead.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from deform.errors import UsageError
+
+BUILT_IN: dict[str, str] = {
+    "aerodynamic_drag": "quadratic drag on the velocity across the rod (log_drag) beside linear damping",
+    "stiffness_variation": "a bending and a twisting stiffness per interior vertex (log_beta, log_gamma)",
+    "rest_curvature": "a rest curvature per interior vertex in the material frame (wbar)",
+    "point_mass": "an extra point mass at every vertex (extra_mass_raw)",
+}
+ADDED: tuple[str, ...] = ("internal_damping", "ground_contact", "external_force")
+NOT_TRAINABLE: dict[str, str] = {
+    "actuation_delay": "a delay of the gripper inputs is a property of the recording, not of the rope: "
+    "shift the recordings' gripper poses by the delay the diagnosis found",
+    "mass_scale": "a uniform mass factor is not observable: the identified stiffness already absorbs it",
+}
+
+
+def check_names(names: list[str] | tuple[str, ...]) -> None:
+    """A UsageError naming the choices for an unknown or untrainable term."""
+    for name in names:
+        if name in NOT_TRAINABLE:
+            raise UsageError(f"term {name!r} cannot be trained into the model: {NOT_TRAINABLE[name]}")
+        if name not in BUILT_IN and name not in ADDED:
+            raise UsageError(f"unknown term {name!r}; choose from {', '.join(sorted([*BUILT_IN, *ADDED]))}")
+
+
+def describe(name: str) -> str:
+    """One line on what training with ``name`` means for DEFORM."""
+    if name in BUILT_IN:
+        return f"{name}: already in DEFORM as {BUILT_IN[name]}"
+    return f"{name}: added to DEFORM as an extension term"
+
+
+def attach(model, names: list[str] | tuple[str, ...], recordings=None) -> list[str]:
+    """Attach the :data:`ADDED` terms among ``names`` to ``model.extensions`` (once each).
+
+    Args:
+        model: a :class:`deform.model.DeformModel`.
+        names: term names; built-in ones need nothing attached and are skipped.
+        recordings: training recordings; their marker arc length places the terms along the rod and
+            their lowest point starts a contact plane. None: an even spacing, and a plane at z = 0.
+
+    Returns:
+        The names attached now.
+    """
+    from deform.diagnose.terms import make_term  # the discrepancy tool's term library
+
+    check_names(names)
+    have = set(attached_names(model))
+    context, arclength = {}, np.linspace(0.0, 1.0, model.n)
+    if recordings:
+        from deform.diagnose.simulator import arclength_of
+
+        arclength = arclength_of(recordings)
+        context["lowest_z"] = float(min(r.positions[..., 2].min() for r in recordings))
+    added = []
+    for name in names:
+        if name in ADDED and name not in have:
+            term = make_term(name, model.n, arclength, context)
+            if hasattr(term, "set_dt"):
+                term.set_dt(model.dt)
+            model.extensions.append(term)
+            added.append(name)
+    return added
+
+
+def coarse_start(model, names, recordings, steps: int = 100, max_recordings: int = 4) -> dict[str, dict]:
+    """Start each attached term of ``names`` at the best point of its coarse grid.
+
+    A term's effect can be decades away from its default start (a drag coefficient, a plane's
+    height), further than Adam moves in a fine-tuning budget. Each term's grid (``Term.grid``, the
+    discrepancy tool's multi-start) is scored by open-loop L1 over ``steps`` steps of a few
+    recordings, and the best point kept. Entries that move the tool's own nominal model are skipped:
+    here the model's parameters are already identified.
+
+    Returns:
+        Per term, the chosen raw values and their L1 [m].
+    """
+    from deform.evaluate import metrics, predict_recordings
+
+    recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
+    chosen = {}
+    for term in model.extensions:
+        if getattr(term, "name", None) not in names or not hasattr(term, "grid"):
+            continue
+        raw = dict(term.named_parameters())
+        points, seen = [], set()
+        for point in term.grid():
+            point = {k: v for k, v in point.items() if k in raw}
+            key = repr(sorted(point.items()))
+            if point and key not in seen:
+                seen.add(key)
+                points.append(point)
+        initial = {k: p.detach().clone() for k, p in raw.items()}
+        best = (math.inf, {})
+        for point in [{}, *points]:
+            with torch.no_grad():
+                for k, p in raw.items():
+                    p.copy_(torch.as_tensor(point.get(k, initial[k]), dtype=p.dtype))
+                err = metrics(predict_recordings(model, recs, steps))["l1_m"]
+            if err < best[0]:
+                best = (err, point)
+        with torch.no_grad():
+            for k, p in raw.items():
+                p.copy_(torch.as_tensor(best[1].get(k, initial[k]), dtype=p.dtype))
+        chosen[term.name] = {
+            "l1_m": best[0],
+            "start": {k: float(torch.as_tensor(v).sum()) for k, v in best[1].items()},
+        }
+    return chosen
+
+
+def attached_names(model) -> list[str]:
+    """Names of the extension terms a model carries, in order (saved with the checkpoint)."""
+    return [getattr(ext, "name", type(ext).__name__) for ext in model.extensions]
+
+
+def rebuild(model, names: list[str]) -> None:
+    """Empty extension terms of these names (a checkpoint's state dict then fills them)."""
+    attach(model, [name for name in names if name in ADDED])
+
+
+def without(model, names: list[str] | tuple[str, ...]) -> list[torch.nn.Parameter]:
+    """Remove built-in freedoms for an ablation; returns the parameters to keep frozen.
+
+    Drag goes to its floor, extra masses back to the configured marker mass, the rest curvature to
+    zero; all frozen. Stiffness becomes uniform (the mean over vertices); :func:`tie` keeps it so
+    after every optimiser step, so it is not frozen."""
+    from deform.model import inv_softplus
+
+    check_names(names)
+    frozen = []
+    with torch.no_grad():
+        for name in names:
+            if name == "aerodynamic_drag":
+                model.log_drag.fill_(math.log(1e-4))
+                frozen.append(model.log_drag)
+            elif name == "point_mass":
+                model.extra_mass_raw.fill_(inv_softplus(model.cfg.marker_mass_kg * 1e3))
+                frozen.append(model.extra_mass_raw)
+            elif name == "rest_curvature":
+                model.wbar.zero_()
+                frozen.append(model.wbar)
+            elif name == "stiffness_variation":
+                tie(model, names)
+            elif name in ADDED:
+                raise UsageError(f"term {name!r} is not part of DEFORM: leave it out instead")
+    for p in frozen:
+        p.requires_grad_(False)
+    return frozen
+
+
+def tie(model, names: list[str] | tuple[str, ...]) -> None:
+    """Project the tied built-in parameters back onto their constraint (uniform stiffness)."""
+    if "stiffness_variation" in names:
+        with torch.no_grad():
+            model.log_beta.fill_(float(model.log_beta.mean()))
+            model.log_gamma.fill_(float(model.log_gamma.mean()))
