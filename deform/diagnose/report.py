@@ -126,8 +126,9 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
     lines += [
         "",
         "Improvement: mean over check recordings of the relative reduction of the open-loop error against "
-        "a reference refitted with the same budget; significant when the 90 % bootstrap interval excludes 0 "
-        "and the mean exceeds the parameter-penalised threshold. ± : approximate 1-sigma (Laplace).",
+        "a reference refitted with the same budget; significant when the mean exceeds the parameter-penalised "
+        "threshold (calibrated on control datasets); the 90 % bootstrap interval over recordings shows how "
+        "evenly the recordings share it. ± : approximate 1-sigma (Laplace).",
         "",
         "![candidates](candidates.png)" if "candidates.png" in files else "",
         "",

@@ -2,9 +2,15 @@
 
 Per check recording ``r`` the relative improvement ``d_r = (e_ref,r - e_cand,r) / e_ref,r`` over a
 reference refitted with the same budget (so extra optimisation alone earns nothing). A candidate is
-significant when the lower bound of a bootstrap interval (over recordings) of the mean of ``d_r`` is
-positive AND the mean exceeds ``min_gain + per_param * k`` (``k`` parameters): a parameter penalty
-in the spirit of BIC; ``min_gain`` is calibrated on control datasets (``calibrate_min_gain``).
+significant when the mean of ``d_r`` exceeds ``min_gain + per_param * k`` (``k`` parameters): a
+parameter penalty in the spirit of BIC; ``min_gain`` is calibrated on control datasets
+(``calibrate_min_gain``), so the threshold already holds the noise of refitting and of recordings.
+
+A bootstrap interval over recordings is reported beside the mean but no longer decides (tool v4).
+With the usual 4 check recordings a percentile interval rests on at most 35 distinct resamples; on
+the 11 controls of the two planted benchmarks it did not separate noise (the best candidate's lower
+bound was above 0 on 6 of them, all below the threshold), while it refused real effects that are
+absent from some recordings by physics (a table the rope does not reach in one recording).
 """
 
 from __future__ import annotations
@@ -51,7 +57,7 @@ def score(
     lo, hi = bootstrap_ci(d)
     thr = min_gain + per_param * n_params
     mean = float(d.mean())
-    return Score(mean, lo, hi, thr, bool(lo > 0 and mean > thr))
+    return Score(mean, lo, hi, thr, bool(mean > thr))
 
 
 # --- calibration of the significance rule over control datasets (no effect planted) -----------------
@@ -89,14 +95,19 @@ def calibrate_min_gain(
 
 
 def reselect(
-    candidates: list[dict], nominal_check: float, min_gain: float, per_param: float = PER_PARAM
+    candidates: list[dict],
+    nominal_check: float,
+    min_gain: float,
+    per_param: float = PER_PARAM,
+    require_interval: bool = False,
 ) -> dict:
     """Re-derive forward selection from a report's stored candidate scores under another threshold.
 
     Exact for every round that was run: a round's pick is the significant candidate with the largest
     mean improvement, and the bootstrap interval does not depend on the threshold. If the new rule
     picks a term in the last round that was run (the original run stopped there, or hit its round
-    limit), there is nothing to continue with: ``no_further_round`` is True.
+    limit), there is nothing to continue with: ``no_further_round`` is True. ``require_interval``: the
+    rule of tools before v4 (the bootstrap interval's lower bound above 0 as well).
     """
     selected: list[str] = []
     final = nominal_check
@@ -110,7 +121,8 @@ def reselect(
         sig = [
             c
             for c in rows
-            if c["improvement_ci90"][0] > 0 and c["improvement"] > min_gain + per_param * c["n_params"]
+            if (c["improvement_ci90"][0] > 0 or not require_interval)
+            and c["improvement"] > min_gain + per_param * c["n_params"]
         ]
         if not sig:
             break

@@ -41,9 +41,12 @@ def test_reselect_follows_rounds_and_threshold():
         _cand("c", 1, [], 0.5, -0.1, 0.5),
         _cand("b", 2, ["a"], 0.06, 0.02, 0.65),
     ]
-    low = reselect(cands, 1.0, min_gain=0.03, per_param=0.01)
+    low = reselect(cands, 1.0, min_gain=0.03, per_param=0.01, require_interval=True)
     assert low["selected"] == ["a", "b"] and low["final_check_l1_m"] == 0.65
-    mid = reselect(cands, 1.0, min_gain=0.06, per_param=0.01)
+    mid = reselect(cands, 1.0, min_gain=0.06, per_param=0.01, require_interval=True)
     assert mid["selected"] == ["a"] and mid["final_check_l1_m"] == 0.7  # c: interval includes 0
+    # tool v4: the mean decides; c has no second round on top of it, so selection stops there
+    v4 = reselect(cands, 1.0, min_gain=0.06, per_param=0.01)
+    assert v4["selected"] == ["c"] and v4["final_check_l1_m"] == 0.5 and v4["no_further_round"]
     assert reselect(cands, 1.0, min_gain=0.5)["selected"] == []
     assert reselect(cands, 1.0, min_gain=0.5)["final_check_l1_m"] == 1.0
