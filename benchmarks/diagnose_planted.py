@@ -76,13 +76,13 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
     return out
 
 
-TOOL_VERSION = (
-    3  # the fits' version; bump when they change: rows of older fits are never reused (v2: transported
-)
-# window frames, discretisation-independent internal damping; v3: dissipative candidates started with the nominal
-# damping at the material level, contact height grid, equivalence classes, refit noise, ROD.json length beyond the
-# markers). The decision rule is not part of it: every summary re-derives the decisions from the stored candidate
-# scores with today's rule (deform.diagnose.scoring.reselect; v4 of the tool changed only the rule)
+# The fits' version; bump when they change: rows of older fits are never reused. v2: transported window
+# frames, discretisation-independent internal damping; v3: dissipative candidates started with the nominal
+# damping at the material level, contact height grid, equivalence classes, refit noise, ROD.json length
+# beyond the markers; v5: a late input also tried with part of the nominal damping removed. The decision
+# rule is not part of it: every summary re-derives the decisions from the stored candidate scores with
+# today's rule (deform.diagnose.scoring.reselect; v4 of the tool changed only the rule).
+TOOL_VERSION = 5
 RULE = "v4: the mean improvement above the threshold"
 
 
@@ -92,7 +92,7 @@ def _config(args) -> dict:
         "fit": args.fit,
         "check": args.check,
         "frames": args.frames,
-        "tool": TOOL_VERSION,
+        "tool": getattr(args, "fits_version", None) or TOOL_VERSION,
     }
     if getattr(args, "simulator", "own") != "own":
         cfg["simulator"] = args.simulator
@@ -639,7 +639,7 @@ def write(result: dict, stem: str = "diagnose") -> None:
         ]
     lines += [
         f"Decisions are re-derived from the stored candidate scores (exact: the fits are those of tool "
-        f"v{TOOL_VERSION}; after a first pick the rows were run with no longer matters for the first name). "
+        f"v{result['fits_of_tool_version']}; after a first pick the rows were run with no longer matters for the first name). "
         f"Tool rule {RULE}: {MIN_GAIN * 100:.1f} % + {PER_PARAM * 100:.0f} %/param.",
         "",
     ]
@@ -917,6 +917,13 @@ def main() -> None:
         help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)",
     )
     p.add_argument(
+        "--fits-version",
+        type=int,
+        default=None,
+        help=f"rows of this version of the fits (default {TOOL_VERSION}, today's); with --summary-only, "
+        "re-decides stored rows of an older version with today's rule",
+    )
+    p.add_argument(
         "--stem", default=None, help="name of the result files (default diagnose, diagnose.elastica)"
     )
     p.add_argument(
@@ -1000,7 +1007,7 @@ def main() -> None:
         "seconds_total_runs": float(sum(r["seconds"] for r in done.values())),
         "rules": rules,
         "rule": RULE,
-        "fits_of_tool_version": TOOL_VERSION,
+        "fits_of_tool_version": args.fits_version or TOOL_VERSION,
         "summary": {
             "tool": summarise(planted, "tool"),
             "as_run": summarise(planted, "as_run"),

@@ -402,10 +402,16 @@ class ActuationDelay(Term):
     def delay_frames(self) -> Tensor:
         return self.max_frames * torch.tanh(self.scale * self.raw / self.max_frames)
 
-    def grid(self):  # whole frames from -2 to +4 (raw values of those delays)
-        return [
-            {"raw": self.max_frames / self.scale * math.atanh(d / self.max_frames)}
-            for d in (-2, -1, 0, 1, 2, 3, 4)
+    def grid(self):
+        """Whole frames from -2 to +4; a lag also with the nominal damping halved or quartered: damping
+        makes the rod trail its grippers as a late input does, so a nominal fit has already put part
+        of a delay into its damping, and a delay started at full damping looks no better."""
+        raw = [
+            self.max_frames / self.scale * math.atanh(d / self.max_frames) for d in (-2, -1, 0, 1, 2, 3, 4)
+        ]
+        lag = raw[4:]  # 1 to 4 frames late
+        return [{"raw": r} for r in raw] + [
+            {"raw": r, "nominal:log_damping": math.log(share)} for r in lag for share in (0.5, 0.25)
         ]
 
     @torch.no_grad()
