@@ -9,8 +9,8 @@ import pytest
 from service import messages as M
 from service.estimator import Estimator
 from service.fusion import FusionWorker
-from service.tracking import OpenLoopTracker
 from tests.service.conftest import FakeClock, make_config
+from tests.service.open_loop_tracker import OpenLoopTracker
 
 GOOD = np.array([[-0.4, 0, 0.5, 0, 0, 0, 1], [0.4, 0, 0.5, 0, 0, 1, 0]], dtype=float)
 T0 = 1_700_000_000 * 10**9

@@ -9,9 +9,9 @@ import pytest
 from service import messages as M
 from service import predict
 from service.estimator import Estimator
-from service.tracking import OpenLoopTracker
 from service.workers import InlineWorker, WorkerError, WorkerProcess, pack_tracker, unpack_tracker
 from tests.service.conftest import make_config
+from tests.service.open_loop_tracker import OpenLoopTracker
 
 GOOD = np.array([[-0.4, 0, 0.5, 0, 0, 0, 1], [0.4, 0, 0.5, 0, 0, 1, 0]], dtype=float)
 T0 = 1_700_000_000 * 10**9
