@@ -1,14 +1,15 @@
-"""Rod configuration: what is known about a rod before any fitting (YAML under config/rods/)."""
+"""Rod configuration: what is known about a rod before any fitting (YAML in ``deform/rods/``, package
+data, found through importlib.resources so an installed wheel has them too)."""
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
-ROD_DIR = CONFIG_DIR / "rods"
+ROD_DIR = Path(str(files("deform") / "rods"))
 
 
 class ConfigError(ValueError):
@@ -37,7 +38,7 @@ def available_rods() -> list[str]:
 
 
 def load_rod_config(name_or_path: str | Path) -> RodConfig:
-    """Load ``config/rods/<name>.yaml`` or a YAML path."""
+    """Load ``deform/rods/<name>.yaml`` (a shipped rod) or a YAML path."""
     path = Path(name_or_path)
     if not path.suffix:
         path = ROD_DIR / f"{name_or_path}.yaml"

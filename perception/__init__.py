@@ -12,7 +12,7 @@ API used by the service (keep it stable)::
 - ``model``: a :class:`deform.DeformModel` (e.g. ``deform.load_model("DLO1")``).
 - ``camera``: :class:`Camera` (``fx, fy, cx, cy, width, height, world_from_camera`` 4x4); the default for
   :meth:`Tracker.correct` and :meth:`Tracker.initialize` when they get none.
-- ``config``: path, dict or :class:`PerceptionConfig`; None reads ``config/perception.yaml``.
+- ``config``: path, dict or :class:`PerceptionConfig`; None: the defaults (listed in ``config/perception.yaml``).
 - ``cloud`` for ``initialize``: ``xyz`` or ``(xyz, rgb)``. ``points_xyz``: camera-frame (H, W, 3) organized
   or (N, 3) float32, NaN for missing points; ``rgb``: uint8 of the same leading shape, or None
   (then depth-only segmentation).

@@ -1,4 +1,5 @@
-"""Perception settings in one place (``config/perception.yaml``), so tests and the service can override them.
+"""Perception settings in one place, so tests and the service can override them. The dataclasses hold
+the defaults; ``config/perception.yaml`` lists them as a starting point for a settings file.
 
 Plain dataclasses: the YAML has sections ``segmentation``, ``estimation``, ``tracker`` and ``render``;
 unknown keys are an error so that typos do not silently fall back to defaults.
@@ -10,8 +11,6 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import yaml
-
-DEFAULT_PATH = Path(__file__).resolve().parents[1] / "config" / "perception.yaml"
 
 
 @dataclass
@@ -96,13 +95,12 @@ def _section(cls, values: dict):
 
 
 def load_config(source: str | Path | dict | PerceptionConfig | None = None) -> PerceptionConfig:
-    """A :class:`PerceptionConfig` from a YAML path, a dict, an instance, or None (the project file if present)."""
+    """A :class:`PerceptionConfig` from a YAML path, a dict, an instance, or None (the defaults of the
+    dataclasses above, which ``config/perception.yaml`` lists; a test keeps the two equal)."""
     if isinstance(source, PerceptionConfig):
         return source
     if source is None:
-        if not DEFAULT_PATH.is_file():
-            return PerceptionConfig()
-        source = DEFAULT_PATH
+        return PerceptionConfig()
     data = source if isinstance(source, dict) else (yaml.safe_load(Path(source).read_text()) or {})
     sections = {f.name: f.type for f in fields(PerceptionConfig)}
     unknown = set(data) - set(sections)

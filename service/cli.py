@@ -13,7 +13,7 @@ from service.config import ServiceConfigError, load_config
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="deform-service", description=__doc__)
-    p.add_argument("--config", help="YAML (default config/service.yaml)")
+    p.add_argument("--config", help="YAML (default: the built-in defaults, which config/service.yaml lists)")
     p.add_argument("--namespace", help="key prefix, e.g. deform/rod2")
     p.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode (client: through a zenohd router)")
     p.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
@@ -25,6 +25,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--rod", help="rod config name or checkpoint")
     run.add_argument("--rerun", choices=["off", "file", "viewer"])
     run.add_argument("--rrd", help="output .rrd when --rerun file")
+    run.add_argument("--perception", help="perception settings YAML (default: perception's defaults)")
     rec = sub.add_parser("record", help="record the input keys to an MCAP file (Ctrl-C to stop)")
     rec.add_argument("file")
     rec.add_argument("--duration", type=float, help="seconds, default until interrupted")
@@ -56,7 +57,11 @@ def _config(args):
         "zenoh": base.zenoh.model_copy(update=zenoh).model_dump() if zenoh else None,
     }
     if args.command in (None, "run"):
-        over.update(clock=getattr(args, "clock", None), rod=getattr(args, "rod", None))
+        over.update(
+            clock=getattr(args, "clock", None),
+            rod=getattr(args, "rod", None),
+            perception=getattr(args, "perception", None),
+        )
         rr = {}
         if getattr(args, "rerun", None):
             rr["mode"] = args.rerun

@@ -1,5 +1,9 @@
-"""Service configuration (config/service.yaml), validated with pydantic so a typo fails at start-up
-with the file and field named, not minutes later inside the loop."""
+"""Service configuration, validated with pydantic so a typo fails at start-up with the file and field
+named, not minutes later inside the loop.
+
+The models below are the one source of the defaults: with no file the service runs on them.
+``config/service.yaml`` is a commented copy of them to start a configuration from (a test keeps it
+equal to the defaults)."""
 
 from __future__ import annotations
 
@@ -8,8 +12,6 @@ from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-
-DEFAULT_PATH = Path(__file__).resolve().parent.parent / "config" / "service.yaml"
 
 
 class ServiceConfigError(ValueError):
@@ -117,6 +119,19 @@ class ServiceConfig(_Strict):
     workers: Workers = Workers()
     zenoh: ZenohSettings = ZenohSettings()
     rerun: RerunSettings = RerunSettings()
+    perception: str | None = None  # perception settings YAML (perception.load_config); null: its defaults
+
+    @field_validator("perception")
+    @classmethod
+    def _settings_file(cls, v: str | None) -> str | None:
+        if v is not None:
+            from perception import load_config as load_perception
+
+            try:
+                load_perception(v)  # fail at start-up, naming the file, not in the fusion worker
+            except (OSError, ValueError, TypeError) as exc:
+                raise ValueError(f"perception settings {v}: {exc}") from None
+        return v
 
     @field_validator("namespace")
     @classmethod
@@ -135,13 +150,16 @@ class ServiceConfig(_Strict):
 
 
 def load_config(path: str | Path | None = None, **overrides) -> ServiceConfig:
-    """Read the YAML (default config/service.yaml) and apply top-level overrides."""
-    path = Path(path) if path else DEFAULT_PATH
+    """Read a YAML (None: the defaults of :class:`ServiceConfig`) and apply top-level overrides."""
+    where = str(path) if path else "service config"
     try:
-        data = yaml.safe_load(path.read_text()) or {} if path.is_file() else None
-        if data is None:
-            raise ServiceConfigError(f"{path}: no such file")
+        data = {}
+        if path:
+            path = Path(path)
+            if not path.is_file():
+                raise ServiceConfigError(f"{path}: no such file")
+            data = yaml.safe_load(path.read_text()) or {}
         data.update({k: v for k, v in overrides.items() if v is not None})
         return ServiceConfig(**data)
     except (yaml.YAMLError, TypeError, ValidationError) as exc:
-        raise ServiceConfigError(f"{path}: {str(exc).replace(chr(10), '; ')}") from None
+        raise ServiceConfigError(f"{where}: {str(exc).replace(chr(10), '; ')}") from None

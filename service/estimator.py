@@ -56,7 +56,7 @@ class Estimator:
     ):
         self.cfg, self.model = cfg, model
         self.clock = clock  # wall time (s) for arrivals, ages and the cloud rate limit; tests pass a fake
-        self.tracker = tracker if tracker is not None else make_tracker(model)
+        self.tracker = tracker if tracker is not None else make_tracker(model, config=cfg.perception)
         self.stats = stats or Stats(cfg.namespace)
         self.lock = threading.RLock()
         self.message_clock = cfg.clock == "message"
