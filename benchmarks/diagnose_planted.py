@@ -79,7 +79,8 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # The fits' version; bump when they change: rows of older fits are never reused. v2: transported window
 # frames, discretisation-independent internal damping; v3: dissipative candidates started with the nominal
 # damping at the material level, contact height grid, equivalence classes, refit noise, ROD.json length
-# beyond the markers; v5: a late input also tried with part of the nominal damping removed. The decision
+# beyond the markers; v5: a late input also tried with part of the nominal damping removed, and scored at
+# the gripped markers on the recorded inputs (its lagging ends had cost it the lag). The decision
 # rule is not part of it: every summary re-derives the decisions from the stored candidate scores with
 # today's rule (deform.diagnose.scoring.reselect; v4 of the tool changed only the rule).
 TOOL_VERSION = 5

@@ -244,6 +244,7 @@ class Simulator:
         interpolated between frames for the substeps of hidden nodes). ``d1`` (B, n-1, 3): reference
         directors of the marker edges at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`;
         default: a fresh space-parallel frame, right for a rollout from a recording's first frame).
+        The gripped markers of the output are the recorded inputs, also under a delay term.
         -> (B, steps, n_markers, 3)."""
         idx = gripped_indices(self.n_markers)
         grips = frames[:, :, idx]
@@ -281,7 +282,13 @@ class Simulator:
             for j in range(1, self.substeps + 1):
                 g = grip_at(margin + 1 + k + j / self.substeps)
                 state = self.model.step(state, g, create_graph=create_graph)
-            out.append(state.x[:, self.markers] if self.hidden else state.x)
+            x = state.x[:, self.markers] if self.hidden else state.x
+            if tau is not None:
+                # the gripped markers are the protocol's inputs, given at every step: with a delay the
+                # rod's ends lag them, but the prediction is not scored on where the inputs are
+                x = x.clone()
+                x[:, idx] = grips[:, margin + 2 + k].to(x.dtype)
+            out.append(x)
         return torch.stack(out, 1)
 
     def predict(self, recordings, steps: int | None = None) -> list[np.ndarray]:
