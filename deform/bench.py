@@ -16,7 +16,7 @@ import torch
 
 from deform.config import load_rod_config
 from deform.io.recordings import find_data_root, load_recordings
-from deform.model import DeformModel, gripped_indices, load_model
+from deform.model import DeformModel, ThetaSolver, gripped_indices, load_model
 from deform.synthetic import generate_recording
 
 
@@ -98,7 +98,7 @@ def training_iteration(
 def theta_solver_training_ratio(rod: str, positions: np.ndarray, batch: int = 4, horizon: int = 10) -> dict:
     """Forward + backward of a small training window with each twist solver, same weights and data."""
     out = {}
-    for solver in ("newton", "theseus"):
+    for solver in (ThetaSolver.NEWTON, ThetaSolver.THESEUS):
         model = load_model(rod)
         model.options.theta_solver = solver
         out[solver] = training_iteration(model, positions, batch=batch, horizon=horizon, iters=2)[
@@ -130,7 +130,7 @@ def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
     }
     result["single_rollout_1_thread"] = step_latency(model, positions, steps)
     theseus_model = load_model(rod)
-    theseus_model.options.theta_solver = "theseus"
+    theseus_model.options.theta_solver = ThetaSolver.THESEUS
     result["single_rollout_theseus_theta_1_thread"] = step_latency(
         theseus_model, positions, 20 if quick else 60
     )

@@ -14,6 +14,7 @@ never uses this path (it needs second-order autograd through the step).
 
 from __future__ import annotations
 
+import enum
 import logging
 import threading
 
@@ -50,6 +51,14 @@ def _pad(t: Tensor, size: int) -> Tensor:
     return torch.cat([t, t[:1].expand(size - t.shape[0], *t.shape[1:])], dim=0)
 
 
+class ConvergenceCheck(str, enum.Enum):
+    """How a branch-free step is verified: by the solvers' own flags (cheaper), or by
+    :meth:`DeformModel.unconverged` (a second evaluation of the twist Hessian)."""
+
+    REPORT = "report"
+    RECOMPUTE = "recompute"
+
+
 class CompiledStep:
     """Callable like ``model.step(state, grip_next)`` (inference only, no gradients).
 
@@ -68,7 +77,7 @@ class CompiledStep:
         model: DeformModel,
         enabled: bool = True,
         branch_free: tuple[int, int] | None = None,
-        check: str = "report",
+        check: ConvergenceCheck | str = "report",
         ahead_of_time: bool = False,
     ):
         self.model = model
@@ -76,10 +85,9 @@ class CompiledStep:
         self.branch_free = branch_free
         # the branch-free step as an AOTInductor package per (bucket, dtype) (deform.aot: the same
         # values, without dynamo's per-call entry cost); torch.compile if it cannot be built
-        self.ahead_of_time = ahead_of_time and branch_free is not None and check == "report"
+        check = ConvergenceCheck(check)
+        self.ahead_of_time = ahead_of_time and branch_free is not None and check == ConvergenceCheck.REPORT
         self._aot: dict = {}
-        # how a branch-free step is verified: "report", the solvers' own flags (cheaper), or
-        # "recompute", DeformModel.unconverged (a second evaluation of the twist Hessian)
         self.check = check
         self._compiled = None
         self._failed = False
@@ -98,7 +106,7 @@ class CompiledStep:
         unconverged, one graph. Without: the step with its checked loops (a graph per iteration)."""
         if self.branch_free is None:
             return self.model.step(state, grip_next), None
-        if self.check == "recompute":
+        if self.check == ConvergenceCheck.RECOMPUTE:
             new = self.model.step(state, grip_next, branch_free=self.branch_free)
             return new, self.model.unconverged(state, new, held=grip_next is not None)
         return branch_free_step(self.model, state, grip_next, self.branch_free)

@@ -3,7 +3,8 @@ r"""DEFORM: a discrete elastic rod with identified parameters, a residual GNN an
 One step (semi-implicit Euler, ``dt``), for positions ``x`` and velocities ``v``:
 
 1. material angles ``theta* = argmin E`` over interior edges (ends from the grippers);
-2. forces ``F = -dE/dx`` at ``theta*`` (autograd of the energy: exact by construction);
+2. forces ``F = -dE/dx`` at ``theta*`` in closed form (:mod:`deform.rod.forces`; a test checks
+   them against finite differences of the energy);
 3. ``v' = v + dt (F / M - c v - k |v_n| v_n) + r(x, v)`` with ``r`` the residual network;
 4. ``x' = x + dt v'``; gripped vertices 0, 1, n-2, n-1 set to their inputs;
 5. PBD projects edges to their rest lengths, gripped vertices being infinitely heavy;
@@ -15,6 +16,7 @@ material curvature, extra point masses per vertex, linear damping and quadratic 
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +29,12 @@ from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
 from deform.rod.energy import ElasticParams, curvature_projections, rod_geometry
 from deform.rod.forces import rod_forces
-from deform.rod.inextensibility import enforce_inextensibility, max_relative_error, unweighted_inv_mass
+from deform.rod.inextensibility import (
+    PBDMethod,
+    enforce_inextensibility,
+    max_relative_error,
+    unweighted_inv_mass,
+)
 from deform.rod.tridiagonal import solve_tridiagonal_pd
 from deform.rod.twist_solver import gradient_and_hessian, solve_theta
 
@@ -82,15 +89,35 @@ class RodState:
         return RodState(*(t[idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
 
 
+class ThetaSolver(str, enum.Enum):
+    """Who minimises the energy over the material angles: the fast Newton solver or Theseus (reference)."""
+
+    NEWTON = "newton"
+    THESEUS = "theseus"
+
+
 @dataclass
 class ModelOptions:
     residual: bool = True
     weighted_pbd: bool = True  # False: the 'original inextensibility' of the ablation
     pbd_tol: float = 1e-3
     pbd_max_sweeps: int = 20
-    pbd_method: str = "projection"  # or "gauss_seidel"
+    pbd_method: PBDMethod = PBDMethod.PROJECTION
     theta_tol: float = 1e-6  # target error of the material angles [rad]
-    theta_solver: str = "newton"  # or "theseus" (reference; slow)
+    theta_solver: ThetaSolver = ThetaSolver.NEWTON
+
+    def __post_init__(self):  # strings from configs, the CLI and saved checkpoints, checked once here
+        for name, kind in (("pbd_method", PBDMethod), ("theta_solver", ThetaSolver)):
+            value = getattr(self, name)
+            try:
+                setattr(self, name, kind(value))
+            except ValueError:
+                allowed = ", ".join(m.value for m in kind)
+                raise ValueError(f"{name}={value!r}: choose one of {allowed}") from None
+
+    def as_dict(self) -> dict:
+        """Plain values (strings for the enums): what a checkpoint stores."""
+        return {k: (v.value if isinstance(v, enum.Enum) else v) for k, v in vars(self).items()}
 
 
 def inv_softplus(y: float) -> float:
@@ -312,7 +339,7 @@ class DeformModel(nn.Module):
         branch_free: int = 0,
         report: dict | None = None,
     ):
-        if self.options.theta_solver == "theseus":
+        if self.options.theta_solver == ThetaSolver.THESEUS:
             from deform.rod.twist_theseus import theseus_theta
 
             return theseus_theta(
@@ -411,7 +438,7 @@ class DeformModel(nn.Module):
             rest_within_reach(before.rest, after.x[..., gripped_indices(self.n), :]) if held else before.rest
         )
         length_bad = ~(max_relative_error(after.x, rest, inv_mass, per_rod=True) < self.options.pbd_tol)
-        if self.options.theta_solver == "theseus":
+        if self.options.theta_solver == ThetaSolver.THESEUS:
             twist_bad = torch.zeros_like(twist_bad)
         return twist_bad | length_bad
 
@@ -444,7 +471,7 @@ class DeformModel(nn.Module):
     def save(self, path: str | Path, extra: dict | None = None) -> None:
         payload = {
             "config": self.cfg.model_dump(),
-            "options": vars(self.options),
+            "options": self.options.as_dict(),
             "state_dict": self.state_dict(),
         }
         if len(self.extensions):  # physics terms trained into the model (deform.terms)

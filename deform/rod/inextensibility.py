@@ -18,6 +18,8 @@ Sweeps repeat until the largest relative edge error is below ``tol``.
 
 from __future__ import annotations
 
+import enum
+
 import torch
 from torch import Tensor
 
@@ -68,7 +70,14 @@ def _gauss_seidel_sweep(x: Tensor, inv_mass: Tensor, rest: Tensor) -> Tensor:
     return x
 
 
-SWEEPS = {"projection": _projection_sweep, "gauss_seidel": _gauss_seidel_sweep}
+class PBDMethod(str, enum.Enum):
+    """How a sweep corrects the edges (see the module docstring)."""
+
+    PROJECTION = "projection"
+    GAUSS_SEIDEL = "gauss_seidel"
+
+
+SWEEPS = {PBDMethod.PROJECTION: _projection_sweep, PBDMethod.GAUSS_SEIDEL: _gauss_seidel_sweep}
 
 
 def enforce_inextensibility(
@@ -77,7 +86,7 @@ def enforce_inextensibility(
     rest: Tensor,
     tol: float = 1e-3,
     max_sweeps: int = 50,
-    method: str = "projection",
+    method: PBDMethod | str = PBDMethod.PROJECTION,
     branch_free: int = 0,
     report: dict | None = None,
 ) -> Tensor:
@@ -90,7 +99,7 @@ def enforce_inextensibility(
     ``report``: when given, receives ``"length_error"``, each rod's largest relative edge error after
     the branch-free sweeps (what a convergence check would measure, already computed).
     """
-    sweep = SWEEPS[method]
+    sweep = SWEEPS[method]  # a PBDMethod or its string: str enums hash and compare as their values
     if branch_free:
         err = max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod=True)
         for _ in range(branch_free):

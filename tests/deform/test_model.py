@@ -203,3 +203,18 @@ def test_overstretched_rod_is_stretched_evenly_instead_of_flung_about():
     assert max(speeds[50:]) < 0.5
     stretch = (state.x[0, 2 : n - 1] - state.x[0, 1 : n - 2]).norm(dim=-1) / rest[1:-1]
     assert ((stretch > 1.048) & (stretch < 1.053)).all()
+
+
+def test_options_take_strings_once_and_checkpoints_store_plain_values(tmp_path):
+    from deform.model import ModelOptions, ThetaSolver
+    from deform.rod.inextensibility import PBDMethod
+
+    opts = ModelOptions(theta_solver="theseus", pbd_method="gauss_seidel")
+    assert opts.theta_solver is ThetaSolver.THESEUS and opts.pbd_method is PBDMethod.GAUSS_SEIDEL
+    with pytest.raises(ValueError, match="theta_solver='newtn': choose one of newton, theseus"):
+        ModelOptions(theta_solver="newtn")
+    model = DeformModel(load_rod_config("DLO2"), opts)
+    model.save(tmp_path / "m.pt")
+    stored = torch.load(tmp_path / "m.pt", weights_only=True)["options"]
+    assert stored["theta_solver"] == "theseus" and type(stored["theta_solver"]) is str
+    assert DeformModel.load(tmp_path / "m.pt").options == opts
