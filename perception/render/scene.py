@@ -14,7 +14,7 @@ import open3d as o3d
 
 from perception.camera import Camera
 from perception.config import RenderConfig
-from perception.render import mesh
+import perception.render.mesh as mesh
 
 ROPE, TABLE, GRIPPER, OCCLUDER = 0, 1, 2, 3
 
