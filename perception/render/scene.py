@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+import perception.render.mesh as mesh
 from perception.camera import Camera
 from perception.config import RenderConfig
-import perception.render.mesh as mesh
 
 ROPE, TABLE, GRIPPER, OCCLUDER = 0, 1, 2, 3
 
