@@ -9,7 +9,6 @@ deterministic and as fast as the machine allows.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import socket
 import time
@@ -17,7 +16,7 @@ import time
 import numpy as np
 
 from service import bag, scenario
-from service import messages as M
+from service.client import ServiceError, ShapeClient
 from service.config import load_config
 from service.node import Service, open_session
 
@@ -59,22 +58,23 @@ def run(
     got: dict[int, np.ndarray] = {}
     svc = Service(cfg, tracker=tracker).start()
     client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
+    rope = ShapeClient(cfg.namespace, session=client, timeout_s=5.0)
     try:
-        sub = client.declare_subscriber(cfg.key("vertices"), lambda s: _collect(got, s.payload.to_bytes()))
-        _wait_for(lambda: _status(client, cfg) is not None, 10)
+        rope.subscribe(lambda stamp, x, observed: got.__setitem__(stamp, x.astype(np.float64)))
+        _wait_for(lambda: _status(rope) is not None, 10)
         t1 = time.perf_counter()
         bag.replay(client, cfg.namespace, stream, fast=True)
         _wait_for(lambda: len(got) >= n_poses, 120)
         t_replay = time.perf_counter() - t1
-        status = _status(client, cfg)
+        status = _status(rope)
         stamps = sorted(got)
         est = np.stack([got[s] for s in stamps])
         if svc.rerun is not None:
             for s, x in zip(stamps, positions):
                 svc.rerun.submit("truth", s, x)
-        pred_ms, pred_shape = _predict(client, cfg, positions[-1], grippers, predict_plans, predict_steps)
-        sub.undeclare()
+        pred_ms, pred_shape = _predict(rope, positions[-1], grippers, predict_plans, predict_steps)
     finally:
+        rope.close()
         client.close()
         svc.stop()
     truth = positions[: len(est)]
@@ -102,11 +102,6 @@ def run(
     }
 
 
-def _collect(got: dict, raw: bytes) -> None:
-    stamp, x, _ = M.parse_vertices(raw)
-    got[stamp] = x.astype(np.float64)
-
-
 def _wait_for(cond, timeout: float) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -116,14 +111,14 @@ def _wait_for(cond, timeout: float) -> bool:
     return False
 
 
-def _status(client, cfg) -> dict | None:
-    for r in client.get(cfg.key("status"), timeout=5.0):
-        if r.ok is not None:
-            return json.loads(r.ok.payload.to_bytes())
-    return None
+def _status(rope: ShapeClient) -> dict | None:
+    try:
+        return rope.status()
+    except ServiceError:
+        return None
 
 
-def _predict(client, cfg, x_last, grippers, plans: int, steps: int):
+def _predict(rope: ShapeClient, x_last, grippers, plans: int, steps: int):
     from service.geometry import poses_from_vertices
 
     base = poses_from_vertices(x_last, grippers)
@@ -131,16 +126,15 @@ def _predict(client, cfg, x_last, grippers, plans: int, steps: int):
     ramp = np.linspace(0, 1, steps)[None, :, None, None]
     shift = np.zeros((plans, 1, 2, 7))
     shift[..., :3] = rng.uniform(-0.1, 0.1, (plans, 1, 2, 3))
-    req = json.dumps({"plans": (base[None, None] + ramp * shift).tolist(), "dt": 0.01}).encode()
     # the predict worker compiles its rollout at start-up (about 30 s the first time on a machine):
     # time the query, not the compilation
-    _wait_for(lambda: (_status(client, cfg) or {}).get("predict_ready"), 300)
+    _wait_for(lambda: (_status(rope) or {}).get("predict_ready"), 300)
     t = time.perf_counter()
-    for r in client.get(cfg.key("predict"), payload=req, timeout=60.0):
-        if r.ok is not None:
-            out = json.loads(r.ok.payload.to_bytes())
-            return round(1e3 * (time.perf_counter() - t), 1), list(np.shape(out["vertices"]))
-    return None, None
+    try:
+        shapes = rope.predict(base[None, None] + ramp * shift, dt=0.01, timeout_s=60.0)
+    except ServiceError:
+        return None, None
+    return round(1e3 * (time.perf_counter() - t), 1), list(shapes.shape)
 
 
 def plot(result: dict, path: str, title: str) -> None:

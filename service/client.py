@@ -1,0 +1,190 @@
+"""A client for controllers: the rope's current shape, its stream, predictions and the service status.
+
+Made for a robot's Python process: it imports zenoh, numpy and the CDR decoder of
+:mod:`service.messages`, never torch. ::
+
+    from service.client import ShapeClient
+
+    with ShapeClient("deform/rod1", connect=["tcp/192.168.1.10:7447"]) as rope:
+        stamp_ns, x, observed = rope.vertices()          # x (n, 3) metres, world frame
+        sub = rope.subscribe(lambda stamp_ns, x, observed: ...)   # every tick (100 Hz)
+        shapes = rope.predict(plans)                     # plans (P, S, 2, 7) -> (P, S, n, 3)
+        rope.status()["mode"]
+
+A plan step is the two gripper poses ``[x y z qx qy qz qw]`` in the world frame, one step per
+``dt`` (default the model's 10 ms). The service's error replies come back as typed exceptions
+(:class:`BadRequest`, :class:`NotReady`, :class:`Busy`, :class:`ServiceFailed`), a missing reply as
+:class:`NoReply`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from service.messages import parse_vertices
+
+
+class ServiceError(Exception):
+    """An error reply of the service: ``reason`` (a short code such as ``bad_shape``) and ``detail``."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason, self.detail = reason, detail
+
+
+class BadRequest(ServiceError):
+    """The request was refused as it stands (bad JSON, shapes, quaternions, dt, size)."""
+
+
+class NotReady(ServiceError):
+    """The service has no estimate yet (no gripper poses received)."""
+
+
+class Busy(ServiceError):
+    """Too many predictions queued; ask again."""
+
+
+class ServiceFailed(ServiceError):
+    """The service failed on a valid request (its log has the trace)."""
+
+
+class NoReply(ServiceError):
+    """Nothing answered within the timeout: no service under this namespace, or it is not reachable."""
+
+
+_BY_REASON = {"no_estimate": NotReady, "busy": Busy, "internal": ServiceFailed}
+
+
+def error_from_reply(payload: bytes) -> ServiceError:
+    """The typed exception for an error reply's JSON body (``{"error": reason, "detail": ...}``)."""
+    try:
+        body = json.loads(payload)
+        reason, detail = str(body.get("error", "unknown")), str(body.get("detail", ""))
+    except (ValueError, AttributeError):
+        reason, detail = "unknown", payload[:200].decode("utf-8", "replace")
+    return _BY_REASON.get(reason, BadRequest)(reason, detail)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A predict reply: ``vertices`` (P, S, n, 3) metres; ``overstretched`` (P,) plans that hold the
+    rope farther apart than it is long at some step (discard them); ``stamp_s`` of the estimate the
+    rollouts started from."""
+
+    vertices: np.ndarray
+    overstretched: np.ndarray
+    stamp_s: float
+
+
+class ShapeClient:
+    """One rope's service under ``namespace``.
+
+    Args:
+        namespace: the service's key prefix (``namespace`` in its config).
+        connect: Zenoh endpoints to connect to (e.g. ``["tcp/192.168.1.10:7447"]``); None: peer
+            mode with multicast scouting, as the service's default.
+        session: an open Zenoh session to use instead (not closed by :meth:`close`).
+        timeout_s: default time to wait for a reply to ``vertices`` and ``status``.
+    """
+
+    def __init__(
+        self,
+        namespace: str = "deform/rod1",
+        connect: list[str] | None = None,
+        session: zenoh.Session | None = None,
+        timeout_s: float = 2.0,
+    ):
+        self.namespace = namespace.strip("/")
+        self.timeout_s = timeout_s
+        self._own = session is None
+        if session is None:
+            conf = zenoh.Config()
+            if connect:
+                conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+            session = zenoh.open(conf)
+        self.session = session
+        self._subscribers: list = []
+
+    def key(self, name: str) -> str:
+        return f"{self.namespace}/{name}"
+
+    def _get(self, name: str, payload: bytes | None, timeout_s: float) -> bytes:
+        kwargs = {"timeout": timeout_s} if payload is None else {"payload": payload, "timeout": timeout_s}
+        for reply in self.session.get(self.key(name), **kwargs):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+            raise error_from_reply(reply.err.payload.to_bytes())
+        raise NoReply("no_reply", f"nothing answered on {self.key(name)} within {timeout_s} s")
+
+    def vertices(self, timeout_s: float | None = None) -> tuple[int, np.ndarray, np.ndarray]:
+        """The current estimate.
+
+        Returns:
+            ``(stamp_ns, x, observed)``: x (n, 3) float32 metres in the world frame, observed (n,)
+            bool (the vertex was corrected from the camera recently).
+        """
+        return parse_vertices(self._get("vertices", None, timeout_s or self.timeout_s))
+
+    def subscribe(self, callback: Callable[[int, np.ndarray, np.ndarray], None]):
+        """Call ``callback(stamp_ns, x, observed)`` for every published estimate (each tick).
+
+        Returns:
+            The Zenoh subscriber (``.undeclare()`` stops it; :meth:`close` stops all).
+        """
+
+        def on_sample(sample) -> None:
+            callback(*parse_vertices(sample.payload.to_bytes()))
+
+        sub = self.session.declare_subscriber(self.key("vertices"), on_sample)
+        self._subscribers.append(sub)
+        return sub
+
+    def predict_full(self, plans: np.ndarray, dt: float | None = None, timeout_s: float = 30.0) -> Prediction:
+        """Roll every plan out from the current estimate.
+
+        Args:
+            plans: (P, S, 2, 7) gripper poses ``[x y z qx qy qz qw]``, world frame, one per step.
+            dt: seconds per step (None: the model's step, 10 ms).
+            timeout_s: time to wait (a first request may include compilation).
+
+        Returns:
+            A :class:`Prediction` with vertices (P, S, n, 3).
+        """
+        plans = np.asarray(plans, dtype=float)
+        if plans.ndim != 4 or plans.shape[2:] != (2, 7):
+            raise BadRequest("bad_shape", f"plans must be (P, S, 2, 7), got {plans.shape}")
+        request = {"plans": plans.tolist()}
+        if dt is not None:
+            request["dt"] = float(dt)
+        out = json.loads(self._get("predict", json.dumps(request).encode(), timeout_s))
+        return Prediction(
+            vertices=np.asarray(out["vertices"], dtype=np.float64),
+            overstretched=np.asarray(out.get("overstretched", [False] * len(plans)), dtype=bool),
+            stamp_s=float(out.get("stamp", float("nan"))),
+        )
+
+    def predict(self, plans: np.ndarray, dt: float | None = None, timeout_s: float = 30.0) -> np.ndarray:
+        """:meth:`predict_full`'s vertices (P, S, n, 3) alone."""
+        return self.predict_full(plans, dt, timeout_s).vertices
+
+    def status(self, timeout_s: float | None = None) -> dict:
+        """The service status (mode, rates, latencies, readiness; see docs/service.md)."""
+        return json.loads(self._get("status", None, timeout_s or self.timeout_s))
+
+    def close(self) -> None:
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._subscribers.clear()
+        if self._own:
+            self.session.close()
+
+    def __enter__(self) -> ShapeClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
