@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
+from service import predict_codec
 from service.messages import parse_vertices
 
 
@@ -72,13 +73,15 @@ def error_from_reply(payload: bytes) -> ServiceError:
 
 @dataclass(frozen=True)
 class Prediction:
-    """A predict reply: ``vertices`` (P, S, n, 3) metres; ``overstretched`` (P,) plans that hold the
-    rope farther apart than it is long at some step (discard them); ``stamp_s`` of the estimate the
-    rollouts started from."""
+    """A predict reply: ``vertices`` (P, K, n, 3) metres at the 1-based plan ``steps`` (K,);
+    ``overstretched`` (P,) plans that hold the rope farther apart than it is long at some step
+    (discard them); ``stamp_s`` of the estimate the rollouts started from; the request's ``id``."""
 
     vertices: np.ndarray
     overstretched: np.ndarray
     stamp_s: float
+    steps: np.ndarray
+    id: str | int | float | None = None
 
 
 class ShapeClient:
@@ -144,33 +147,56 @@ class ShapeClient:
         self._subscribers.append(sub)
         return sub
 
-    def predict_full(self, plans: np.ndarray, dt: float | None = None, timeout_s: float = 30.0) -> Prediction:
+    def predict_full(
+        self,
+        plans: np.ndarray,
+        dt: float | None = None,
+        steps: str = "all",
+        binary: bool = True,
+        request_id: str | int | None = None,
+        timeout_s: float = 30.0,
+    ) -> Prediction:
         """Roll every plan out from the current estimate.
 
         Args:
             plans: (P, S, 2, 7) gripper poses ``[x y z qx qy qz qw]``, world frame, one per step.
             dt: seconds per step (None: the model's step, 10 ms).
+            steps: which steps come back: ``"all"``, ``"final"`` or ``"every:K"`` (and the last).
+            binary: the float32 reply of :mod:`service.predict_codec` (smaller, faster) or JSON.
+            request_id: echoed in the reply (``Prediction.id``).
             timeout_s: time to wait (a first request may include compilation).
 
         Returns:
-            A :class:`Prediction` with vertices (P, S, n, 3).
+            A :class:`Prediction` with vertices (P, K, n, 3), K the number of steps returned.
         """
         plans = np.asarray(plans, dtype=float)
         if plans.ndim != 4 or plans.shape[2:] != (2, 7):
             raise BadRequest("bad_shape", f"plans must be (P, S, 2, 7), got {plans.shape}")
-        request = {"plans": plans.tolist()}
+        request = {"plans": plans.tolist(), "return": steps, "encoding": "binary" if binary else "json"}
         if dt is not None:
             request["dt"] = float(dt)
-        out = json.loads(self._get("predict", json.dumps(request).encode(), timeout_s))
+        if request_id is not None:
+            request["id"] = request_id
+        payload = self._get("predict", json.dumps(request).encode(), timeout_s)
+        if predict_codec.is_binary(payload):
+            out, vertices = predict_codec.decode(payload)
+        else:
+            out = json.loads(payload)
+            vertices = np.asarray(out["vertices"])
+        n_steps = plans.shape[1]
         return Prediction(
-            vertices=np.asarray(out["vertices"], dtype=np.float64),
+            vertices=np.asarray(vertices, dtype=np.float64),
             overstretched=np.asarray(out.get("overstretched", [False] * len(plans)), dtype=bool),
             stamp_s=float(out.get("stamp", float("nan"))),
+            steps=np.asarray(out.get("steps", range(1, n_steps + 1)), dtype=int),
+            id=out.get("id"),
         )
 
-    def predict(self, plans: np.ndarray, dt: float | None = None, timeout_s: float = 30.0) -> np.ndarray:
-        """:meth:`predict_full`'s vertices (P, S, n, 3) alone."""
-        return self.predict_full(plans, dt, timeout_s).vertices
+    def predict(
+        self, plans: np.ndarray, dt: float | None = None, steps: str = "all", timeout_s: float = 30.0
+    ) -> np.ndarray:
+        """:meth:`predict_full`'s vertices (P, K, n, 3) alone."""
+        return self.predict_full(plans, dt, steps=steps, timeout_s=timeout_s).vertices
 
     def status(self, timeout_s: float | None = None) -> dict:
         """The service status (mode, rates, latencies, readiness; see docs/service.md)."""

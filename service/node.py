@@ -20,7 +20,7 @@ import torch
 import zenoh
 
 from service import messages as M
-from service import predict
+from service import predict, predict_codec
 from service.config import ServiceConfig, ZenohSettings
 from service.estimator import Estimator
 from service.fusion import FusionWorker
@@ -431,7 +431,11 @@ class Service:
                 finally:
                     self.predict_running.clear()
                 if ok:
-                    query.reply(self.cfg.key("predict"), reply)
+                    binary = predict_codec.is_binary(reply)
+                    encoding = (
+                        zenoh.Encoding.APPLICATION_OCTET_STREAM if binary else zenoh.Encoding.APPLICATION_JSON
+                    )
+                    query.reply(self.cfg.key("predict"), reply, encoding=encoding)
                 else:
                     query.reply_err(reply)
             except Exception:

@@ -8,20 +8,49 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import orjson
 import torch
 
 from deform import overstretched
+from service import predict_codec
 from service.estimator import NS, Estimator
 from service.geometry import grips_from_poses
 from service.messages import InputError
 from service.tracking import rod_state
 
 
-def parse_request(body: bytes, limits, dt: float) -> np.ndarray:
-    """-> plans (P, S, 2, 7) float64 with unit quaternions; raises InputError."""
+@dataclass(frozen=True)
+class Request:
+    """A validated predict request. ``steps``: 0-based indices of the steps to return (all, the
+    last, or every k-th and the last); ``binary``: reply in :mod:`service.predict_codec`'s format."""
+
+    plans: np.ndarray  # (P, S, 2, 7), unit quaternions
+    steps: np.ndarray
+    id: str | int | float | None = None
+    binary: bool = False
+
+
+def returned_steps(spec, S: int) -> np.ndarray:
+    """``"all"``, ``"final"`` or ``"every:K"`` -> 0-based step indices (every K-th and the last)."""
+    if spec in (None, "all"):
+        return np.arange(S)
+    if spec == "final":
+        return np.array([S - 1])
+    if isinstance(spec, str) and spec.startswith("every:"):
+        try:
+            k = int(spec[6:])
+        except ValueError:
+            k = 0
+        if k >= 1:
+            return np.unique(np.append(np.arange(k - 1, S, k), S - 1))
+    raise InputError("bad_request", f'"return" must be "all", "final" or "every:K" (K >= 1), not {spec!r}')
+
+
+def parse_request(body: bytes, limits, dt: float) -> Request:
+    """Validate a predict request (JSON; see docs/predict.schema.json). Raises InputError."""
     if len(body) > limits.max_request_bytes:
         raise InputError("too_large", f"{len(body)} bytes > {limits.max_request_bytes}")
     try:
@@ -33,6 +62,13 @@ def parse_request(body: bytes, limits, dt: float) -> np.ndarray:
             raise InputError("bad_json") from None
     if not isinstance(req, dict) or "plans" not in req:
         raise InputError("bad_request", 'expected {"plans": [...], "dt": ...}')
+    unknown = set(req) - {"plans", "dt", "id", "return", "encoding"}
+    if unknown:
+        raise InputError("bad_request", f"unknown fields {sorted(unknown)}")
+    if req.get("encoding", "json") not in ("json", "binary"):
+        raise InputError("bad_request", '"encoding" must be "json" or "binary"')
+    if not isinstance(req.get("id"), (str, int, float, type(None))) or isinstance(req.get("id"), bool):
+        raise InputError("bad_request", '"id" must be a string or a number')
     if "dt" in req and (not isinstance(req["dt"], (int, float)) or abs(float(req["dt"]) - dt) > 1e-9):
         raise InputError("bad_dt", f"the model steps dt = {dt}")
     try:
@@ -50,7 +86,12 @@ def parse_request(body: bytes, limits, dt: float) -> np.ndarray:
     if np.any(np.abs(qn - 1.0) > 0.1):
         raise InputError("bad_quaternion")
     plans[..., 3:] /= qn[..., None]
-    return plans
+    return Request(
+        plans=plans,
+        steps=returned_steps(req.get("return"), S),
+        id=req.get("id"),
+        binary=req.get("encoding") == "binary",
+    )
 
 
 def snapshot(est: Estimator) -> tuple[tuple, int]:
@@ -80,21 +121,24 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
     """Validate, roll out, encode: -> (ok, reply JSON, error reason, detail). Pure of service state,
     so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg`` and ``step``."""
     try:
-        plans = parse_request(body, ctx.cfg.limits, ctx.model.dt)
+        req = parse_request(body, ctx.cfg.limits, ctx.model.dt)
     except InputError as exc:
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
-    grips = grips_from_poses(plans, ctx.cfg.grippers)
+    grips = grips_from_poses(req.plans, ctx.cfg.grippers)
     verts = rollout(ctx.step, base, grips)
     # plans that at some step hold the rod farther apart than it is long: no real rope follows them
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
+    verts = verts[:, req.steps]
+    header = {"id": req.id, "stamp": stamp_ns / NS, "overstretched": taut}
+    if len(req.steps) != req.plans.shape[1]:
+        header["steps"] = (req.steps + 1).tolist()  # 1-based step numbers returned
+    if req.binary:
+        return True, predict_codec.encode(verts, header), None, None
     # 0.01 mm resolution: the estimate is not better than that, and the reply is a third shorter
     return (
         True,
-        orjson.dumps(
-            {"stamp": stamp_ns / NS, "vertices": np.round(verts, 5), "overstretched": taut},
-            option=orjson.OPT_SERIALIZE_NUMPY,
-        ),
+        orjson.dumps({**header, "vertices": np.round(verts, 5)}, option=orjson.OPT_SERIALIZE_NUMPY),
         None,
         None,
     )

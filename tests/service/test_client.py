@@ -70,6 +70,9 @@ def test_round_trip_vertices_stream_predict_status(model, endpoint):
             lift = full.vertices[:, -1, :, 2].mean(-1) - full.vertices[0, -1, :, 2].mean()
             assert 0 < lift[1] < lift[2]
             assert rope.predict(plans).shape == full.vertices.shape  # from a later estimate: not equal
+            final = rope.predict_full(plans, steps="final", binary=False, request_id="p1")
+            assert final.vertices.shape == (3, 1, model.n, 3) and final.steps.tolist() == [20]
+            assert final.id == "p1" and full.steps.tolist() == list(range(1, 21))
             with pytest.raises(BadRequest) as bad:
                 rope._get("predict", b"{not json", 10.0)
             assert bad.value.reason == "bad_json"

@@ -64,6 +64,11 @@ def body(plans, **extra):
         (body(np.tile(GOOD, (1, 2, 1, 1)), dt=0.02), "bad_dt"),
         (b'{"plans": [[[[NaN,0,0,0,0,0,1],[0,0,0,0,0,0,1]]]]}', "nan_pose"),
         (body(np.tile(GOOD * [1, 1, 1, 5, 5, 5, 5], (1, 2, 1, 1))), "bad_quaternion"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), **{"return": "every:0"}), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), **{"return": "last"}), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), encoding="msgpack"), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), id=[1]), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), plan_count=1), "bad_request"),
     ],
 )
 def test_invalid_requests_rejected(est, raw, reason):
@@ -122,3 +127,40 @@ def test_redone_rollout_steps_counted(est, monkeypatch):
     before = est.status()["counts"].get("predict_steps_redone", 0)
     ok, _ = handle(est, body(np.tile(GOOD, (2, 3, 1, 1))))
     assert ok and est.status()["counts"]["predict_steps_redone"] == before + 3
+
+
+def test_returned_steps_and_id_and_binary_reply_match_json(est):
+    from service import predict_codec
+
+    plans = np.tile(GOOD, (2, 10, 1, 1))
+    plans[1, :, :, 2] += np.linspace(0, 0.05, 10)[:, None]
+    ok, full = handle(est, body(plans, id="req-7"))
+    assert ok
+    full = json.loads(full)
+    assert full["id"] == "req-7" and "steps" not in full
+    all_steps = np.asarray(full["vertices"])
+    ok, final = handle(est, body(plans, **{"return": "final"}))
+    final = json.loads(final)
+    assert final["steps"] == [10] and np.array_equal(np.asarray(final["vertices"]), all_steps[:, 9:])
+    ok, every = handle(est, body(plans, **{"return": "every:4"}))
+    every = json.loads(every)
+    assert every["steps"] == [4, 8, 10]
+    assert np.array_equal(np.asarray(every["vertices"]), all_steps[:, [3, 7, 9]])
+    ok, raw = handle(est, body(plans, id=3, encoding="binary", **{"return": "every:4"}))
+    assert ok and predict_codec.is_binary(raw)
+    header, verts = predict_codec.decode(raw)
+    assert header["id"] == 3 and header["steps"] == [4, 8, 10] and verts.dtype == np.float32
+    assert header["overstretched"] == every["overstretched"]
+    assert np.abs(verts - all_steps[:, [3, 7, 9]]).max() < 1e-5  # JSON rounds to 0.01 mm
+    assert len(raw) < len(json.dumps(every))
+
+
+def test_binary_reply_refuses_other_versions_and_truncation():
+    from service import predict_codec
+
+    raw = predict_codec.encode(np.zeros((1, 2, 3, 3)), {"id": None})
+    assert predict_codec.decode(raw)[1].shape == (1, 2, 3, 3)
+    with pytest.raises(predict_codec.CodecError, match="version 2"):
+        predict_codec.decode(raw[:4] + (2).to_bytes(2, "little") + raw[6:])
+    with pytest.raises(predict_codec.CodecError, match="values for shape"):
+        predict_codec.decode(raw[:-4])
