@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from deform.config import RodConfig, load_rod_config
 from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
+from deform.rod.convergence import ConvergenceReport
 from deform.rod.energy import ElasticParams, curvature_projections, rod_geometry
 from deform.rod.forces import rod_forces
 from deform.rod.inextensibility import (
@@ -317,7 +318,7 @@ class DeformModel(nn.Module):
         theta_ends: Tensor | None,
         create_graph: bool,
         branch_free: int = 0,
-        report: dict | None = None,
+        report: ConvergenceReport | None = None,
     ):
         x = state.x if create_graph else state.x.detach()
         if theta_ends is None:
@@ -337,7 +338,7 @@ class DeformModel(nn.Module):
         params: ElasticParams,
         theta_init,
         branch_free: int = 0,
-        report: dict | None = None,
+        report: ConvergenceReport | None = None,
     ):
         if self.options.theta_solver == ThetaSolver.THESEUS:
             from deform.rod.twist_theseus import theseus_theta
@@ -367,13 +368,13 @@ class DeformModel(nn.Module):
         theta_ends: Tensor | None = None,
         create_graph: bool = False,
         branch_free: tuple[int, int] = (0, 0),
-        report: dict | None = None,
+        report: ConvergenceReport | None = None,
     ) -> RodState:
         """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
         (``None``: nothing is held, e.g. a dropped rope). ``branch_free``: iterations of the twist
         solve and sweeps of the projection done without host synchronisation before the checked
-        loops (for compiled code; same result per rod, see :func:`newton_theta`). ``report``: a dict
-        that receives the solvers' per-rod convergence after those iterations (``twist_unconverged``,
+        loops (for compiled code; same result per rod, see :func:`newton_theta`). ``report``: a
+        :class:`ConvergenceReport` that receives the solvers' per-rod convergence after those iterations (``twist_unconverged``,
         ``length_error``; see :meth:`unconverged_from_report`)."""
         dt = self.dt
         x, v = state.x, state.v
@@ -442,13 +443,13 @@ class DeformModel(nn.Module):
             twist_bad = torch.zeros_like(twist_bad)
         return twist_bad | length_bad
 
-    def unconverged_from_report(self, report: dict) -> Tensor:
+    def unconverged_from_report(self, report: ConvergenceReport) -> Tensor:
         """(B,) bool: what :meth:`unconverged` says, from the flags a ``branch_free`` step reported
         (the solvers' own stopping rules after their fixed iterations) instead of a second
         evaluation of the twist Hessian: about a fifth of a short compiled step."""
-        bad = ~(report["length_error"] < self.options.pbd_tol)  # NaN counts as unconverged
-        if "twist_unconverged" in report:  # absent with the Theseus solver, as in :meth:`unconverged`
-            bad = bad | report["twist_unconverged"]
+        bad = ~(report.length_error < self.options.pbd_tol)  # NaN counts as unconverged
+        if report.twist_unconverged is not None:  # None with the Theseus solver, as in :meth:`unconverged`
+            bad = bad | report.twist_unconverged
         return bad
 
     def rollout(self, state: RodState, grips: Tensor, create_graph: bool = False) -> tuple[Tensor, RodState]:

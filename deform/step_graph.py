@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from deform.model import DeformModel, RodState, gripped_indices
+from deform.rod.convergence import ConvergenceReport
 
 # a C++ wrapper calls the kernels without a Python frame each (a step is ~30 kernels); memory
 # planning takes a step's ~370 intermediate buffers from one allocation instead of one each (0.90x
@@ -23,7 +24,7 @@ def branch_free_step(
 ) -> tuple[RodState, Tensor]:
     """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
     own flags): what the one-graph step computes, compiled or ahead of time."""
-    report: dict = {}
+    report = ConvergenceReport()
     new = model.step(state, grip_next, branch_free=branch_free, report=report)
     return new, model.unconverged_from_report(report)
 

@@ -23,6 +23,7 @@ import enum
 import torch
 from torch import Tensor
 
+from deform.rod.convergence import ConvergenceReport
 from deform.rod.geometry import dot
 from deform.rod.tridiagonal import solve_tridiagonal
 
@@ -88,7 +89,7 @@ def enforce_inextensibility(
     max_sweeps: int = 50,
     method: PBDMethod | str = PBDMethod.PROJECTION,
     branch_free: int = 0,
-    report: dict | None = None,
+    report: ConvergenceReport | None = None,
 ) -> Tensor:
     """Project ``x`` (..., n, 3) so every edge has its rest length (..., m) within relative ``tol``.
 
@@ -96,7 +97,7 @@ def enforce_inextensibility(
     ``branch_free``: that many sweeps first run without a host synchronisation, each rod sweeping
     only while its own error is above ``tol`` (so compiled code holds the usual one or two sweeps
     in one graph); the checked loop then continues only if a rod is still above ``tol``.
-    ``report``: when given, receives ``"length_error"``, each rod's largest relative edge error after
+    ``report``: when given, receives ``length_error``, each rod's largest relative edge error after
     the branch-free sweeps (what a convergence check would measure, already computed).
     """
     sweep = SWEEPS[method]  # a PBDMethod or its string: str enums hash and compare as their values
@@ -108,7 +109,7 @@ def enforce_inextensibility(
             x = torch.where(active[..., None, None], swept, x)
             err = torch.where(active, swept_err, err)
         if report is not None:
-            report["length_error"] = err
+            report.length_error = err
         if torch.compiler.is_compiling():  # no data-dependent branch: the caller checks (deform.compiled)
             return x
         max_sweeps -= branch_free

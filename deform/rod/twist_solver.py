@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from deform.rod.convergence import ConvergenceReport
 from deform.rod.energy import left_right, material_curvature, twist_of
 from deform.rod.tridiagonal import solve_tridiagonal, solve_tridiagonal_pd
 
@@ -75,7 +76,7 @@ def newton_theta(
     max_iter: int = 30,
     max_step: float = 0.5,
     branch_free: int = 0,
-    report: dict | None = None,
+    report: ConvergenceReport | None = None,
 ) -> Tensor:
     """Minimise over the free angles by damped Newton; returns all m angles (ends included), detached.
 
@@ -90,7 +91,7 @@ def newton_theta(
     rod stopping by the same rule on its own (its later updates masked out), so that compiled code
     holds a converging solve in one graph (warm-started solves converge in two); the checked loop
     then goes on only if a rod is still unconverged. Per rod the result is that of the checked loop.
-    ``report``: when given, receives ``"twist_unconverged"`` (per rod, after the branch-free
+    ``report``: when given, receives ``twist_unconverged`` (per rod, after the branch-free
     iterations, by the same stopping rule), so compiled code checks convergence for free.
     """
     with torch.no_grad():
@@ -112,7 +113,7 @@ def newton_theta(
             # compiled code cannot branch on data: it returns here and its caller checks convergence
             # afterwards (deform.compiled); eager code goes on while a rod is unconverged
             if report is not None:
-                report["twist_unconverged"] = active
+                report.twist_unconverged = active
             if torch.compiler.is_compiling() or not bool(active.any()):
                 return _with_free(theta_ends, free)
             max_iter -= branch_free
@@ -191,7 +192,7 @@ def solve_theta(
     tol: float = 1e-10,
     max_iter: int = 30,
     branch_free: int = 0,
-    report: dict | None = None,
+    report: ConvergenceReport | None = None,
 ) -> Tensor:
     """Fast batched solver; differentiable through the implicit function theorem when needed."""
     theta_star = newton_theta(
