@@ -82,6 +82,8 @@ class Prediction:
     stamp_s: float
     steps: np.ndarray
     id: str | int | float | None = None
+    costs: np.ndarray | None = None  # (P,) with a cost request (service/plan_cost.py)
+    cost_terms: dict | None = None
 
 
 class ShapeClient:
@@ -154,6 +156,7 @@ class ShapeClient:
         steps: str = "all",
         binary: bool = True,
         request_id: str | int | None = None,
+        cost: dict | None = None,
         timeout_s: float = 30.0,
     ) -> Prediction:
         """Roll every plan out from the current estimate.
@@ -164,6 +167,8 @@ class ShapeClient:
             steps: which steps come back: ``"all"``, ``"final"`` or ``"every:K"`` (and the last).
             binary: the float32 reply of :mod:`service.predict_codec` (smaller, faster) or JSON.
             request_id: echoed in the reply (``Prediction.id``).
+            cost: score each plan in the service (``{"goal": (n, 3), "plane_z": z, "weights": {...}}``,
+                see service/plan_cost.py); with ``steps="none"`` only the costs come back.
             timeout_s: time to wait (a first request may include compilation).
 
         Returns:
@@ -177,6 +182,8 @@ class ShapeClient:
             request["dt"] = float(dt)
         if request_id is not None:
             request["id"] = request_id
+        if cost is not None:
+            request["cost"] = {k: (np.asarray(v).tolist() if k == "goal" else v) for k, v in cost.items()}
         payload = self._get("predict", json.dumps(request).encode(), timeout_s)
         if predict_codec.is_binary(payload):
             out, vertices = predict_codec.decode(payload)
@@ -190,6 +197,8 @@ class ShapeClient:
             stamp_s=float(out.get("stamp", float("nan"))),
             steps=np.asarray(out.get("steps", range(1, n_steps + 1)), dtype=int),
             id=out.get("id"),
+            costs=None if "costs" not in out else np.asarray(out["costs"]),
+            cost_terms=out.get("cost_terms"),
         )
 
     def predict(
@@ -197,6 +206,10 @@ class ShapeClient:
     ) -> np.ndarray:
         """:meth:`predict_full`'s vertices (P, K, n, 3) alone."""
         return self.predict_full(plans, dt, steps=steps, timeout_s=timeout_s).vertices
+
+    def costs(self, plans: np.ndarray, cost: dict, timeout_s: float = 30.0) -> np.ndarray:
+        """(P,) costs of the plans, computed by the service (no vertices are sent back)."""
+        return self.predict_full(plans, steps="none", cost=cost, timeout_s=timeout_s).costs
 
     def status(self, timeout_s: float | None = None) -> dict:
         """The service status (mode, rates, latencies, readiness; see docs/service.md)."""

@@ -15,7 +15,7 @@ import orjson
 import torch
 
 from deform import overstretched
-from service import predict_codec
+from service import plan_cost, predict_codec
 from service.estimator import NS, Estimator
 from service.geometry import grips_from_poses
 from service.messages import InputError
@@ -31,12 +31,16 @@ class Request:
     steps: np.ndarray
     id: str | int | float | None = None
     binary: bool = False
+    cost: dict | None = None  # the request's "cost" object (service.plan_cost.parse_cost checks it)
 
 
 def returned_steps(spec, S: int) -> np.ndarray:
-    """``"all"``, ``"final"`` or ``"every:K"`` -> 0-based step indices (every K-th and the last)."""
+    """``"all"``, ``"final"``, ``"every:K"`` or ``"none"`` (costs only) -> 0-based step indices
+    (every K-th and the last)."""
     if spec in (None, "all"):
         return np.arange(S)
+    if spec == "none":
+        return np.arange(0)
     if spec == "final":
         return np.array([S - 1])
     if isinstance(spec, str) and spec.startswith("every:"):
@@ -46,7 +50,9 @@ def returned_steps(spec, S: int) -> np.ndarray:
             k = 0
         if k >= 1:
             return np.unique(np.append(np.arange(k - 1, S, k), S - 1))
-    raise InputError("bad_request", f'"return" must be "all", "final" or "every:K" (K >= 1), not {spec!r}')
+    raise InputError(
+        "bad_request", f'"return" must be "all", "final", "every:K" (K >= 1) or "none", not {spec!r}'
+    )
 
 
 def parse_request(body: bytes, limits, dt: float) -> Request:
@@ -62,7 +68,7 @@ def parse_request(body: bytes, limits, dt: float) -> Request:
             raise InputError("bad_json") from None
     if not isinstance(req, dict) or "plans" not in req:
         raise InputError("bad_request", 'expected {"plans": [...], "dt": ...}')
-    unknown = set(req) - {"plans", "dt", "id", "return", "encoding"}
+    unknown = set(req) - {"plans", "dt", "id", "return", "encoding", "cost"}
     if unknown:
         raise InputError("bad_request", f"unknown fields {sorted(unknown)}")
     if req.get("encoding", "json") not in ("json", "binary"):
@@ -86,11 +92,14 @@ def parse_request(body: bytes, limits, dt: float) -> Request:
     if np.any(np.abs(qn - 1.0) > 0.1):
         raise InputError("bad_quaternion")
     plans[..., 3:] /= qn[..., None]
+    if req.get("return") == "none" and req.get("cost") is None:
+        raise InputError("bad_request", '"return": "none" needs a "cost"')
     return Request(
         plans=plans,
         steps=returned_steps(req.get("return"), S),
         id=req.get("id"),
         binary=req.get("encoding") == "binary",
+        cost=req.get("cost"),
     )
 
 
@@ -122,6 +131,7 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
     so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg`` and ``step``."""
     try:
         req = parse_request(body, ctx.cfg.limits, ctx.model.dt)
+        cost = None if req.cost is None else plan_cost.parse_cost(req.cost, ctx.model.n)
     except InputError as exc:
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
     grips = grips_from_poses(req.plans, ctx.cfg.grippers)
@@ -129,8 +139,10 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
     # plans that at some step hold the rod farther apart than it is long: no real rope follows them
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
-    verts = verts[:, req.steps]
     header = {"id": req.id, "stamp": stamp_ns / NS, "overstretched": taut}
+    if cost is not None:
+        header.update(plan_cost.plan_costs(verts, base[4][0], cost))
+    verts = verts[:, req.steps]
     if len(req.steps) != req.plans.shape[1]:
         header["steps"] = (req.steps + 1).tolist()  # 1-based step numbers returned
     if req.binary:

@@ -69,6 +69,11 @@ def body(plans, **extra):
         (body(np.tile(GOOD, (1, 2, 1, 1)), encoding="msgpack"), "bad_request"),
         (body(np.tile(GOOD, (1, 2, 1, 1)), id=[1]), "bad_request"),
         (body(np.tile(GOOD, (1, 2, 1, 1)), plan_count=1), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), **{"return": "none"}), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), cost={"goal": [[0, 0, 0]]}), "bad_shape"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), cost={"weights": {"plane": 1}}), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), cost={"plane_z": 0.1, "weights": {"plane": -1}}), "bad_request"),
+        (body(np.tile(GOOD, (1, 2, 1, 1)), cost={"speed": 1}), "bad_request"),
     ],
 )
 def test_invalid_requests_rejected(est, raw, reason):
@@ -164,3 +169,26 @@ def test_binary_reply_refuses_other_versions_and_truncation():
         predict_codec.decode(raw[:4] + (2).to_bytes(2, "little") + raw[6:])
     with pytest.raises(predict_codec.CodecError, match="values for shape"):
         predict_codec.decode(raw[:-4])
+
+
+def test_cost_mode_scores_plans_in_the_worker(est):
+    plans = np.tile(GOOD, (3, 10, 1, 1))
+    plans[1, :, :, 2] += np.linspace(0, 0.05, 10)[:, None]  # lift 5 cm
+    plans[2, :, :, 2] -= np.linspace(0, 0.05, 10)[:, None]  # lower 5 cm
+    ok, raw = handle(est, body(plans))
+    final = np.asarray(json.loads(raw)["vertices"])[:, -1]  # (P, n, 3)
+    goal = final[1]  # the lifted plan's own end shape is the goal
+    low = float(final[0, :, 2].min())  # a plane just under the rope's lowest point when held still
+    request = {
+        "cost": {"goal": goal.tolist(), "plane_z": low + 0.01, "weights": {"plane": 2.0, "stretch": 1.0}}
+    }
+    ok, raw = handle(est, body(plans, **{"return": "none"}, **request))
+    assert ok
+    out = json.loads(raw)
+    assert "vertices" not in out or np.asarray(out["vertices"]).size == 0
+    terms = {k: np.asarray(v) for k, v in out["cost_terms"].items()}
+    assert terms["goal"][1] < 1e-4 < terms["goal"][0] < terms["goal"][2]  # lifted = goal; lowered farthest
+    assert terms["plane"][2] > terms["plane"][0] > terms["plane"][1] >= 0  # lowering dips into the plane
+    assert np.all(terms["stretch"] >= 0) and np.all(terms["stretch"] < 0.01)
+    expected = terms["goal"] + 2.0 * terms["plane"] + 1.0 * terms["stretch"]
+    assert np.allclose(out["costs"], expected)
