@@ -38,7 +38,15 @@ def batches_by_horizon(recordings: list[Recording], steps: int | None = 500) -> 
 
 def paper_l1(prediction: np.ndarray, truth: np.ndarray, nan_as: float | None = None) -> float:
     """The paper's metric for one recording: mean |prediction - truth| over steps, vertices and axes.
-    ``nan_as``: the error counted for a coordinate of a diverged (NaN) prediction, instead of NaN."""
+
+    Args:
+        prediction: (S, n, 3) predicted positions [m].
+        truth: (S, n, 3) recorded positions of the same steps [m].
+        nan_as: the error counted for a coordinate of a diverged (NaN) prediction, instead of NaN.
+
+    Returns:
+        The L1 error [m].
+    """
     err = np.abs(prediction - truth)
     return float((err if nan_as is None else np.nan_to_num(err, nan=nan_as)).mean())
 
@@ -46,9 +54,20 @@ def paper_l1(prediction: np.ndarray, truth: np.ndarray, nan_as: float | None = N
 def predict_recordings(
     model, recordings: list[Recording], steps: int = 500, batched: bool = True
 ) -> list[RolloutResult]:
-    """Roll out every recording open-loop, in input order. ``model`` is anything with ``n``,
-    ``initial_state`` and ``step`` (the baselines too). Batched: recordings predicted over the same
-    number of steps share one batch; otherwise one rollout each (the timing of a single rollout)."""
+    """Roll out every recording open-loop, in input order, from its first two frames with the gripped
+    vertices given at every step (the paper's protocol).
+
+    Args:
+        model: anything with ``n``, ``initial_state`` and ``step`` (the baselines too).
+        recordings: each ``positions`` (T, n, 3).
+        steps: steps predicted per recording (at most T - 2).
+        batched: recordings predicted over the same number of steps share one batch; otherwise one
+            rollout each (the timing of a single rollout).
+
+    Returns:
+        One :class:`RolloutResult` per recording: ``prediction`` and ``truth`` (S, n, 3) and the
+        seconds of each step.
+    """
     idx = gripped_indices(model.n)
     horizon = [min(steps, r.n_frames - 2) for r in recordings]
     groups = (
@@ -78,7 +97,15 @@ def predict_recordings(
 
 
 def metrics(results: list[RolloutResult]) -> dict:
-    """The JSON fields of ``deform eval``."""
+    """The JSON fields of ``deform eval``.
+
+    Args:
+        results: from :func:`predict_recordings`.
+
+    Returns:
+        ``l1_m`` (mean over recordings of :func:`paper_l1`), ``per_recording_l1_m``, errors at the
+        horizons 1/10/100/500 steps, the interior vertices' mean distance, counts.
+    """
     per_rec = []
     by_h = {h: [] for h in HORIZONS}
     vdist = []
@@ -101,7 +128,16 @@ def metrics(results: list[RolloutResult]) -> dict:
 
 
 def evaluate(model, recordings: list[Recording], steps: int = 500) -> dict:
-    """Accuracy (batched over recordings) plus single-rollout step latency on the first recording."""
+    """Accuracy (batched over recordings) plus single-rollout step latency on the first recording.
+
+    Args:
+        model: as for :func:`predict_recordings`.
+        recordings: the test recordings.
+        steps: steps predicted per recording.
+
+    Returns:
+        :func:`metrics` plus ``step_ms_p50`` and ``step_ms_p99`` of one rollout's steps.
+    """
     out = metrics(predict_recordings(model, recordings, steps))
     timing = predict_recordings(model, recordings[:1], min(steps, 200), batched=False)[0].step_seconds
     out["step_ms_p50"] = float(np.median(timing) * 1e3)

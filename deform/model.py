@@ -43,6 +43,14 @@ MODEL_DIR = Path(__file__).resolve().parent / "models"
 
 
 def gripped_indices(n: int) -> list[int]:
+    """The vertices the grippers hold, given as inputs at every step (the paper's protocol).
+
+    Args:
+        n: vertices of the rod.
+
+    Returns:
+        ``[0, 1, n-2, n-1]``: the gripper's end vertex and its neighbour on each side.
+    """
     return [0, 1, n - 2, n - 1]
 
 
@@ -501,7 +509,15 @@ class DeformModel(nn.Module):
 
 def load_model(rod: str | Path, options: ModelOptions | None = None) -> DeformModel:
     """The trained model of a rod shipped in ``deform/models/<rod>.pt``, a checkpoint path, or
-    (when no model is shipped) the untrained model with the config's initial parameters."""
+    (when no model is shipped) the untrained model with the config's initial parameters.
+
+    Args:
+        rod: a shipped rod's name (``"DLO1"``), a rod YAML's name, or a ``.pt`` checkpoint.
+        options: run-time options replacing the stored ones (None: keep them).
+
+    Returns:
+        The :class:`DeformModel`, float32 parameters; states are float64.
+    """
     path = Path(rod)
     if path.suffix == ".pt":
         model = DeformModel.load(path)

@@ -94,9 +94,21 @@ def generate_recording(
     noise_m: float = 0.0,
     name: str | None = None,
 ) -> Recording:
-    """Simulate ``model`` (a :class:`deform.model.DeformModel`) under random gripper motion.
+    """Simulate ``model`` under random smooth gripper motion: a recording without a camera.
 
     The first ``warmup_s`` seconds (ends pulled together, rod settling) are dropped.
+
+    Args:
+        model: a :class:`deform.model.DeformModel` (its physics make the motion).
+        n_frames: frames kept, at the model's ``dt``.
+        seed: gripper motion and initial bow.
+        amplitude: size of the gripper motion [m].
+        warmup_s: settling time dropped from the start [s].
+        noise_m: standard deviation of Gaussian marker noise added [m].
+        name: the recording's name (default from the seed).
+
+    Returns:
+        A :class:`deform.io.Recording` with ``positions`` (n_frames, n, 3).
     """
     cfg = model.cfg
     warm = round(warmup_s / cfg.dt)

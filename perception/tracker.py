@@ -70,7 +70,15 @@ class Tracker:
         return self._observed.copy()
 
     def initialize_from_frames(self, x0: np.ndarray, x1: np.ndarray):
-        """State at ``x1`` from two consecutive full observations (the paper's protocol)."""
+        """State at ``x1`` from two consecutive full observations (the paper's protocol).
+
+        Args:
+            x0: (n, 3) vertices one step before ``x1`` [m].
+            x1: (n, 3) vertices now [m].
+
+        Returns:
+            ``(x, observed)``: x (n, 3) the estimate, observed (n,) bool, all False.
+        """
         x0 = torch.as_tensor(np.asarray(x0, dtype=np.float64)).unsqueeze(0)
         x1 = torch.as_tensor(np.asarray(x1, dtype=np.float64)).unsqueeze(0)
         with torch.no_grad():
@@ -81,9 +89,17 @@ class Tracker:
         return self.x, self.observed
 
     def initialize(self, grip: np.ndarray, cloud=None, camera: Camera | None = None):
-        """State from the gripper positions (4, 3) and optionally a first cloud (``xyz`` or ``(xyz, rgb)``):
-        a guess aligned with the visible rope, settled by the model with the grippers fixed, then
-        corrected by the same cloud."""
+        """State from the grippers and optionally a first cloud: a guess aligned with the visible
+        rope, settled by the model with the grippers fixed, then corrected by the same cloud.
+
+        Args:
+            grip: (4, 3) vertices 0, 1, n-2, n-1 held by the grippers [m], world frame.
+            cloud: camera-frame ``xyz`` ((H, W, 3) or (N, 3)) or ``(xyz, rgb)``, or None.
+            camera: the cloud's camera (default: the tracker's).
+
+        Returns:
+            ``(x, observed)``: x (n, 3) world-frame vertices, observed (n,) bool.
+        """
         grip = np.asarray(grip, dtype=np.float64).reshape(4, 3)
         if self.rest is None:
             # the marker spacing the model learnt from recordings; the end edges as the grippers hold them
@@ -117,7 +133,15 @@ class Tracker:
         return self.x, self.observed
 
     def step(self, grip_next: np.ndarray):
-        """Predict one model step (``model.dt``) with the grippers at ``grip_next`` (4, 3)."""
+        """Predict one model step (``model.dt``).
+
+        Args:
+            grip_next: (4, 3) gripped vertices at the new time [m], world frame.
+
+        Returns:
+            ``(x, observed)``: x (n, 3), observed (n,) bool (camera updates younger than
+            ``stale_after_s``). Never raises: a bad input keeps the last estimate.
+        """
         grip = self._valid_grip(grip_next)
         if grip is None:
             log.warning("no valid gripper input yet; nothing to predict")
@@ -140,7 +164,18 @@ class Tracker:
         return self.x, self.observed
 
     def correct(self, points_xyz: np.ndarray, rgb: np.ndarray | None = None, camera: Camera | None = None):
-        """Correct the estimate with a camera-frame cloud ((H, W, 3) or (N, 3)) and optional colours."""
+        """Correct the estimate's observed vertices from a cloud (occlusion-aware: filtered by the
+        prediction, depth-checked, DBSCAN groups, a GMM per group).
+
+        Args:
+            points_xyz: camera-frame points (H, W, 3) organised or (N, 3) [m], NaN where missing.
+            rgb: uint8 colours of the same leading shape, or None (depth-only segmentation).
+            camera: the cloud's camera (default: the tracker's).
+
+        Returns:
+            ``(x, observed)``: x (n, 3) world-frame vertices, observed (n,) bool. Never raises: a
+            bad cloud leaves the estimate open-loop.
+        """
         if self.state is None:
             log.warning("correct() before initialize(); ignored")
             return np.full((self.n, 3), 0.0), np.zeros(self.n, dtype=bool)

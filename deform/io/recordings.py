@@ -82,7 +82,19 @@ def _to_array(obj, path: Path) -> np.ndarray:
 
 
 def load_recording(path: str | Path, n_vertices: int | None = None) -> Recording:
-    """Load one DEFORM pickle safely and validate it."""
+    """Load one DEFORM pickle safely and validate it.
+
+    Args:
+        path: a ``.pkl`` of the DEFORM format: a list of (3, n) arrays, one per frame [m].
+        n_vertices: the marker count the caller expects (None: any).
+
+    Returns:
+        A :class:`Recording` with ``positions`` (T, n, 3) float64.
+
+    Raises:
+        RecordingError: missing file, a pickle holding anything but lists and numpy arrays,
+            wrong shapes, NaNs, or another marker count; the message names the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"{path}: no such file")
@@ -97,7 +109,18 @@ def load_recording(path: str | Path, n_vertices: int | None = None) -> Recording
 
 
 def load_recordings(directory: str | Path, n_vertices: int | None = None) -> list[Recording]:
-    """Every .pkl in a directory, sorted by name; all must have the same marker count."""
+    """Every .pkl in a directory, sorted by name (numerically: 2 before 10).
+
+    Args:
+        directory: a folder of DEFORM pickles.
+        n_vertices: the marker count every recording must have (None: the same in all).
+
+    Returns:
+        The recordings, each ``positions`` (T, n, 3).
+
+    Raises:
+        RecordingError: not a directory, no ``.pkl``, or any bad file (see :func:`load_recording`).
+    """
     directory = Path(directory)
     if not directory.is_dir():
         raise RecordingError(f"{directory}: not a directory")
@@ -112,7 +135,12 @@ def load_recordings(directory: str | Path, n_vertices: int | None = None) -> lis
 
 
 def save_recording(path: str | Path, positions: np.ndarray) -> None:
-    """Write (T, n, 3) positions in the DEFORM format (a list of (3, n) arrays)."""
+    """Write positions in the DEFORM format (a list of (3, n) arrays).
+
+    Args:
+        path: the ``.pkl`` to write.
+        positions: (T, n, 3) marker positions [m].
+    """
     positions = np.asarray(positions, dtype=np.float64)
     frames = [np.ascontiguousarray(f.T) for f in positions]
     Path(path).write_bytes(pickle.dumps(frames, protocol=4))

@@ -52,9 +52,21 @@ def render_recording(
 ) -> list[RenderedFrame]:
     """Render a trajectory ``positions`` (T, n, 3) (world, metres) at ``fps`` (or at given ``steps``).
 
-    ``config``: a :class:`RenderConfig`, a :class:`PerceptionConfig` or anything :func:`load_config` takes.
     With ``occlusion > 0`` an occluder hides about that fraction of the free rope between
     ``occlusion_start`` and ``occlusion_end`` (fractions of the recording).
+
+    Args:
+        positions: (T, n, 3) world-frame vertices [m], one per model step.
+        dt: seconds per model step.
+        fps: camera frame rate (ignored when ``steps`` is given).
+        config: a :class:`RenderConfig`, a :class:`PerceptionConfig` or anything :func:`load_config` takes.
+        camera: the camera (default: :func:`default_camera` looking at the motion).
+        seed: depth noise, dropouts and colour noise.
+        steps: the model steps to render (default every ``1 / fps`` seconds).
+
+    Returns:
+        One :class:`RenderedFrame` per rendered step: organised camera-frame points (H, W, 3) float32
+        with NaN where depth is missing, colours (H, W, 3) uint8, the camera and the true vertices.
     """
     if isinstance(config, RenderConfig):
         cfg = config
