@@ -27,6 +27,26 @@ TYPES = {
 }
 
 
+# what rosbag2 stores per channel: the QoS the publisher offered (here reliable, volatile, keep
+# last 10, no deadline or lifespan), so `ros2 bag play` republishes with the same QoS
+OFFERED_QOS = """- history: 1
+  depth: 10
+  reliability: 1
+  durability: 2
+  deadline:
+    sec: 9223372036
+    nsec: 854775807
+  lifespan:
+    sec: 9223372036
+    nsec: 854775807
+  liveliness: 1
+  liveliness_lease_duration:
+    sec: 9223372036
+    nsec: 854775807
+  avoid_ros_namespace_conventions: false
+"""
+
+
 @dataclass
 class Message:
     name: str  # input name: ee_poses, points, ...
@@ -55,7 +75,10 @@ class McapWriter:
                     name=typename, encoding="ros2msg", data=M.definition(typename).encode()
                 )
             self._channels[name] = self._w.register_channel(
-                topic=f"/{self.namespace}/{name}", message_encoding="cdr", schema_id=self._schemas[typename]
+                topic=f"/{self.namespace}/{name}",
+                message_encoding="cdr",
+                schema_id=self._schemas[typename],
+                metadata={"offered_qos_profiles": OFFERED_QOS},
             )
         return self._channels[name]
 
@@ -99,9 +122,10 @@ def record(
     namespace: str,
     path: str | Path,
     stop: threading.Event,
-    names=("ee_poses", "points", "camera_info", "camera_pose"),
+    names=("ee_poses", "points", "camera_info", "camera_pose", "vertices"),
 ) -> int:
-    """Write what arrives on the input keys until ``stop`` is set; returns the message count."""
+    """Write what arrives on the input keys and the service's vertices until ``stop`` is set (replay
+    reads back the inputs only); returns the message count."""
     w = McapWriter(path, namespace)
     count = [0]
 
