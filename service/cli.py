@@ -23,7 +23,8 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the estimation service")
     run.add_argument("--clock", choices=["wall", "message"])
     run.add_argument("--rod", help="rod config name or checkpoint")
-    run.add_argument("--rerun", choices=["off", "file", "viewer"])
+    run.add_argument("--rerun", choices=["off", "file", "viewer", "connect"])
+    run.add_argument("--rerun-url", help="viewer address for --rerun connect (rerun+http://HOST:9876/proxy)")
     run.add_argument("--rrd", help="output .rrd when --rerun file")
     run.add_argument("--perception", help="perception settings YAML (default: perception's defaults)")
     rec = sub.add_parser("record", help="record the input keys to an MCAP file (Ctrl-C to stop)")
@@ -67,6 +68,8 @@ def _config(args):
             rr["mode"] = args.rerun
         if getattr(args, "rrd", None):
             rr["path"] = args.rrd
+        if getattr(args, "rerun_url", None):
+            rr["url"] = args.rerun_url
         if rr:
             over["rerun"] = base.rerun.model_copy(update=rr).model_dump()
     return load_config(args.config, **over)

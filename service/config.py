@@ -90,8 +90,9 @@ class ZenohSettings(_Strict):
 
 
 class RerunSettings(_Strict):
-    mode: Literal["off", "file", "viewer"] = "off"
+    mode: Literal["off", "file", "viewer", "connect"] = "off"
     path: str = "deform_service.rrd"
+    url: str = "rerun+http://127.0.0.1:9876/proxy"  # mode connect: a viewer elsewhere
     cloud_every: int = Field(default=1, ge=1)
 
     @field_validator("mode", mode="before")

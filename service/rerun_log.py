@@ -17,6 +17,25 @@ log = logging.getLogger("deform.service")
 NS = 1_000_000_000
 
 
+def blueprint():
+    """The layout a user opens to: the rope in 3D beside the loop's timings, the observed fraction and
+    the mode changes."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="rope", origin="/world"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="timing [ms]", origin="/timing"),
+                rrb.TimeSeriesView(name="observed fraction", origin="/rope"),
+                rrb.TextLogView(name="mode", origin="/status"),
+            ),
+            column_shares=[2, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
 class RerunLogger(threading.Thread):
     def __init__(self, settings: RerunSettings, namespace: str, stats=None):
         super().__init__(name=f"rerun[{namespace}]", daemon=True)
@@ -27,9 +46,11 @@ class RerunLogger(threading.Thread):
         self.stats = stats
         self.rec = rr.RecordingStream("deform_service_" + namespace.replace("/", "_"))
         if settings.mode == "file":
-            self.rec.save(settings.path)
+            self.rec.save(settings.path, default_blueprint=blueprint())
+        elif settings.mode == "connect":  # a viewer on another machine: `rerun --serve` or the app
+            self.rec.connect_grpc(settings.url, default_blueprint=blueprint())
         else:
-            self.rec.spawn()
+            self.rec.spawn(default_blueprint=blueprint())
         self.queue: queue.Queue = queue.Queue(maxsize=256)
         self._clouds = 0
         self._last_mode = None
