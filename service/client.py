@@ -43,7 +43,8 @@ class BadRequest(ServiceError):
 
 
 class NotReady(ServiceError):
-    """The service has no estimate yet (no gripper poses received)."""
+    """No estimate yet (``no_estimate``: no gripper poses received), or predict is still being
+    prepared at start-up (``not_ready``; ``status()["not_ready"]`` lists what is pending)."""
 
 
 class Busy(ServiceError):
@@ -58,7 +59,7 @@ class NoReply(ServiceError):
     """Nothing answered within the timeout: no service under this namespace, or it is not reachable."""
 
 
-_BY_REASON = {"no_estimate": NotReady, "busy": Busy, "internal": ServiceFailed}
+_BY_REASON = {"no_estimate": NotReady, "not_ready": NotReady, "busy": Busy, "internal": ServiceFailed}
 
 
 def error_from_reply(payload: bytes) -> ServiceError:

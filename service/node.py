@@ -407,9 +407,19 @@ class Service:
         status = self.est.status()
         status["predict_ready"] = self.predict_ready
         status["step_ready"] = self.step_ready
+        status["not_ready"] = [
+            k for k, ok in (("predict", self.predict_ready), ("step", self.step_ready)) if not ok
+        ]
         query.reply(self.cfg.key("status"), json.dumps(status).encode())
 
     def _on_predict_query(self, query) -> None:
+        if not self.predict_ready:  # warming up: say so now instead of answering after the compile
+            self.stats.reject("predict", "not_ready", "predict is being prepared")
+            detail = (
+                "predict is being prepared (compiling); status.predict_ready turns true when it can answer"
+            )
+            query.reply_err(json.dumps({"error": "not_ready", "detail": detail}).encode())
+            return
         try:
             self.predict_queue.put_nowait(query)
         except queue.Full:

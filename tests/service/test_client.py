@@ -36,6 +36,11 @@ def test_round_trip_vertices_stream_predict_status(model, endpoint):
     )
     with Service(cfg, model=model), ShapeClient("deform/client", connect=[endpoint], timeout_s=5.0) as rope:
         assert rope.status()["mode"] == "waiting"
+        for _ in range(200):  # predict answers "not ready" at once until its warm-up is done
+            if rope.status()["predict_ready"]:
+                break
+            threading.Event().wait(0.05)
+        assert rope.status()["not_ready"] in ([], ["step"])
         with pytest.raises(NotReady):
             rope.vertices()
         poses = rope.session.declare_publisher("deform/client/ee_poses")
@@ -90,3 +95,20 @@ def test_no_service_is_a_typed_no_reply(endpoint):
         with pytest.raises(NoReply) as err:
             rope.status()
         assert isinstance(err.value, ServiceError)
+
+
+def test_predict_during_warm_up_is_refused_at_once(model):
+    """Until the predict worker is ready the query is answered "not ready" at once, not after the
+    compile; the client raises NotReady."""
+    cfg = make_config(clock="message", workers={"processes": False, "compile_predict": False})
+    svc = Service(cfg, model=model)  # not started: predict is not ready
+    replies = []
+    query = type("Query", (), {"reply_err": lambda self, payload: replies.append(payload)})()
+    assert not svc.predict_ready
+    svc._on_predict_query(query)
+    err = error_from_reply(replies[0])
+    assert isinstance(err, NotReady) and err.reason == "not_ready"
+    assert svc.predict_queue.empty()
+    status = svc.est.status()
+    assert status["rejected"]["predict:not_ready"] == 1
+    svc.stop()
