@@ -53,6 +53,10 @@ class Timeouts(_Strict):
     cloud_s: float = Field(default=0.5, gt=0)
     stale_s: float = Field(default=1.0, gt=0)
     reorder_s: float = Field(default=1.0, gt=0)  # message clock: how far clouds may lag poses in transit
+    # message clock, a replay in send order: how long a missing sample is waited for before what
+    # follows it is processed (it was lost). Long: on a loaded machine a large cloud can take seconds
+    # to arrive, and giving up early made the replay's result depend on the machine's load
+    gap_s: float = Field(default=20.0, gt=0)
 
 
 class Limits(_Strict):

@@ -325,7 +325,7 @@ class Service:
             "points": est.on_cloud_sync,
         }
         window = int(self.cfg.timeouts.reorder_s * 1e9)
-        order = SequenceBuffer(self.cfg.timeouts.reorder_s)
+        order = SequenceBuffer(self.cfg.timeouts.gap_s)
         poses: list = []
         last_pose = None
         last_message = time.perf_counter()
@@ -343,9 +343,11 @@ class Service:
                 ready = order.expire(time.perf_counter())
                 # idle for as long as a cloud may lag the poses: nothing is in transit any more
                 # (a shorter wait made replays on a loaded machine depend on scheduling); a replay in
-                # send order marks its last sample, so its poses wait ten times longer (a sender
-                # that died) and a pause of the sender does not tick a pose before its cloud
-                patience = self.cfg.timeouts.reorder_s * (10 if poses and poses[-1][2] else 1)
+                # send order marks its last sample, so its poses wait as long as a missing sample
+                # (gap_s: a sender that died) and a pause of the sender does not tick a pose before
+                # its cloud
+                ordered = poses and poses[-1][2]
+                patience = self.cfg.timeouts.gap_s if ordered else self.cfg.timeouts.reorder_s
                 if not ready and not order.holding() and time.perf_counter() - last_message >= patience:
                     self._advance(poses, flush=True)
             for name, raw, ordered, last in ready:
