@@ -111,6 +111,8 @@ def test_replay_is_deterministic_and_tracks(sim_positions, sim_stream):
     ]
     a, b = runs
     assert a["frames"] == len(sim_positions)
+    for run in runs:  # a sample given up on in transit would break the send order (service/ordering.py)
+        assert run["status"]["counts"].get("sequence_gaps", 0) == 0, run["status"]["counts"]
     assert np.array_equal(a["estimates"], b["estimates"])  # bit for bit
     assert a["status"]["counts"]["clouds_fused"] == sum(m.name == "points" for m in stream)
     assert a["status"]["rejected"] == {}
