@@ -44,6 +44,7 @@ KNOWN = {
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
     "diagnose.json": ("deform diagnose: planted-effect benchmark", "python benchmarks/diagnose_planted.py"),
+    "real_terms.json": ("Named physics trained into DEFORM, real rods", "python benchmarks/real_terms.py"),
 }
 
 
@@ -396,7 +397,11 @@ def render_diagnose(d: dict) -> list[str]:
     if d.get("budget"):
         out += [f"Budget: {d['budget']}.", ""]
     summary = d.get("summary", {})
-    for rule, title in (("calibrated", "calibrated rule"), ("as_run", "rule the tool ran with")):
+    for rule, title in (
+        ("tool", "rule of the tool"),
+        ("calibrated", "calibrated rule"),
+        ("as_run", "rule the rows were run with"),
+    ):
         s = summary.get(rule)
         if not isinstance(s, dict):
             continue
@@ -472,6 +477,39 @@ def render_generic(d) -> list[str]:
     )
 
 
+def render_real_terms(d: dict) -> list[str]:
+    b = d.get("budget", {})
+    out = [
+        f"Fine-tuning from the shipped model, {b.get('iterations')} iterations of {b.get('batch')} windows x "
+        f"{b.get('horizon')} steps, with and without each term the discrepancy tool named; L1 [cm], "
+        "the paper's metric (500 steps).",
+        "",
+    ]
+    rows = []
+    for r in d.get("rows", []):
+
+        def cm(arm, key, r=r):
+            return fmt(get(r, arm, key), 3, 100.0)
+
+        rows.append(
+            [
+                r.get("rod"),
+                r.get("term") or "none",
+                r.get("kind", "-"),
+                cm("shipped", "val_l1_m"),
+                cm("with", "val_l1_m"),
+                cm("without", "val_l1_m"),
+                cm("shipped", "eval_l1_m"),
+                cm("with", "eval_l1_m"),
+                cm("without", "eval_l1_m"),
+                r.get("validation_picks", "shipped"),
+            ]
+        )
+    header = ["rod", "term", "in DEFORM", "val shipped", "val with", "val without", "test shipped"]
+    header += ["test with", "test without", "validation picks"]
+    return out + table(header, rows)
+
+
 RENDER = {
     "accuracy.json": render_accuracy,
     "speed.json": render_speed,
@@ -481,6 +519,7 @@ RENDER = {
     "baselines.json": render_baselines,
     "ablations.json": render_ablations,
     "diagnose.json": render_diagnose,
+    "real_terms.json": render_real_terms,
 }
 
 
