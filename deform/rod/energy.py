@@ -10,8 +10,9 @@ With reference directors ``d1, d2 = t x d1`` and material angles ``theta``, the 
 
 ``L_i`` is the rest Voronoi length (twice), ``beta`` the bending stiffness EI [N m^2], ``gamma`` the
 twisting stiffness GJ [N m^2], ``wbar`` the rest (natural) curvature and ``m_ref`` the reference
-twist. Forces are ``-dE/dx`` at the energy-minimising ``theta`` (envelope theorem), taken by autograd
-so that they are the exact gradient by construction.
+twist. Forces are ``-dE/dx`` at the energy-minimising ``theta`` (envelope theorem), in closed form in
+:mod:`deform.rod.forces`; this energy is their reference (tests compare them with its finite
+differences and its autograd gradient).
 """
 
 from __future__ import annotations
@@ -40,8 +41,16 @@ class RodGeometry:
 def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor | None = None) -> RodGeometry:
     """Geometry at ``x`` with last step's directors carried to the current tangents.
 
-    ``t_prev=None``: the directors already belong to ``x``; they are still differentiated as
-    carried by parallel transport (they move with ``x``) when ``x`` requires grad.
+    ``t_prev=None``: the directors already belong to ``x``; they are still differentiated as carried
+    by parallel transport (they move with ``x``) when ``x`` requires grad.
+
+    Args:
+        x: (..., n, 3) vertices.
+        d1_prev: (..., m, 3) reference directors of the last step (or of ``x``).
+        t_prev: (..., m, 3) unit tangents of the last step, or None.
+
+    Returns:
+        A :class:`RodGeometry` (tangents, directors, curvature binormals, reference twist).
     """
     e = G.edges(x)
     t = G.normalize(e)
@@ -56,7 +65,14 @@ def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor | None = None) -> Ro
 
 
 def curvature_projections(geo: RodGeometry) -> tuple[Tensor, Tensor]:
-    """``(A, B)`` of shape (..., n-2, 2): ``kb_i . d1_j`` and ``kb_i . d2_j`` for j = left, right edge."""
+    """The curvature binormal projected on the reference directors of both adjacent edges.
+
+    Args:
+        geo: from :func:`rod_geometry`.
+
+    Returns:
+        ``(A, B)``, each (..., n-2, 2): ``kb_i . d1_j`` and ``kb_i . d2_j`` for j = left, right edge.
+    """
     kb = geo.kb
     a = torch.stack([G.dot(kb, geo.d1[..., :-1, :]), G.dot(kb, geo.d1[..., 1:, :])], dim=-1)
     b = torch.stack([G.dot(kb, geo.d2[..., :-1, :]), G.dot(kb, geo.d2[..., 1:, :])], dim=-1)
@@ -64,33 +80,92 @@ def curvature_projections(geo: RodGeometry) -> tuple[Tensor, Tensor]:
 
 
 def material_curvature(a: Tensor, b: Tensor, theta_lr: Tensor) -> tuple[Tensor, Tensor]:
-    """``w1 = kb.m2 = -sin A + cos B`` and ``w2 = -kb.m1 = -(cos A + sin B)`` for each (vertex, side)."""
+    """``w1 = kb.m2 = -sin A + cos B`` and ``w2 = -kb.m1 = -(cos A + sin B)`` for each (vertex, side).
+
+    Args:
+        a: (..., n-2, 2) ``kb . d1`` per vertex and side.
+        b: (..., n-2, 2) ``kb . d2``.
+        theta_lr: (..., n-2, 2) material angles of the left and right edge (:func:`left_right`).
+
+    Returns:
+        ``(w1, w2)``, each (..., n-2, 2).
+    """
     c, s = torch.cos(theta_lr), torch.sin(theta_lr)
     return -s * a + c * b, -(c * a + s * b)
 
 
 def left_right(theta: Tensor) -> Tensor:
-    """(..., m) edge angles -> (..., n-2, 2) angles of the left and right edge of each interior vertex."""
+    """The angles of the left and right edge of each interior vertex.
+
+    Args:
+        theta: (..., m) edge angles [rad].
+
+    Returns:
+        (..., n-2, 2).
+    """
     return torch.stack([theta[..., :-1], theta[..., 1:]], dim=-1)
 
 
 def bending_energy(
     a: Tensor, b: Tensor, theta: Tensor, beta: Tensor, rest_vor: Tensor, wbar: Tensor
 ) -> Tensor:
+    """``E_bend = sum_i beta_i / (2 L_i) sum_j |w_ij - wbar_ij|^2`` (module docstring).
+
+    Args:
+        a: (..., n-2, 2) ``kb . d1`` from :func:`curvature_projections`.
+        b: (..., n-2, 2) ``kb . d2``.
+        theta: (..., m) material angles [rad].
+        beta: (n-2,) bending stiffness EI [N m^2].
+        rest_vor: (..., n-2) rest Voronoi lengths (twice) [m].
+        wbar: (n-2, 2, 2) rest curvature (vertex, side, component).
+
+    Returns:
+        (...) energy [J].
+    """
     w1, w2 = material_curvature(a, b, left_right(theta))
     sq = (w1 - wbar[..., 0]) ** 2 + (w2 - wbar[..., 1]) ** 2  # (..., n-2, 2)
     return (beta / (2.0 * rest_vor) * sq.sum(-1)).sum(-1)
 
 
 def twist_of(theta: Tensor, m_ref: Tensor) -> Tensor:
+    """Twist at each interior vertex: ``theta_i - theta_{i-1} + m_ref_i``.
+
+    Args:
+        theta: (..., m) material angles [rad].
+        m_ref: (..., n-2) reference twist [rad].
+
+    Returns:
+        (..., n-2) [rad].
+    """
     return theta[..., 1:] - theta[..., :-1] + m_ref
 
 
 def twisting_energy(theta: Tensor, m_ref: Tensor, gamma: Tensor, rest_vor: Tensor) -> Tensor:
+    """``E_twist = sum_i gamma_i / L_i * twist_i^2`` (module docstring).
+
+    Args:
+        theta: (..., m) material angles [rad].
+        m_ref: (..., n-2) reference twist [rad].
+        gamma: (n-2,) twisting stiffness GJ [N m^2].
+        rest_vor: (..., n-2) rest Voronoi lengths (twice) [m].
+
+    Returns:
+        (...) energy [J].
+    """
     return (gamma / rest_vor * twist_of(theta, m_ref) ** 2).sum(-1)
 
 
 def gravity_energy(x: Tensor, mass: Tensor, g: float = GRAVITY) -> Tensor:
+    """``E_grav = sum_v mass_v g z_v``.
+
+    Args:
+        x: (..., n, 3) vertices [m], z up.
+        mass: (..., n) vertex masses [kg].
+        g: gravitational acceleration [m/s^2].
+
+    Returns:
+        (...) energy [J].
+    """
     return (mass * g * x[..., 2]).sum(-1)
 
 
@@ -107,7 +182,19 @@ class ElasticParams:
 def total_energy(
     x: Tensor, theta: Tensor, d1_prev: Tensor, t_prev: Tensor, p: ElasticParams, mass: Tensor
 ) -> Tensor:
-    """Total potential energy (..,) at positions ``x`` and edge angles ``theta`` (ends included)."""
+    """Total potential energy at positions ``x`` and edge angles ``theta`` (ends included).
+
+    Args:
+        x: (..., n, 3) vertices [m].
+        theta: (..., m) material angles [rad].
+        d1_prev: (..., m, 3) reference directors of the last step.
+        t_prev: (..., m, 3) unit tangents of the last step.
+        p: the rod's :class:`ElasticParams`.
+        mass: (..., n) vertex masses [kg].
+
+    Returns:
+        (...) energy [J].
+    """
     geo = rod_geometry(x, d1_prev, t_prev)
     a, b = curvature_projections(geo)
     return (

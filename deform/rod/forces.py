@@ -25,7 +25,14 @@ from deform.rod.energy import GRAVITY, ElasticParams, RodGeometry, left_right, m
 
 
 def edge_gradient_to_vertices(g_e: Tensor) -> Tensor:
-    """(..., m, 3) gradient w.r.t. edges -> (..., n, 3) gradient w.r.t. vertices."""
+    """Chain rule from edges ``e_j = x_{j+1} - x_j`` to vertices.
+
+    Args:
+        g_e: (..., m, 3) gradient with respect to the edges.
+
+    Returns:
+        (..., n, 3) gradient with respect to the vertices.
+    """
     zero = torch.zeros_like(g_e[..., :1, :])
     return torch.cat([zero, g_e], dim=-2) - torch.cat([g_e, zero], dim=-2)
 
@@ -40,7 +47,21 @@ def rod_forces(
     mass: Tensor,
     g: float = GRAVITY,
 ) -> Tensor:
-    """Forces (..., n, 3): bending, twisting and gravity, at angles ``theta`` (..., m)."""
+    """Forces ``-dE/dx``: bending, twisting and gravity, at the material angles ``theta``, in closed form.
+
+    Args:
+        x: (..., n, 3) vertices [m].
+        geo: :func:`deform.rod.energy.rod_geometry` at ``x``.
+        a: (..., n-2, 2) ``kb . d1`` from :func:`deform.rod.energy.curvature_projections`.
+        b: (..., n-2, 2) ``kb . d2``.
+        theta: (..., m) energy-minimising material angles [rad].
+        p: the rod's :class:`deform.rod.energy.ElasticParams`.
+        mass: (..., n) vertex masses [kg].
+        g: gravitational acceleration [m/s^2].
+
+    Returns:
+        (..., n, 3) forces [N].
+    """
     e = G.edges(x)
     e0, e1 = e[..., :-1, :], e[..., 1:, :]
     n0, n1 = e0.norm(dim=-1, keepdim=True), e1.norm(dim=-1, keepdim=True)
