@@ -33,7 +33,17 @@ def max_relative_error(
 ) -> Tensor:
     """Largest ``| |e_j| / L_j - 1 |`` over edges that can move (an edge between two fixed vertices,
     such as the one between the two markers of a gripper, is whatever the inputs make it); over
-    everything, or per rod (shape ``x.shape[:-2]``)."""
+    everything, or per rod (shape ``x.shape[:-2]``).
+
+    Args:
+        x: (..., n, 3) vertices.
+        rest: (..., m) rest lengths.
+        inv_mass: (..., n) inverse masses, 0 for vertices that cannot move.
+        per_rod: one value per rod instead of one for everything.
+
+    Returns:
+        A scalar tensor, or (...) per rod.
+    """
     err = ((x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1) / rest - 1.0).abs()
     if inv_mass is not None:
         err = err * ((inv_mass[..., 1:] + inv_mass[..., :-1]) > 0)
@@ -41,7 +51,17 @@ def max_relative_error(
 
 
 def apply_pair_corrections(x: Tensor, inv_mass: Tensor, lam: Tensor, unit: Tensor) -> Tensor:
-    """``x_j += w_j l_j u_j``, ``x_{j+1} -= w_{j+1} l_j u_j`` for every edge ``j`` at once."""
+    """``x_j += w_j l_j u_j``, ``x_{j+1} -= w_{j+1} l_j u_j`` for every edge ``j`` at once.
+
+    Args:
+        x: (..., n, 3) vertices.
+        inv_mass: (..., n) weights ``w`` (inverse masses).
+        lam: (..., m) correction length per edge [m].
+        unit: (..., m, 3) unit edge directions.
+
+    Returns:
+        (..., n, 3) corrected vertices.
+    """
     push = lam.unsqueeze(-1) * unit  # (..., m, 3)
     zero = torch.zeros_like(push[..., :1, :])
     delta = torch.cat([push, zero], dim=-2) - torch.cat([zero, push], dim=-2)
@@ -99,6 +119,19 @@ def enforce_inextensibility(
     in one graph); the checked loop then continues only if a rod is still above ``tol``.
     ``report``: when given, receives ``length_error``, each rod's largest relative edge error after
     the branch-free sweeps (what a convergence check would measure, already computed).
+
+    Args:
+        x: (..., n, 3) vertices after the unconstrained step.
+        inv_mass: (..., n) inverse masses, 0 for vertices that must not move.
+        rest: (..., m) rest lengths [m].
+        tol: relative edge-length error to reach.
+        max_sweeps: sweeps at most in the checked loop.
+        method: :class:`PBDMethod` (or its string).
+        branch_free: sweeps without host synchronisation first.
+        report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
+
+    Returns:
+        (..., n, 3) projected vertices.
     """
     sweep = SWEEPS[method]  # a PBDMethod or its string: str enums hash and compare as their values
     if branch_free:
@@ -132,5 +165,12 @@ def _sweep_and_measure(
 
 
 def unweighted_inv_mass(inv_mass: Tensor) -> Tensor:
-    """The 'original inextensibility' of the ablation: equal weights for every free vertex."""
+    """The 'original inextensibility' of the ablation: equal weights for every free vertex.
+
+    Args:
+        inv_mass: (..., n) inverse masses, 0 where fixed.
+
+    Returns:
+        (..., n) 1 for every free vertex, 0 where fixed.
+    """
     return (inv_mass > 0).to(inv_mass.dtype)

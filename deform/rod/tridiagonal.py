@@ -42,7 +42,16 @@ def thomas(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
-    """Solve and report positive definiteness per system: ``(x, ok)``; ``x`` is meaningless where not ok."""
+    """Solve and report positive definiteness per system: ``(x, ok)``; ``x`` is meaningless where not ok.
+
+    Args:
+        diag: (..., k) diagonal.
+        off: (..., k-1) off-diagonal (symmetric).
+        rhs: (..., k) right-hand side.
+
+    Returns:
+        ``(x, ok)``: x (..., k), ok (...) bool.
+    """
     if diag.shape[-1] <= DENSE_MAX and not torch.compiler.is_compiling():
         chol, info = torch.linalg.cholesky_ex(to_dense(diag, off))
         return torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1), info == 0
@@ -50,7 +59,16 @@ def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor
 
 
 def solve_tridiagonal(diag: Tensor, off: Tensor, rhs: Tensor) -> Tensor:
-    """Solve a system known to be non-singular (used for the implicit gradient)."""
+    """Solve a system known to be non-singular (used for the implicit gradient).
+
+    Args:
+        diag: (..., k) diagonal.
+        off: (..., k-1) off-diagonal (symmetric).
+        rhs: (..., k) right-hand side.
+
+    Returns:
+        (..., k) the solution.
+    """
     if diag.shape[-1] <= DENSE_MAX and not torch.compiler.is_compiling():
         return torch.linalg.solve(to_dense(diag, off), rhs.unsqueeze(-1)).squeeze(-1)
     return thomas(diag, off, rhs)[0]

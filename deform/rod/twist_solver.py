@@ -36,7 +36,21 @@ def gradient_and_hessian(
     rest_vor: Tensor,
     wbar: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Gradient (..., k), Hessian diagonal (..., k) and off-diagonal (..., k-1) over the free edges."""
+    """Gradient (..., k), Hessian diagonal (..., k) and off-diagonal (..., k-1) over the free edges.
+
+    Args:
+        theta: (..., m) material angles, ends included [rad].
+        a: (..., n-2, 2) ``kb . d1`` (:func:`deform.rod.energy.curvature_projections`).
+        b: (..., n-2, 2) ``kb . d2``.
+        m_ref: (..., n-2) reference twist [rad].
+        beta: (n-2,) bending stiffness [N m^2].
+        gamma: (n-2,) twisting stiffness [N m^2].
+        rest_vor: (..., n-2) rest Voronoi lengths (twice) [m].
+        wbar: (n-2, 2, 2) rest curvature.
+
+    Returns:
+        ``(g, diag, off)`` of the energy over the k = m - 2 free angles.
+    """
     w1, w2 = material_curvature(a, b, left_right(theta))
     scale = (beta / rest_vor).unsqueeze(-1)
     g_vs = scale * (wbar[..., 1] * w1 - wbar[..., 0] * w2)  # (..., n-2, 2)
@@ -51,7 +65,15 @@ def gradient_and_hessian(
 
 
 def twist_only_minimiser(m_ref: Tensor, theta_ends: Tensor) -> Tensor:
-    """Free angles that spread the total twist evenly (the minimiser without rest curvature, equal weights)."""
+    """Free angles that spread the total twist evenly (the minimiser without rest curvature, equal weights).
+
+    Args:
+        m_ref: (..., n-2) reference twist [rad].
+        theta_ends: (..., 2) angles of the first and last edge [rad].
+
+    Returns:
+        (..., m-2) free angles.
+    """
     k = m_ref.shape[-1] - 1
     frac = torch.linspace(0, 1, k + 2, dtype=m_ref.dtype, device=m_ref.device)[1:-1]
     free = theta_ends[..., :1] + frac * (theta_ends[..., 1:] - theta_ends[..., :1])
@@ -93,6 +115,25 @@ def newton_theta(
     then goes on only if a rod is still unconverged. Per rod the result is that of the checked loop.
     ``report``: when given, receives ``twist_unconverged`` (per rod, after the branch-free
     iterations, by the same stopping rule), so compiled code checks convergence for free.
+
+    Args:
+        a: (..., n-2, 2) and the other energy inputs as in :func:`gradient_and_hessian`.
+        b: (..., n-2, 2).
+        m_ref: (..., n-2).
+        theta_ends: (..., 2) the end edges' angles, held (from the grippers).
+        beta: (n-2,).
+        gamma: (n-2,).
+        rest_vor: (..., n-2).
+        wbar: (n-2, 2, 2).
+        theta_init: (..., m) warm start (last step's angles), or None.
+        tol: target error [rad].
+        max_iter: iterations at most.
+        max_step: largest step [rad].
+        branch_free: iterations without host synchronisation first.
+        report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
+
+    Returns:
+        (..., m) angles [rad].
     """
     with torch.no_grad():
         a, b, m_ref, theta_ends = a.detach(), b.detach(), m_ref.detach(), theta_ends.detach()
@@ -164,6 +205,22 @@ def attach_implicit_gradient(
 
     Rods whose solve did not reach a minimum (Newton step above ``converged_tol`` rad or Hessian
     not positive definite) keep ``theta*`` with no gradient rather than a meaningless one.
+
+    Args:
+        theta_star: (..., m) converged angles [rad].
+        a: (..., n-2, 2) and the other energy inputs, as in :func:`gradient_and_hessian`; the
+            gradient flows to those that require it.
+        b: (..., n-2, 2).
+        m_ref: (..., n-2).
+        theta_ends: (..., 2).
+        beta: (n-2,).
+        gamma: (n-2,).
+        rest_vor: (..., n-2).
+        wbar: (n-2, 2, 2).
+        converged_tol: largest Newton step [rad] that counts as converged.
+
+    Returns:
+        (..., m) ``theta*`` carrying the implicit gradient.
     """
     theta0 = _with_free(theta_ends, theta_star.detach()[..., 1:-1])
     grad, diag, off = gradient_and_hessian(theta0, a, b, m_ref, beta, gamma, rest_vor, wbar)
@@ -194,7 +251,26 @@ def solve_theta(
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
 ) -> Tensor:
-    """Fast batched solver; differentiable through the implicit function theorem when needed."""
+    """Fast batched solver; differentiable through the implicit function theorem when needed.
+
+    Args:
+        a: (..., n-2, 2) and the rest as in :func:`newton_theta`.
+        b: (..., n-2, 2).
+        m_ref: (..., n-2).
+        theta_ends: (..., 2).
+        beta: (n-2,).
+        gamma: (n-2,).
+        rest_vor: (..., n-2).
+        wbar: (n-2, 2, 2).
+        theta_init: (..., m) warm start, or None.
+        tol: target error [rad].
+        max_iter: iterations at most.
+        branch_free: iterations without host synchronisation first.
+        report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
+
+    Returns:
+        (..., m) energy-minimising angles [rad], differentiable when an input requires grad.
+    """
     theta_star = newton_theta(
         a,
         b,

@@ -39,7 +39,25 @@ def theseus_theta(
     tol: float = 1e-20,
     backward_mode: str = "implicit",
 ) -> Tensor:
-    """Same contract as :func:`deform.rod.twist_solver.solve_theta` for a batch (B, ...)."""
+    """Same contract as :func:`deform.rod.twist_solver.solve_theta` for a batch (B, ...).
+
+    Args:
+        a: (B, n-2, 2) and the other energy inputs as in :func:`deform.rod.twist_solver.newton_theta`.
+        b: (B, n-2, 2).
+        m_ref: (B, n-2).
+        theta_ends: (B, 2).
+        beta: (n-2,).
+        gamma: (n-2,).
+        rest_vor: (B, n-2).
+        wbar: (n-2, 2, 2).
+        theta_init: (B, m) warm start, or None.
+        max_iterations: Gauss-Newton iterations at most.
+        tol: absolute error tolerance of the objective.
+        backward_mode: Theseus's backward mode (``"implicit"`` by default).
+
+    Returns:
+        (B, m) angles [rad].
+    """
     import theseus as th
 
     batch = a.shape[0]
