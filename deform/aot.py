@@ -39,13 +39,27 @@ AOT_OPTIONS = {k: v for k, v in COMPILE_OPTIONS.items() if k != "cpp_wrapper"}
 
 
 def cache_dir() -> Path:
-    """Where compiled packages are kept: ``aot`` in ``$DEFORM_CACHE`` or ``~/.cache/deform``."""
+    """Where compiled packages are kept: ``aot`` in ``$DEFORM_CACHE`` or ``~/.cache/deform``.
+
+    Returns:
+        The directory (not created here).
+    """
     return Path(os.environ.get("DEFORM_CACHE") or Path.home() / ".cache" / "deform") / "aot"
 
 
 def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype) -> str:
     """Hash of everything the compiled code depends on: the model's values and configuration, the
-    step's settings, the source of ``deform`` and the torch build and CPU."""
+    step's settings, the source of ``deform`` and the torch build and CPU.
+
+    Args:
+        model: the model whose step is compiled.
+        branch_free: (twist iterations, projection sweeps) without host synchronisation.
+        batch: rods per step (the bucket).
+        dtype: the state's dtype.
+
+    Returns:
+        A hex digest naming the package file.
+    """
     h = hashlib.sha256()
     for part in (
         torch.__version__,

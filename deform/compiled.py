@@ -37,7 +37,14 @@ LOOP_BRANCH_FREE = (12, 6)
 
 
 def bucket_size(batch: int) -> int:
-    """Smallest bucket that holds ``batch`` rods (batches above the largest bucket are not padded)."""
+    """Smallest bucket that holds ``batch`` rods (batches above the largest bucket are not padded).
+
+    Args:
+        batch: rods to step.
+
+    Returns:
+        The bucket (a compiled batch size) to pad to, or ``batch`` above the largest.
+    """
     for b in BUCKETS:
         if batch <= b:
             return b
@@ -256,7 +263,16 @@ class RolloutStep:
 
 
 def rollout(step: RolloutStep | CompiledStep | DeformModel, state: RodState, grips: Tensor) -> Tensor:
-    """Open-loop positions (B, T, n, 3) for gripper inputs (B, T, 4, 3), without gradients."""
+    """Open-loop positions (B, T, n, 3) for gripper inputs (B, T, 4, 3), without gradients.
+
+    Args:
+        step: a :class:`RolloutStep`, a :class:`CompiledStep` or the model itself.
+        state: the :class:`deform.model.RodState` of B rods to start from.
+        grips: (B, T, 4, 3) gripped vertices per step [m].
+
+    Returns:
+        (B, T, n, 3) positions [m].
+    """
     if isinstance(step, RolloutStep):
         return step.rollout(state, grips)
     fn = step if isinstance(step, CompiledStep) else step.step

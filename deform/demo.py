@@ -14,6 +14,15 @@ from deform.synthetic import generate_recording
 
 
 def main(rod: str = "DLO1") -> int:
+    """The model alone: open-loop prediction of three recordings (eval, or simulated without the
+    dataset), accuracy and step time printed.
+
+    Args:
+        rod: a shipped rod.
+
+    Returns:
+        The exit code (0).
+    """
     torch.set_num_threads(1)
     model = load_model(rod)
     root = find_data_root()

@@ -29,7 +29,15 @@ class RolloutResult:
 
 def batches_by_horizon(recordings: list[Recording], steps: int | None = 500) -> dict[int, list[int]]:
     """Indices of the recordings grouped by how many steps each is predicted over (``steps``, or all
-    its frames after the first two when None or shorter): one batched rollout per group."""
+    its frames after the first two when None or shorter): one batched rollout per group.
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+        steps: steps per recording, or None for all.
+
+    Returns:
+        ``{steps: [recording indices]}``.
+    """
     groups: dict[int, list[int]] = {}
     for i, r in enumerate(recordings):
         groups.setdefault(r.n_frames - 2 if steps is None else min(steps, r.n_frames - 2), []).append(i)

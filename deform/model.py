@@ -64,7 +64,15 @@ def overstretched(grip: Tensor, rest: Tensor) -> Tensor:
     """True where the grippers hold the rod farther apart than it is long (vertices 1 and n-2 more
     than the free chain's rest length apart). No shape then meets the edge lengths, and the
     projection cannot converge. ``grip`` (..., 4, 3) as ``DeformModel.step`` takes it, ``rest``
-    (..., n-1), broadcast against each other."""
+    (..., n-1), broadcast against each other.
+
+    Args:
+        grip: (..., 4, 3) gripped vertices 0, 1, n-2, n-1 [m].
+        rest: (..., n-1) rest lengths [m].
+
+    Returns:
+        (...) bool.
+    """
     return _reach_ratio(grip, rest) > 1.0
 
 
@@ -75,7 +83,16 @@ def rest_within_reach(rest: Tensor, grip: Tensor, slack: float = 1e-3) -> Tensor
     apart than it is long the projection has no solution, and its Newton-like sweeps (singular
     system for a straight chain) fling the free vertices about at metres per second; stretched, the
     rod lies straight between the grippers. A model change only where no shape was valid: the
-    recordings never come within 1 % of it."""
+    recordings never come within 1 % of it.
+
+    Args:
+        rest: (..., n-1) rest lengths [m].
+        grip: (..., 4, 3) gripped vertices [m].
+        slack: relative extra length over what reaching takes.
+
+    Returns:
+        (..., n-1) rest lengths to project to.
+    """
     scale = (_reach_ratio(grip, rest) * (1.0 + slack)).clamp_min(1.0)
     return torch.cat([rest[..., :1], rest[..., 1:-1] * scale.unsqueeze(-1), rest[..., -1:]], dim=-1)
 
@@ -130,7 +147,14 @@ class ModelOptions:
 
 
 def inv_softplus(y: float) -> float:
-    """``x`` with ``softplus(x) = y``: the raw value of a parameter kept positive by softplus."""
+    """``x`` with ``softplus(x) = y``: the raw value of a parameter kept positive by softplus.
+
+    Args:
+        y: the positive value wanted.
+
+    Returns:
+        The raw parameter value.
+    """
     y = max(y, 1e-9)  # softplus never reaches 0: a massless marker is the smallest representable one
     return y + math.log(-math.expm1(-y))
 

@@ -23,7 +23,17 @@ def branch_free_step(
     model: DeformModel, state: RodState, grip_next: Tensor | None, branch_free: tuple[int, int]
 ) -> tuple[RodState, Tensor]:
     """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
-    own flags): what the one-graph step computes, compiled or ahead of time."""
+    own flags): what the one-graph step computes, compiled or ahead of time.
+
+    Args:
+        model: the model.
+        state: :class:`deform.model.RodState` of B rods.
+        grip_next: (B, 4, 3) gripped vertices at the new time, or None (nothing held).
+        branch_free: (twist iterations, projection sweeps).
+
+    Returns:
+        ``(new state, unconverged)``: unconverged (B,) bool.
+    """
     report = ConvergenceReport()
     new = model.step(state, grip_next, branch_free=branch_free, report=report)
     return new, model.unconverged_from_report(report)
@@ -31,7 +41,16 @@ def branch_free_step(
 
 def rod_at_rest(model: DeformModel, batch: int, dtype: torch.dtype) -> tuple[RodState, Tensor]:
     """``batch`` straight rods at rest and their gripped vertices: inputs to compile a step for
-    (only shapes and dtype matter)."""
+    (only shapes and dtype matter).
+
+    Args:
+        model: the model.
+        batch: rods.
+        dtype: of the state.
+
+    Returns:
+        ``(state, grip)``: grip (batch, 4, 3).
+    """
     n, rest = model.n, model.rest_lengths().to(dtype)
     x = torch.zeros(n, 3, dtype=dtype)
     x[:, 0] = torch.cat([torch.zeros(1, dtype=dtype), torch.cumsum(rest, 0)])

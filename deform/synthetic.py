@@ -25,7 +25,15 @@ def _rotation_z(angle: np.ndarray) -> np.ndarray:
 
 
 def straight_rod(cfg: RodConfig, height: float = 0.5) -> np.ndarray:
-    """(n, 3): a straight rod along +x, centred at the origin, at ``height``."""
+    """(n, 3): a straight rod along +x, centred at the origin, at ``height``.
+
+    Args:
+        cfg: the rod (its length and vertex count).
+        height: z of the rod [m].
+
+    Returns:
+        (n, 3) vertices [m].
+    """
     n = cfg.n_vertices
     x = np.zeros((n, 3))
     x[:, 0] = np.linspace(-cfg.length_m / 2, cfg.length_m / 2, n)
@@ -34,7 +42,17 @@ def straight_rod(cfg: RodConfig, height: float = 0.5) -> np.ndarray:
 
 
 def smooth_motion(rng: np.random.Generator, t: np.ndarray, amplitude: float, n_modes: int = 3) -> np.ndarray:
-    """(T, 3) smooth displacement starting at zero, a few random sinusoids per axis."""
+    """(T, 3) smooth displacement starting at zero, a few random sinusoids per axis.
+
+    Args:
+        rng: the random generator.
+        t: (T,) times [s].
+        amplitude: largest displacement per axis, about [m].
+        n_modes: sinusoids per axis.
+
+    Returns:
+        (T, 3) displacements [m].
+    """
     out = np.zeros((len(t), 3))
     for axis in range(3):
         for _ in range(n_modes):
@@ -48,7 +66,19 @@ def smooth_motion(rng: np.random.Generator, t: np.ndarray, amplitude: float, n_m
 def gripper_trajectory(
     cfg: RodConfig, x_rest: np.ndarray, n_frames: int, seed: int, amplitude: float = 0.2, sag: float = 0.25
 ) -> np.ndarray:
-    """(T, 4, 3) positions of vertices 0, 1, n-2, n-1: the two ends pulled ``sag``·L closer, then moving."""
+    """(T, 4, 3) positions of vertices 0, 1, n-2, n-1: the two ends pulled ``sag``·L closer, then moving.
+
+    Args:
+        cfg: the rod.
+        x_rest: (n, 3) the straight rod the grippers start from.
+        n_frames: frames.
+        seed: the motion.
+        amplitude: size of the motion [m].
+        sag: how much closer the ends are pulled, as a fraction of the length.
+
+    Returns:
+        (n_frames, 4, 3) gripped vertices [m].
+    """
     rng = np.random.default_rng(seed)
     t = np.arange(n_frames) * cfg.dt
     n = cfg.n_vertices

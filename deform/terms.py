@@ -36,7 +36,14 @@ NOT_TRAINABLE: dict[str, str] = {
 
 
 def check_names(names: list[str] | tuple[str, ...]) -> None:
-    """A UsageError naming the choices for an unknown or untrainable term."""
+    """A UsageError naming the choices for an unknown or untrainable term.
+
+    Args:
+        names: term names.
+
+    Raises:
+        UsageError: an unknown or untrainable name, with the reason or the choices.
+    """
     for name in names:
         if name in NOT_TRAINABLE:
             raise UsageError(f"term {name!r} cannot be trained into the model: {NOT_TRAINABLE[name]}")
@@ -45,7 +52,14 @@ def check_names(names: list[str] | tuple[str, ...]) -> None:
 
 
 def describe(name: str) -> str:
-    """One line on what training with ``name`` means for DEFORM."""
+    """One line on what training with ``name`` means for DEFORM.
+
+    Args:
+        name: a term of :data:`BUILT_IN` or :data:`ADDED`.
+
+    Returns:
+        The line.
+    """
     if name in BUILT_IN:
         return f"{name}: already in DEFORM as {BUILT_IN[name]}"
     return f"{name}: added to DEFORM as an extension term"
@@ -131,12 +145,24 @@ def coarse_start(model, names, recordings, steps: int = 100, max_recordings: int
 
 
 def attached_names(model) -> list[str]:
-    """Names of the extension terms a model carries, in order (saved with the checkpoint)."""
+    """Names of the extension terms a model carries, in order (saved with the checkpoint).
+
+    Args:
+        model: a :class:`deform.model.DeformModel`.
+
+    Returns:
+        The names.
+    """
     return [getattr(ext, "name", type(ext).__name__) for ext in model.extensions]
 
 
 def rebuild(model, names: list[str]) -> None:
-    """Empty extension terms of these names (a checkpoint's state dict then fills them)."""
+    """Empty extension terms of these names (a checkpoint's state dict then fills them).
+
+    Args:
+        model: a :class:`deform.model.DeformModel` being loaded.
+        names: the checkpoint's ``terms``.
+    """
     attach(model, [name for name in names if name in ADDED])
 
 
@@ -145,7 +171,15 @@ def without(model, names: list[str] | tuple[str, ...]) -> list[torch.nn.Paramete
 
     Drag goes to its floor, extra masses back to the configured marker mass, the rest curvature to
     zero; all frozen. Stiffness becomes uniform (the mean over vertices); :func:`tie` keeps it so
-    after every optimiser step, so it is not frozen."""
+    after every optimiser step, so it is not frozen.
+
+    Args:
+        model: a :class:`deform.model.DeformModel`.
+        names: built-in terms to remove.
+
+    Returns:
+        The parameters frozen.
+    """
     from deform.model import inv_softplus
 
     check_names(names)
@@ -171,7 +205,12 @@ def without(model, names: list[str] | tuple[str, ...]) -> list[torch.nn.Paramete
 
 
 def tie(model, names: list[str] | tuple[str, ...]) -> None:
-    """Project the tied built-in parameters back onto their constraint (uniform stiffness)."""
+    """Project the tied built-in parameters back onto their constraint (uniform stiffness).
+
+    Args:
+        model: a :class:`deform.model.DeformModel`.
+        names: the terms removed (only ``stiffness_variation`` is tied).
+    """
     if "stiffness_variation" in names:
         with torch.no_grad():
             model.log_beta.fill_(float(model.log_beta.mean()))

@@ -36,7 +36,17 @@ class _RestrictedUnpickler(pickle.Unpickler):
 
 
 def safe_load_pickle(source: str | Path | bytes):
-    """Load a pickle that may contain only lists, tuples, numbers and numpy arrays."""
+    """Load a pickle that may contain only lists, tuples, numbers and numpy arrays.
+
+    Args:
+        source: a path or the pickle's bytes.
+
+    Returns:
+        The unpickled lists, tuples, numbers and arrays.
+
+    Raises:
+        UnsafePickleError: the pickle names anything else (a class, a function: code it would run).
+    """
     data = source if isinstance(source, bytes) else Path(source).read_bytes()
     try:
         return _RestrictedUnpickler(io.BytesIO(data)).load()

@@ -26,11 +26,29 @@ OUT_SCALE = 0.01  # metres per second per step
 
 
 def chain_edge_index(n: int) -> Tensor:
+    """The rod's graph for torch-geometric: each vertex joined to its neighbours, both directions.
+
+    Args:
+        n: vertices.
+
+    Returns:
+        (2, 2 (n-1)) edge index.
+    """
     src = torch.arange(n - 1)
     return torch.stack([torch.cat([src, src + 1]), torch.cat([src + 1, src])])
 
 
 def gcn_dense_adjacency(n: int, dtype=torch.float32) -> Tensor:
+    """The GCN propagation matrix ``D^-1/2 (A + I) D^-1/2`` of the chain as a dense matrix (a
+    compiled step multiplies by it instead of scattering over the edge index).
+
+    Args:
+        n: vertices.
+        dtype: of the matrix.
+
+    Returns:
+        (n, n).
+    """
     a = torch.eye(n, dtype=dtype)
     idx = torch.arange(n - 1)
     a[idx, idx + 1] = 1.0

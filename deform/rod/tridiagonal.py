@@ -18,10 +18,29 @@ DENSE_MAX = 128  # a dense Cholesky of 128 x 128 still beats a Python-level Thom
 
 
 def to_dense(diag: Tensor, off: Tensor) -> Tensor:
+    """The dense symmetric matrix of a tridiagonal system (tests and small problems).
+
+    Args:
+        diag: (..., k) diagonal.
+        off: (..., k-1) off-diagonal.
+
+    Returns:
+        (..., k, k).
+    """
     return torch.diag_embed(diag) + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
 
 
 def thomas(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+    """Thomas algorithm (Gaussian elimination without pivoting) for symmetric tridiagonal systems.
+
+    Args:
+        diag: (..., k) diagonal.
+        off: (..., k-1) off-diagonal.
+        rhs: (..., k) right-hand side.
+
+    Returns:
+        ``(x, ok)``: x (..., k), ok (...) bool, every pivot positive (the matrix is positive definite).
+    """
     k = diag.shape[-1]
     c: list = []  # modified super-diagonal
     d: list = []  # modified right-hand side
