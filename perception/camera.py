@@ -73,7 +73,16 @@ class Camera:
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """world_from_camera of a camera at ``eye`` looking at ``target`` (image up close to ``up``)."""
+    """world_from_camera of a camera at ``eye`` looking at ``target`` (image up close to ``up``).
+
+    Args:
+        eye: (3,) camera position, world frame [m].
+        target: (3,) point looked at [m].
+        up: (3,) the world direction that should point up in the image.
+
+    Returns:
+        (4, 4) world_from_camera (optical frame: z forward, y down).
+    """
     eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
     z = target - eye
     z /= np.linalg.norm(z)

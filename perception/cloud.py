@@ -12,7 +12,15 @@ from perception.camera import Camera
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Centroids of the occupied cells of a ``voxel``-sized grid (keeps ~uniform density for the GMM)."""
+    """Centroids of the occupied cells of a ``voxel``-sized grid (keeps ~uniform density for the GMM).
+
+    Args:
+        points: (N, 3) points [m].
+        voxel: cell size [m].
+
+    Returns:
+        (M, 3) centroids, M <= N.
+    """
     if len(points) == 0 or voxel <= 0:
         return points
     keys = np.floor(points / voxel).astype(np.int64)
@@ -27,7 +35,16 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def decimate(xyz: np.ndarray, rgb: np.ndarray | None, max_points: int):
     """Keep every s-th row and column of an organized cloud (every s^2-th point of a flat one) so that
-    at most about ``max_points`` remain: colour conversion of a full 640x576 frame alone costs ~7 ms."""
+    at most about ``max_points`` remain: colour conversion of a full 640x576 frame alone costs ~7 ms.
+
+    Args:
+        xyz: (H, W, 3) organized or (N, 3) points.
+        rgb: colours of the same leading shape, or None (dropped if the shape differs).
+        max_points: the budget (0 or less: keep all).
+
+    Returns:
+        ``(xyz, rgb)`` decimated the same way.
+    """
     xyz = np.asarray(xyz)
     count = int(np.prod(xyz.shape[:-1])) if xyz.ndim >= 2 else 0
     if max_points <= 0 or count <= max_points:
@@ -40,7 +57,15 @@ def decimate(xyz: np.ndarray, rgb: np.ndarray | None, max_points: int):
 
 
 def depth_image(xyz: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) depth (NaN where unknown) of a camera-frame cloud, organized or not."""
+    """(H, W) depth (NaN where unknown) of a camera-frame cloud, organized or not.
+
+    Args:
+        xyz: camera-frame points, (H, W, 3) organized for this camera, or (N, 3).
+        camera: the camera that took them.
+
+    Returns:
+        (H, W) depth along the optical axis [m].
+    """
     arr = np.asarray(xyz)
     if arr.shape == (camera.height, camera.width, 3):
         return arr[..., 2]  # missing points are NaN
@@ -57,7 +82,16 @@ def depth_image(xyz: np.ndarray, camera: Camera) -> np.ndarray:
 
 
 def window_min(depth: np.ndarray, uv: np.ndarray, half: int) -> np.ndarray:
-    """Smallest known depth in a (2 half + 1)^2 window around each pixel ``uv`` (NaN if none/outside)."""
+    """Smallest known depth in a (2 half + 1)^2 window around each pixel ``uv`` (NaN if none/outside).
+
+    Args:
+        depth: (H, W) depth image [m], NaN where unknown.
+        uv: (K, 2) integer pixel coordinates (column, row).
+        half: half size of the window [pixels].
+
+    Returns:
+        (K,) depths [m].
+    """
     h, w = depth.shape
     out = np.full(len(uv), np.nan)
     for i, (u, v) in enumerate(uv):

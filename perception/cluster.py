@@ -12,7 +12,16 @@ from scipy.sparse.csgraph import connected_components
 
 
 def dbscan(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
-    """(N,) cluster labels, -1 for noise. ``min_samples`` counts the point itself, as in sklearn."""
+    """(N,) cluster labels, -1 for noise. ``min_samples`` counts the point itself, as in sklearn.
+
+    Args:
+        points: (N, 3) points [m].
+        eps: neighbourhood radius [m].
+        min_samples: points (itself included) a core point needs within ``eps``.
+
+    Returns:
+        (N,) int labels.
+    """
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)

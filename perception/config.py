@@ -96,7 +96,17 @@ def _section(cls, values: dict):
 
 def load_config(source: str | Path | dict | PerceptionConfig | None = None) -> PerceptionConfig:
     """A :class:`PerceptionConfig` from a YAML path, a dict, an instance, or None (the defaults of the
-    dataclasses above, which ``config/perception.yaml`` lists; a test keeps the two equal)."""
+    dataclasses above, which ``config/perception.yaml`` lists; a test keeps the two equal).
+
+    Args:
+        source: a YAML path, a dict of sections, a :class:`PerceptionConfig`, or None.
+
+    Returns:
+        The :class:`PerceptionConfig`.
+
+    Raises:
+        ValueError: an unknown section or key (typos never fall back to defaults silently).
+    """
     if isinstance(source, PerceptionConfig):
         return source
     if source is None:

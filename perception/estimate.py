@@ -27,7 +27,15 @@ MAX_SHIFT = 0.1
 
 
 def segment_distances(points: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(N,) distance of each point to the polyline through ``x`` (n, 3)."""
+    """(N,) distance of each point to the polyline through ``x`` (n, 3).
+
+    Args:
+        points: (N, 3) points [m].
+        x: (n, 3) polyline vertices [m].
+
+    Returns:
+        (N,) distances [m].
+    """
     a, b = x[:-1], x[1:]
     ab = b - a
     t = np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
@@ -39,7 +47,17 @@ def occluded_vertices(
     x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig
 ) -> np.ndarray:
     """(n,) True where something in the depth image is ``occlusion_margin`` closer than the vertex,
-    or where the vertex is outside the image (not observable)."""
+    or where the vertex is outside the image (not observable).
+
+    Args:
+        x_world: (n, 3) predicted vertices, world frame [m].
+        depth: (H, W) observed depth image [m], NaN where unknown.
+        camera: the camera.
+        cfg: the estimation settings (``occlusion_margin``, ``occlusion_window``).
+
+    Returns:
+        (n,) bool.
+    """
     uv, z = camera.project(camera.to_camera(x_world))
     seen = window_min(depth, uv, cfg.occlusion_window)
     inside = (
@@ -71,7 +89,23 @@ def correct_vertices(
     movable: np.ndarray,
     backend: str = "numpy",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Corrected vertices (n, 3) and observed flags (n,) from rope points in the world frame."""
+    """Corrected vertices (n, 3) and observed flags (n,) from rope points in the world frame.
+
+    DBSCAN groups of the points near the prediction, a GMM per group with the group's visible
+    vertices as components; only observed, movable vertices move.
+
+    Args:
+        x_pred: (n, 3) predicted vertices, world frame [m].
+        rope_world: (N, 3) segmented rope points, world frame [m].
+        depth: (H, W) depth image for the occlusion check [m].
+        camera: the camera.
+        cfg: the estimation settings.
+        movable: (n,) bool, vertices that may be corrected (not the gripped ones).
+        backend: ``"numpy"`` (the EM here) or ``"sklearn"``.
+
+    Returns:
+        ``(x, observed)``: x (n, 3), observed (n,) bool.
+    """
     n = len(x_pred)
     x_new = x_pred.copy()
     observed = np.zeros(n, dtype=bool)

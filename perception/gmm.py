@@ -18,7 +18,19 @@ def fit_gmm(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Means (K, 3) and responsibilities (N, K) of a K-component isotropic mixture.
 
-    ``free`` (K,) bool: components whose means EM may move; the others stay at ``means``."""
+    ``free`` (K,) bool: components whose means EM may move; the others stay at ``means``.
+
+    Args:
+        points: (N, 3) points [m].
+        means: (K, 3) initial means (the predicted vertices) [m].
+        free: (K,) bool.
+        sigma: initial isotropic standard deviation [m].
+        iters: EM iterations.
+        backend: ``"numpy"`` or ``"sklearn"``.
+
+    Returns:
+        ``(means, resp)``: (K, 3) and (N, K).
+    """
     if backend == "sklearn":
         return _fit_sklearn(points, means, free, sigma, iters)
     mu = np.array(means, dtype=np.float64)

@@ -21,7 +21,18 @@ def _parabola_length(chord: float, sag: float, samples: int = 64) -> float:
 
 def hanging_curve(a: np.ndarray, b: np.ndarray, length: float, angle: float, samples: int = 64) -> np.ndarray:
     """(samples, 3) a parabola from ``a`` to ``b`` of arc length ``length``, sagging below the chord,
-    its plane turned by ``angle`` about the chord from the vertical."""
+    its plane turned by ``angle`` about the chord from the vertical.
+
+    Args:
+        a: (3,) one end [m].
+        b: (3,) the other end [m].
+        length: arc length of the curve [m].
+        angle: turn of the curve's plane about the chord [rad].
+        samples: points on the curve.
+
+    Returns:
+        (samples, 3).
+    """
     c = b - a
     chord = float(np.linalg.norm(c))
     axis = c / max(chord, 1e-9)
@@ -41,7 +52,15 @@ def hanging_curve(a: np.ndarray, b: np.ndarray, length: float, angle: float, sam
 
 
 def place_by_arclength(curve: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    """Points along ``curve`` at cumulative distances ``spacing`` (scaled to fit the curve)."""
+    """Points along ``curve`` at cumulative distances ``spacing`` (scaled to fit the curve).
+
+    Args:
+        curve: (M, 3) a polyline [m].
+        spacing: (k,) distances between consecutive points [m].
+
+    Returns:
+        (k + 1, 3) points along the curve.
+    """
     seg = np.linalg.norm(np.diff(curve, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     target = np.concatenate([[0.0], np.cumsum(spacing)])
@@ -52,7 +71,17 @@ def place_by_arclength(curve: np.ndarray, spacing: np.ndarray) -> np.ndarray:
 def initial_guess(
     grip: np.ndarray, rest: np.ndarray, points: np.ndarray | None = None, n_angles: int = 19
 ) -> np.ndarray:
-    """(n, 3) guess: gripped vertices from ``grip`` (4, 3), the free part hanging, turned towards ``points``."""
+    """(n, 3) guess: gripped vertices from ``grip`` (4, 3), the free part hanging, turned towards ``points``.
+
+    Args:
+        grip: (4, 3) vertices 0, 1, n-2, n-1 [m].
+        rest: (n-1,) rest lengths [m].
+        points: (N, 3) rope points to turn towards, world frame, or None.
+        n_angles: turns of the hanging plane tried when there are points.
+
+    Returns:
+        (n, 3) vertices [m].
+    """
     n = len(rest) + 1
     inner = rest[1 : n - 2]
     best, best_cost = None, np.inf

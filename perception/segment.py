@@ -13,7 +13,15 @@ from perception.config import SegmentationConfig
 
 
 def colour_mask(rgb: np.ndarray, cfg: SegmentationConfig) -> np.ndarray:
-    """(N,) bool: pixels whose OpenCV HSV lies within the thresholds (hue may wrap around 180)."""
+    """(N,) bool: pixels whose OpenCV HSV lies within the thresholds (hue may wrap around 180).
+
+    Args:
+        rgb: (N, 3) uint8 colours.
+        cfg: the HSV thresholds.
+
+    Returns:
+        (N,) bool.
+    """
     hsv = cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3), dtype=np.uint8), cv2.COLOR_RGB2HSV)
     lo, hi = [int(v) for v in cfg.hsv_low], [int(v) for v in cfg.hsv_high]
     if lo[0] <= hi[0]:
@@ -27,7 +35,16 @@ def colour_mask(rgb: np.ndarray, cfg: SegmentationConfig) -> np.ndarray:
 def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfig) -> np.ndarray:
     """(N, 3) float64 camera-frame rope points from an organized (H, W, 3) or flat (N, 3) cloud.
 
-    ``rgb`` of another shape than ``xyz`` is ignored (depth-only segmentation)."""
+    ``rgb`` of another shape than ``xyz`` is ignored (depth-only segmentation).
+
+    Args:
+        xyz: camera-frame points, (H, W, 3) or (N, 3), NaN where missing.
+        rgb: uint8 colours of the same leading shape, or None.
+        cfg: the segmentation settings (HSV thresholds, depth range).
+
+    Returns:
+        (N, 3).
+    """
     pts = np.asarray(xyz).reshape(-1, 3)
     if rgb is not None and np.asarray(rgb).size == pts.size:
         pts = pts[colour_mask(np.asarray(rgb).reshape(-1, 3), cfg)]

@@ -20,7 +20,15 @@ __all__ = ["RenderedFrame", "camera_steps", "default_camera", "render_recording"
 
 def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:
     """A Kinect-like camera in front of the workspace, looking down at ``camera_elevation_deg``,
-    perpendicular to the gripper-to-gripper direction of the first frame."""
+    perpendicular to the gripper-to-gripper direction of the first frame.
+
+    Args:
+        positions: (T, n, 3) the motion to film [m].
+        cfg: the render settings.
+
+    Returns:
+        A :class:`perception.camera.Camera`.
+    """
     p = np.asarray(positions, dtype=np.float64).reshape(-1, positions.shape[-2], 3)
     centre = 0.5 * (p.reshape(-1, 3).min(0) + p.reshape(-1, 3).max(0))
     span = p[0, -1] - p[0, 0]
@@ -33,7 +41,16 @@ def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:
 
 
 def camera_steps(n_steps: int, dt: float, fps: float) -> list[int]:
-    """Trajectory indices at which a camera running at ``fps`` delivers a frame (starting at 0)."""
+    """Trajectory indices at which a camera running at ``fps`` delivers a frame (starting at 0).
+
+    Args:
+        n_steps: trajectory steps.
+        dt: seconds per step.
+        fps: camera frame rate.
+
+    Returns:
+        Step indices.
+    """
     if fps <= 0:
         return []
     k = np.arange(0, int(n_steps * dt * fps) + 1)

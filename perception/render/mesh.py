@@ -10,7 +10,16 @@ import numpy as np
 
 
 def catmull_rom(points: np.ndarray, samples_per_segment: int = 8, alpha: float = 0.5) -> np.ndarray:
-    """(M, 3) points of a centripetal Catmull-Rom curve through ``points`` (n, 3), both ends included."""
+    """(M, 3) points of a centripetal Catmull-Rom curve through ``points`` (n, 3), both ends included.
+
+    Args:
+        points: (n, 3) control points.
+        samples_per_segment: points per segment.
+        alpha: 0.5 is centripetal (no cusps or self-intersections within a segment).
+
+    Returns:
+        (M, 3).
+    """
     p = np.asarray(points, dtype=np.float64)
     ext = np.concatenate([2 * p[:1] - p[1:2], p, 2 * p[-1:] - p[-2:-1]])
     p0, p1, p2, p3 = ext[:-3], ext[1:-2], ext[2:-1], ext[3:]
@@ -38,7 +47,16 @@ def catmull_rom(points: np.ndarray, samples_per_segment: int = 8, alpha: float =
 
 
 def tube(centre: np.ndarray, radius: float, sides: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and triangles of an open tube around a polyline (frames parallel-transported along it)."""
+    """Vertices and triangles of an open tube around a polyline (frames parallel-transported along it).
+
+    Args:
+        centre: (M, 3) polyline.
+        radius: tube radius [m].
+        sides: vertices around each ring.
+
+    Returns:
+        ``(vertices (M sides, 3), triangles (T, 3) int)``.
+    """
     c = np.asarray(centre, dtype=np.float64)
     tang = np.gradient(c, axis=0)
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
@@ -83,13 +101,29 @@ _BOX_TRIS = np.array(
 
 
 def box(centre: np.ndarray, axes: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An oriented box: ``axes`` (3, 3) columns are its unit axes, ``half`` its half extents."""
+    """An oriented box: ``axes`` (3, 3) columns are its unit axes, ``half`` its half extents.
+
+    Args:
+        centre: (3,) centre [m].
+        axes: (3, 3) unit axes as columns.
+        half: (3,) half extents [m].
+
+    Returns:
+        ``(vertices (8, 3), triangles (12, 3))``.
+    """
     verts = np.asarray(centre) + (_BOX_CORNERS * np.asarray(half)) @ np.asarray(axes).T
     return verts, _BOX_TRIS.copy()
 
 
 def frame_from_axis(axis: np.ndarray) -> np.ndarray:
-    """(3, 3) orthonormal columns, the first along ``axis``."""
+    """(3, 3) orthonormal columns, the first along ``axis``.
+
+    Args:
+        axis: (3,) direction.
+
+    Returns:
+        (3, 3).
+    """
     a = np.asarray(axis, dtype=np.float64)
     a = a / max(np.linalg.norm(a), 1e-12)
     ref = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
@@ -99,6 +133,16 @@ def frame_from_axis(axis: np.ndarray) -> np.ndarray:
 
 
 def plane(z: float, half: float = 3.0, centre=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """A horizontal square at height ``z``.
+
+    Args:
+        z: height [m].
+        half: half side [m].
+        centre: (x, y) of its centre [m].
+
+    Returns:
+        ``(vertices (4, 3), triangles (2, 3))``.
+    """
     cx, cy = centre
     verts = np.array(
         [

@@ -14,7 +14,16 @@ from perception.render.mesh import box
 
 
 def arc_window(curve: np.ndarray, start: float, stop: float) -> np.ndarray:
-    """Points of a polyline between arc-length fractions ``start`` and ``stop`` (0..1)."""
+    """Points of a polyline between arc-length fractions ``start`` and ``stop`` (0..1).
+
+    Args:
+        curve: (M, 3) polyline.
+        start: arc-length fraction where the window begins.
+        stop: arc-length fraction where it ends.
+
+    Returns:
+        (K, 3) points.
+    """
     seg = np.linalg.norm(np.diff(curve, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)]) / max(seg.sum(), 1e-12)
     keep = (s >= start) & (s <= stop)
@@ -33,7 +42,20 @@ def occluder_box(
     arm_length: float = 0.5,
     thickness: float = 0.06,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """World-frame vertices and triangles of a box hiding ``window`` (K, 3) of ``curve`` (M, 3)."""
+    """World-frame vertices and triangles of a box hiding ``window`` (K, 3) of ``curve`` (M, 3).
+
+    Args:
+        curve: (M, 3) the whole rope, world frame [m].
+        window: (K, 3) the part to hide.
+        camera: the camera.
+        radius: rope radius [m].
+        gap: distance from the rope towards the camera [m].
+        arm_length: how far the box extends away from the rest of the rope [m] (like an arm).
+        thickness: box depth along the optical axis [m].
+
+    Returns:
+        ``(vertices, triangles)``.
+    """
     p = camera.to_camera(window)
     z_front = max(float(p[:, 2].min()) - gap, 0.3)
     q = p[:, :2] * (z_front / p[:, 2:3])

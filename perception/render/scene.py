@@ -33,7 +33,16 @@ class RenderedFrame:
 
 
 def scene_meshes(x: np.ndarray, cfg: RenderConfig, occluder=None):
-    """Vertices, triangles and a per-triangle label of the rope, table, grippers (and occluder)."""
+    """Vertices, triangles and a per-triangle label of the rope, table, grippers (and occluder).
+
+    Args:
+        x: (n, 3) rod vertices, world frame [m].
+        cfg: the render settings.
+        occluder: ``(vertices, triangles)`` of an occluder, or None.
+
+    Returns:
+        ``(vertices (V, 3), triangles (T, 3), labels (T,))``.
+    """
     n = len(x)
     parts = [
         (mesh.tube(mesh.catmull_rom(x), cfg.rope_radius), ROPE),
@@ -63,7 +72,19 @@ def _raycast(verts, tris, origins, dirs):
 
 
 def vertex_visibility(x: np.ndarray, camera: Camera, verts, tris, labels, radius: float) -> np.ndarray:
-    """True where the first thing on the ray to the vertex centre is the rope, near the vertex."""
+    """True where the first thing on the ray to the vertex centre is the rope, near the vertex.
+
+    Args:
+        x: (n, 3) rod vertices, world frame [m].
+        camera: the camera.
+        verts: (V, 3) scene vertices.
+        tris: (T, 3) triangles.
+        labels: (T,) labels.
+        radius: rope radius [m].
+
+    Returns:
+        (n,) bool.
+    """
     eye = camera.position
     d = x - eye
     dist = np.linalg.norm(d, axis=1)
@@ -78,7 +99,19 @@ def vertex_visibility(x: np.ndarray, camera: Camera, verts, tris, labels, radius
 
 
 def render_frame(x: np.ndarray, camera: Camera, cfg: RenderConfig, rng: np.random.Generator, occluder=None):
-    """(xyz, rgb, visible) of the scene with rod vertices ``x`` (n, 3) in the world frame."""
+    """(xyz, rgb, visible) of the scene with rod vertices ``x`` (n, 3) in the world frame.
+
+    Args:
+        x: (n, 3) rod vertices, world frame [m].
+        camera: the camera.
+        cfg: the render settings (noise, colours, edge and dropout model).
+        rng: the random generator.
+        occluder: ``(vertices, triangles)`` or None.
+
+    Returns:
+        ``(xyz, rgb, visible)``: xyz (H, W, 3) float32 camera frame with NaN where no depth, rgb
+        (H, W, 3) uint8, visible (n,) bool.
+    """
     verts, tris, labels = scene_meshes(x, cfg, occluder)
     dirs_cam = camera.ray_directions()
     r = camera.world_from_camera[:3, :3]
