@@ -39,7 +39,16 @@ class MissingWeightsError(UsageError, FileNotFoundError):
 def load_baseline(name: str, rod: str, path: str | None = None):
     """A predictor for ``rod`` (a rod config name such as ``DLO1``). Unknown names raise
     :class:`UnknownBaselineError`, missing weight files :class:`MissingWeightsError` (both
-    :class:`deform.errors.UsageError`, which the CLI reports as one line)."""
+    :class:`deform.errors.UsageError`, which the CLI reports as one line).
+
+    Args:
+        name: ``hold_shape``, ``der_initial``, ``der_identified``, ``xpbd`` or ``bilstm``.
+        rod: a rod config name.
+        path: a weights file instead of the default one (where the baseline has weights).
+
+    Returns:
+        An object with ``n``, ``initial_state`` and ``step``, as :func:`deform.evaluate.predict_recordings` takes.
+    """
     if name == "hold_shape":
         from deform.baselines.hold_shape import HoldShape
         from deform.config import load_rod_config

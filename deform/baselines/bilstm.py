@@ -91,10 +91,21 @@ class BiLSTMDynamics(nn.Module):
 
 
 def weight_path(rod: str) -> Path:
+    """Args:
+        rod: a rod name.
+
+    Returns:
+        Where the trained Bi-LSTM of that rod is stored.
+    """
     return WEIGHT_DIR / f"bilstm_{rod}.pt"
 
 
 def save_bilstm(model: BiLSTMDynamics, path: str | Path, extra: dict | None = None) -> None:
+    """Args:
+    model: the trained network.
+    path: the ``.pt`` to write.
+    extra: more fields for the file (validation error, iterations).
+    """
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     torch.save(
         {
@@ -109,6 +120,18 @@ def save_bilstm(model: BiLSTMDynamics, path: str | Path, extra: dict | None = No
 
 
 def load_bilstm(rod: str, path: str | Path | None = None) -> BiLSTMDynamics:
+    """The trained Bi-LSTM of a rod.
+
+    Args:
+        rod: a rod name.
+        path: a ``.pt`` instead of :func:`weight_path`.
+
+    Returns:
+        The network, in eval mode.
+
+    Raises:
+        MissingWeightsError: no such file.
+    """
     p = Path(path) if path else weight_path(rod)
     if not p.is_file():
         raise MissingWeightsError(f"{p}: no trained Bi-LSTM for {rod}; run benchmarks/baselines.py")
@@ -144,7 +167,27 @@ def train_bilstm(
     progress: bool = False,
 ) -> tuple[BiLSTMDynamics, dict]:
     """Train on windows of ``train_recs`` with open-loop rollouts (L1); keep the best on ``val_recs``
-    (500-step open loop). ``curriculum``: (from iteration, horizon) pairs. Returns the best model."""
+    (500-step open loop). ``curriculum``: (from iteration, horizon) pairs. Returns the best model.
+
+    Args:
+        train_recs: recordings to train on.
+        val_recs: recordings that choose the best weights (none: the last weights).
+        n: vertices.
+        iterations: updates at most.
+        batch: windows per update.
+        curriculum: (from iteration, horizon) pairs.
+        lr: Adam learning rate.
+        hidden: LSTM width.
+        seed: initial weights and windows.
+        time_limit_s: stop after this long.
+        val_every: iterations between validations.
+        val_steps: steps of the validation rollouts.
+        out: a ``.pt`` to save the best weights to, or None.
+        progress: print progress lines.
+
+    Returns:
+        ``(model, info)``: info has ``best_val_l1_m``, ``iterations``, ``seconds`` and the ``log``.
+    """
     torch.manual_seed(seed)
     rng = random.Random(seed)
     model = BiLSTMDynamics(n, hidden)

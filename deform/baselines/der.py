@@ -22,16 +22,37 @@ PHYSICS = ("log_beta", "log_gamma", "wbar", "extra_mass_raw", "log_damping", "lo
 
 
 def der_initial(rod: str) -> DeformModel:
+    """Plain DER (no residual network) with the rod config's initial parameters: the untrained model.
+
+    Args:
+        rod: a rod config name.
+
+    Returns:
+        The model, in eval mode.
+    """
     model = DeformModel(load_rod_config(rod), ModelOptions(residual=False))
     model.baseline_source = "config initial parameters"
     return model.eval()
 
 
 def weight_path(rod: str) -> Path:
+    """Args:
+        rod: a rod name.
+
+    Returns:
+        Where the identified DER parameters of that rod are stored.
+    """
     return WEIGHT_DIR / f"der_{rod}.pt"
 
 
 def save_physics(model: DeformModel, path: str | Path, extra: dict | None = None) -> None:
+    """Store only the physical parameters (no network) of a model.
+
+    Args:
+        model: the identified model.
+        path: the ``.pt`` to write.
+        extra: more fields for the file.
+    """
     sd = model.state_dict()
     payload = {"rod": model.cfg.name, "physics": {k: sd[k].clone() for k in PHYSICS}, **(extra or {})}
     Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -52,7 +73,18 @@ def _with_physics(rod: str, physics: dict, source: str) -> DeformModel:
 
 
 def der_identified(rod: str, path: str | Path | None = None) -> DeformModel:
-    """Identified plain DER. ``path``: a ``der_ROD.pt`` physics file or any DEFORM checkpoint."""
+    """Identified plain DER. ``path``: a ``der_ROD.pt`` physics file or any DEFORM checkpoint.
+
+    Args:
+        rod: a rod config name.
+        path: a physics file or checkpoint, or None (``der_ROD.pt``, else the shipped DEFORM model).
+
+    Returns:
+        The model without residual network, in eval mode.
+
+    Raises:
+        MissingWeightsError: none of the files exists.
+    """
     candidates = [Path(path)] if path else [weight_path(rod), MODEL_DIR / f"{rod}.pt"]
     for p in candidates:
         if p.is_file():
@@ -76,7 +108,22 @@ def identify(
     time_limit_s: float | None = None,
     progress: bool = True,
 ) -> dict:
-    """System identification of plain DER (no residual) and save of ``weights/der_ROD.pt``."""
+    """System identification of plain DER (no residual) and save of ``weights/der_ROD.pt``.
+
+    Args:
+        rod: a rod config name.
+        train_recs: recordings to identify on.
+        val_recs: recordings that choose the best parameters.
+        out_dir: the training run's directory.
+        iterations: updates.
+        batch: windows per update.
+        horizon: rollout steps per window.
+        time_limit_s: stop after this long.
+        progress: progress bar.
+
+    Returns:
+        :func:`deform.train.train`'s result.
+    """
     from deform.train import TrainConfig, train
 
     model = DeformModel(load_rod_config(rod), ModelOptions(residual=False))

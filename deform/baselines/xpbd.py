@@ -143,10 +143,28 @@ class XPBDRope:
 
 
 def weight_path(rod: str) -> Path:
+    """Args:
+        rod: a rod name.
+
+    Returns:
+        Where the tuned XPBD parameters of that rod are stored (JSON).
+    """
     return WEIGHT_DIR / f"xpbd_{rod}.json"
 
 
 def load_xpbd(rod: str, path: str | Path | None = None) -> XPBDRope:
+    """The tuned XPBD rope of a rod.
+
+    Args:
+        rod: a rod name.
+        path: a JSON file instead of :func:`weight_path`.
+
+    Returns:
+        The :class:`XPBDRope`.
+
+    Raises:
+        MissingWeightsError: no such file.
+    """
     p = Path(path) if path else weight_path(rod)
     if not p.is_file():
         raise MissingWeightsError(f"{p}: no tuned XPBD parameters for {rod}; run benchmarks/baselines.py")
@@ -172,7 +190,20 @@ def tune(
     progress: bool = False,
 ) -> dict:
     """Coarse log grid over (alpha_bend, damping) at two stretch compliances, then a finer grid
-    around the best; score = open-loop L1 over ``steps`` on up to ``max_recordings`` train recordings."""
+    around the best; score = open-loop L1 over ``steps`` on up to ``max_recordings`` train recordings.
+
+    Args:
+        rod: a rod name.
+        train_recs: recordings to score on.
+        steps: open-loop steps per recording.
+        max_recordings: recordings used at most.
+        substeps: XPBD substeps per model step.
+        save: write the result to :func:`weight_path`.
+        progress: print progress.
+
+    Returns:
+        ``rod``, the best ``params``, their ``train_l1_m``, every configuration tried and the tuning setup.
+    """
     recs = train_recs[:: max(1, len(train_recs) // max_recordings)][:max_recordings]
     rope = XPBDRope.for_rod(rod)
     best = (math.inf, None)
