@@ -38,7 +38,17 @@ def available_rods() -> list[str]:
 
 
 def load_rod_config(name_or_path: str | Path) -> RodConfig:
-    """Load ``deform/rods/<name>.yaml`` (a shipped rod) or a YAML path."""
+    """Load ``deform/rods/<name>.yaml`` (a shipped rod) or a YAML path.
+
+    Args:
+        name_or_path: a shipped rod's name or a YAML file.
+
+    Returns:
+        The :class:`RodConfig`.
+
+    Raises:
+        ConfigError: an unknown rod, a missing file or a bad field, named.
+    """
     path = Path(name_or_path)
     if not path.suffix:
         path = ROD_DIR / f"{name_or_path}.yaml"

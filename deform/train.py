@@ -54,13 +54,28 @@ class TrainConfig:
 
 
 def nominal_rest_lengths(recordings: list[Recording]) -> torch.Tensor:
-    """(m,) median over recordings of the first frame's edge lengths (the markers' spacing)."""
+    """(m,) median over recordings of the first frame's edge lengths (the markers' spacing).
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+
+    Returns:
+        (n-1,) float64 [m].
+    """
     first = np.stack([np.linalg.norm(np.diff(r.positions[0], axis=0), axis=-1) for r in recordings])
     return torch.tensor(np.median(first, axis=0), dtype=torch.float64)
 
 
 def split_validation(recordings: list[Recording], every: int = 5) -> tuple[list[Recording], list[Recording]]:
-    """Every ``every``-th recording (by sorted name) is held out for validation."""
+    """Every ``every``-th recording (by sorted name) is held out for validation.
+
+    Args:
+        recordings: all training recordings, sorted by name.
+        every: hold out one in ``every``.
+
+    Returns:
+        ``(train, validation)``.
+    """
     val = recordings[::every]
     train = [r for r in recordings if r not in val]
     return train, val
@@ -68,7 +83,15 @@ def split_validation(recordings: list[Recording], every: int = 5) -> tuple[list[
 
 def long_enough(recordings: list[Recording], horizon: int) -> list[Recording]:
     """The recordings a ``horizon``-step window (``horizon + 2`` frames) can be cut from; a
-    UsageError naming the longest when there is none."""
+    UsageError naming the longest when there is none.
+
+    Args:
+        recordings: candidates.
+        horizon: steps per window.
+
+    Returns:
+        The usable recordings.
+    """
     usable = [r for r in recordings if r.n_frames >= horizon + 2]
     if not usable:
         longest = max((r.n_frames for r in recordings), default=0)
@@ -88,7 +111,18 @@ def sample_windows(
 
     ``transported``: the directors a rollout from the recording's first frame carries at the window's
     start (``Recording.reference_frames``), so that training states have the twist and material frame
-    that evaluation's states have; otherwise None (fresh space-parallel frames for every window)."""
+    that evaluation's states have; otherwise None (fresh space-parallel frames for every window).
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+        batch: windows.
+        horizon: steps to predict per window.
+        rng: chooses recordings and start frames.
+        transported: start in the directors evaluation carries.
+
+    Returns:
+        ``(windows, d1)``: (B, horizon + 2, n, 3) float64 and (B, n-1, 3) or None.
+    """
     usable = long_enough(recordings, horizon)  # too short for a window: not sampled
     out, frames = [], []
     for _ in range(batch):
@@ -102,6 +136,17 @@ def sample_windows(
 
 
 def rollout_loss(model: DeformModel, windows: torch.Tensor, d1: torch.Tensor | None = None) -> torch.Tensor:
+    """Open-loop L1 of the model over windows, from their first two frames with the gripped vertices
+    given (the paper's protocol), differentiable.
+
+    Args:
+        model: the model.
+        windows: (B, h + 2, n, 3).
+        d1: (B, n-1, 3) start directors or None.
+
+    Returns:
+        A scalar [m].
+    """
     idx = gripped_indices(model.n)
     state = model.initial_state(windows[:, 0], windows[:, 1], d1=d1)
     pred, _ = model.rollout(state, windows[:, 2:, idx], create_graph=True)
@@ -119,6 +164,16 @@ def coarse_identification(
 
     Stiffness of real cables spans orders of magnitude and the open-loop loss is far from convex in
     it; a coarse log-grid on a few recordings puts gradient descent in the right basin (seconds).
+
+    Args:
+        model: the model, changed in place (stiffness scale and damping).
+        recordings: training recordings (a few are used).
+        steps: open-loop steps scored per recording.
+        max_recordings: recordings used at most.
+        progress: progress bar.
+
+    Returns:
+        ``{"l1_m", "bend_stiffness", "damping"}`` of the best grid point.
     """
     from deform.evaluate import metrics, predict_recordings
 
@@ -148,6 +203,16 @@ def coarse_identification(
 
 
 def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
+    """Adam's parameter groups: the physics (and extension terms), the rest curvature (slower), the
+    residual network; what ``cfg`` leaves out is frozen.
+
+    Args:
+        model: the model.
+        cfg: ``sysid``, ``residual``, ``drag``, ``without`` and the learning rates.
+
+    Returns:
+        The groups.
+    """
     physics = [model.log_beta, model.log_gamma, model.extra_mass_raw, model.log_damping]
     physics += list(model.extensions.parameters())  # physics terms attached by deform.terms
     physics = [p for p in physics if p.requires_grad]  # frozen by an ablation (deform.terms.without)
@@ -176,7 +241,11 @@ def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:
 
 
 def clamp_physical(model: DeformModel) -> None:
-    """Keep identified parameters in physically plausible ranges (explicit integration stays stable)."""
+    """Keep identified parameters in physically plausible ranges (explicit integration stays stable).
+
+    Args:
+        model: changed in place.
+    """
     with torch.no_grad():
         model.log_beta.clamp_(math.log(1e-6), math.log(0.3))
         model.log_gamma.clamp_(math.log(1e-6), math.log(0.3))
@@ -187,11 +256,30 @@ def clamp_physical(model: DeformModel) -> None:
 
 
 def horizon_at(it: int, cfg: TrainConfig) -> int:
+    """The curriculum's horizon at an iteration.
+
+    Args:
+        it: iteration (0-based).
+        cfg: ``curriculum``, ``curriculum_iters``, ``horizon``.
+
+    Returns:
+        Steps per window.
+    """
     stage = it // max(cfg.curriculum_iters, 1)
     return cfg.curriculum[stage] if stage < len(cfg.curriculum) else cfg.horizon
 
 
 def validation_l1(model: DeformModel, recordings: list[Recording], steps: int) -> float:
+    """Open-loop L1 over recordings (the paper's metric).
+
+    Args:
+        model: the model.
+        recordings: validation recordings.
+        steps: steps per recording.
+
+    Returns:
+        L1 [m].
+    """
     from deform.evaluate import metrics, predict_recordings
 
     return metrics(predict_recordings(model, recordings, steps))["l1_m"]
@@ -209,7 +297,15 @@ class Progress:
 def make_optimizer(
     model: DeformModel, cfg: TrainConfig
 ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
-    """Adam over the parameter groups, with a cosine decay to ``lr_final_fraction`` of the rates."""
+    """Adam over the parameter groups, with a cosine decay to ``lr_final_fraction`` of the rates.
+
+    Args:
+        model: the model (with any extension terms attached).
+        cfg: learning rates and iterations.
+
+    Returns:
+        ``(optimizer, scheduler)``.
+    """
     opt = torch.optim.Adam(parameter_groups(model, cfg))
     floor = cfg.lr_final_fraction
 
@@ -222,7 +318,16 @@ def make_optimizer(
 def save_checkpoint(
     path: Path, model: DeformModel, opt, scheduler, progress: Progress, rng: random.Random
 ) -> None:
-    """Everything :func:`resume_from` needs to continue exactly: model, optimiser, schedule, RNG states."""
+    """Everything :func:`resume_from` needs to continue exactly: model, optimiser, schedule, RNG states.
+
+    Args:
+        path: ``checkpoint.pt``.
+        model: the model.
+        opt: the optimizer.
+        scheduler: the learning-rate schedule.
+        progress: iteration, best validation error, skipped updates.
+        rng: the window sampler's random state.
+    """
     torch.save(
         {
             "model": model.state_dict(),
@@ -238,7 +343,18 @@ def save_checkpoint(
 
 
 def resume_from(path: Path, model: DeformModel, opt, scheduler, rng: random.Random) -> Progress:
-    """Restore a checkpoint written by :func:`save_checkpoint` (a fresh Progress when there is none)."""
+    """Restore a checkpoint written by :func:`save_checkpoint` (a fresh Progress when there is none).
+
+    Args:
+        path: ``checkpoint.pt``.
+        model: loaded in place.
+        opt: loaded in place.
+        scheduler: loaded in place.
+        rng: loaded in place.
+
+    Returns:
+        The :class:`Progress` to continue from.
+    """
     if not path.is_file():
         return Progress()
     ck = torch.load(path, map_location="cpu", weights_only=False)
@@ -259,7 +375,18 @@ def train_step(
 ) -> tuple[float, bool]:
     """One update on a batch of windows (B, h + 2, n, 3). Returns the fit loss [m] and whether the
     update was applied: a non-finite loss or gradient (an unstable window) skips it rather than
-    poison the parameters."""
+    poison the parameters.
+
+    Args:
+        model: the model.
+        opt: the optimizer.
+        windows: (B, h + 2, n, 3) from :func:`sample_windows`.
+        d1: (B, n-1, 3) start directors or None.
+        cfg: the training settings (penalty, tied parameters).
+
+    Returns:
+        ``(loss_m, applied)``.
+    """
     opt.zero_grad(set_to_none=True)
     fit = rollout_loss(model, windows, d1)
     loss = fit + cfg.rest_curvature_penalty * model.wbar.pow(2).mean()
@@ -278,7 +405,18 @@ def train_step(
 def validate(
     model: DeformModel, val_recs: list[Recording], steps: int, progress: Progress, out_dir: Path
 ) -> float:
-    """Validation L1 [m]; a new best is saved to ``out_dir/best.pt``."""
+    """Validation L1 [m]; a new best is saved to ``out_dir/best.pt``.
+
+    Args:
+        model: the model.
+        val_recs: validation recordings.
+        steps: open-loop steps per recording.
+        progress: holds the best error so far (updated).
+        out_dir: the run directory.
+
+    Returns:
+        The validation L1 [m].
+    """
     val = validation_l1(model, val_recs, steps)
     if val < progress.best_val_l1_m:
         progress.best_val_l1_m = val
@@ -297,7 +435,21 @@ def train(
 ) -> dict:
     """Train in place; writes ``out_dir/checkpoint.pt`` (resumable), ``best.pt`` and ``log.jsonl``.
 
-    ``cfg.terms`` are attached to the model first and ``cfg.without`` removed (:mod:`deform.terms`)."""
+    ``cfg.terms`` are attached to the model first and ``cfg.without`` removed (:mod:`deform.terms`).
+
+    Args:
+        model: trained in place.
+        train_recs: recordings windows are cut from.
+        val_recs: recordings that choose ``best.pt`` (none: the last weights are saved).
+        cfg: :class:`TrainConfig`.
+        out_dir: the run directory.
+        resume: continue from ``checkpoint.pt`` when there is one.
+        progress: progress bar.
+
+    Returns:
+        ``best_val_l1_m``, the ``last`` log entry, the ``coarse_identification`` result, the median
+        seconds per iteration, ``terms``, ``without`` and ``term_starts``.
+    """
     long_enough(train_recs, cfg.horizon)  # before any work: the first training batch could not be cut
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

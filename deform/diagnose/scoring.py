@@ -38,7 +38,17 @@ class Score:
 def bootstrap_ci(
     values: np.ndarray, confidence: float = CONFIDENCE, n_boot: int = 4000, seed: int = 0
 ) -> tuple[float, float]:
-    """Percentile bootstrap interval of the mean over recordings."""
+    """Percentile bootstrap interval of the mean over recordings.
+
+    Args:
+        values: (R,) per-recording values.
+        confidence: of the interval.
+        n_boot: resamples.
+        seed: of the resampling.
+
+    Returns:
+        ``(low, high)``.
+    """
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(values), size=(n_boot, len(values)))
     means = values[idx].mean(1)
@@ -53,6 +63,19 @@ def score(
     min_gain: float = MIN_GAIN,
     per_param: float = PER_PARAM,
 ) -> Score:
+    """A candidate's held-out improvement over its reference, and whether it is significant (module
+    docstring: the mean above ``min_gain + per_param * n_params``).
+
+    Args:
+        reference: (R,) check L1 per recording of the reference refit [m].
+        candidate: (R,) check L1 per recording with the candidate [m].
+        n_params: the candidate's parameters.
+        min_gain: intercept of the threshold.
+        per_param: penalty per parameter.
+
+    Returns:
+        A :class:`Score`.
+    """
     d = (reference - candidate) / reference
     lo, hi = bootstrap_ci(d)
     thr = min_gain + per_param * n_params
@@ -73,6 +96,16 @@ def calibrate_min_gain(
     ``sd``; the intercept is ``mu + z sd`` with ``z`` the one-sided normal quantile at ``alpha /
     n_candidates`` (Bonferroni over the candidates of a round), so that a control names a term with
     probability about ``alpha`` if the noise is normal. Never below 0.
+
+    Args:
+        null_improvements: candidate improvements on controls.
+        n_candidates: candidates per round (Bonferroni).
+        alpha: family-wise false-positive rate.
+        per_param: the parameter penalty removed first.
+        n_params: parameters of each improvement's candidate, or None.
+
+    Returns:
+        ``min_gain`` and the statistics behind it.
     """
     from statistics import NormalDist
 
@@ -108,6 +141,16 @@ def reselect(
     picks a term in the last round that was run (the original run stopped there, or hit its round
     limit), there is nothing to continue with: ``no_further_round`` is True. ``require_interval``: the
     rule of tools before v4 (the bootstrap interval's lower bound above 0 as well).
+
+    Args:
+        candidates: a report's ``candidates`` rows.
+        nominal_check: the nominal model's check L1 [m].
+        min_gain: the threshold's intercept.
+        per_param: the parameter penalty.
+        require_interval: also require the interval's lower bound above 0 (tools before v4).
+
+    Returns:
+        ``selected``, ``final_check_l1_m`` and ``no_further_round``.
     """
     selected: list[str] = []
     final = nominal_check

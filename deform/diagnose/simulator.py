@@ -64,7 +64,14 @@ class Nominal(nn.Module):
 
 
 def arclength_of(recordings) -> np.ndarray:
-    """(n,) normalised arc-length position of each marker (median edge lengths over the data)."""
+    """(n,) normalised arc-length position of each marker (median edge lengths over the data).
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+
+    Returns:
+        (n,) in [0, 1].
+    """
     edges = np.concatenate([np.linalg.norm(np.diff(r.positions[::25], axis=1), axis=-1) for r in recordings])
     s = np.concatenate([[0.0], np.cumsum(np.median(edges, axis=0))])
     return s / s[-1]
@@ -72,7 +79,15 @@ def arclength_of(recordings) -> np.ndarray:
 
 def marker_nodes(n_markers: int, hidden: int) -> list[int]:
     """Node ids of the markers on a rod with ``hidden`` extra nodes in every free marker interval
-    (none in the two gripped end edges, which the grippers hold straight)."""
+    (none in the two gripped end edges, which the grippers hold straight).
+
+    Args:
+        n_markers: markers.
+        hidden: extra nodes per free interval.
+
+    Returns:
+        The node index of each marker.
+    """
     return (
         [0] + [1 + (hidden + 1) * k for k in range(n_markers - 2)] + [1 + (hidden + 1) * (n_markers - 3) + 1]
     )
@@ -84,7 +99,15 @@ def refine_markers(x: Tensor, hidden: int) -> Tensor:
     chord would start every window with kinks at the markers). Tangents at the markers are the
     three-point derivative for uneven spacing, ``(h_j d_{j-1} + h_{j-1} d_j) / (h_{j-1} + h_j)`` with
     ``d_j`` the slope of interval ``j``: exact on a parabola, so the short gripped end edges do not
-    bend the first and last intervals as the plain Catmull-Rom secant would."""
+    bend the first and last intervals as the plain Catmull-Rom secant would.
+
+    Args:
+        x: (..., n, 3) markers.
+        hidden: nodes per free interval.
+
+    Returns:
+        (..., N, 3) nodes.
+    """
     if hidden == 0:
         return x
     n = x.shape[-2]
@@ -118,7 +141,15 @@ def refine_markers(x: Tensor, hidden: int) -> Tensor:
 
 def between_markers(values: np.ndarray, hidden: int) -> np.ndarray:
     """(n, ...) values at the markers -> (N, ...), ``hidden`` values evenly (linearly) spaced in
-    every free interval: node arc length, or a straight start for a finer simulated rod."""
+    every free interval: node arc length, or a straight start for a finer simulated rod.
+
+    Args:
+        values: (n, ...) per marker.
+        hidden: values per free interval.
+
+    Returns:
+        (N, ...).
+    """
     values = np.asarray(values)
     if hidden == 0:
         return values
@@ -306,7 +337,15 @@ class Simulator:
 
 
 def per_recording_l1(predictions: list[np.ndarray], recordings) -> np.ndarray:
-    """Paper's metric per recording: mean |pred - truth| over steps, vertices and axes."""
+    """Paper's metric per recording: mean |pred - truth| over steps, vertices and axes.
+
+    Args:
+        predictions: (S, n, 3) per recording.
+        recordings: the recordings predicted.
+
+    Returns:
+        (R,) L1 [m].
+    """
     return np.array(
         [paper_l1(p, r.positions[2 : 2 + len(p)], nan_as=1.0) for p, r in zip(predictions, recordings)]
     )

@@ -32,7 +32,14 @@ class RodSpec(BaseModel):
 
 
 def load_rod_spec(path: str | Path) -> RodSpec:
-    """Parse ROD.json; any problem is a one-line :class:`RecordingError` naming the file."""
+    """Parse ROD.json; any problem is a one-line :class:`RecordingError` naming the file.
+
+    Args:
+        path: ROD.json.
+
+    Returns:
+        The :class:`RodSpec`.
+    """
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"{path}: no such file")
@@ -58,7 +65,14 @@ class Inputs:
 
 
 def polyline_length(rec: Recording) -> float:
-    """Median over frames of the markers' polyline length (a lower bound of the arc length)."""
+    """Median over frames of the markers' polyline length (a lower bound of the arc length).
+
+    Args:
+        rec: a recording.
+
+    Returns:
+        Length [m].
+    """
     seg = np.linalg.norm(np.diff(rec.positions, axis=1), axis=-1).sum(-1)
     return float(np.median(seg))
 
@@ -72,7 +86,16 @@ def marker_span_spec(
     and the grippers hold the rest, so a rope longer than the span is simulated over the span with
     the mass of that part (mass per length kept) and a warning. A rope *shorter* than the markers'
     polyline (a lower bound of the arc length between them) by more than ``LENGTH_TOLERANCE``
-    contradicts the data: an error. -> (spec to simulate, warning or None)."""
+    contradicts the data: an error. -> (spec to simulate, warning or None).
+
+    Args:
+        spec: the rope as the user gave it.
+        span_m: the markers' polyline length [m].
+        source: ROD.json, for messages.
+
+    Returns:
+        ``(spec, warning)``: the spec simulated and the warning to report, or None.
+    """
     rel = (span_m - spec.length_m) / spec.length_m
     if rel > LENGTH_TOLERANCE:
         raise RecordingError(
@@ -105,7 +128,21 @@ def marker_span_spec(
 def load_inputs(
     rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min_fit: int = 2, min_check: int = 1
 ) -> Inputs:
-    """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed."""
+    """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed.
+
+    Args:
+        rod: ROD.json.
+        fit_dir: recordings to fit.
+        check_dir: held-out recordings.
+        min_fit: fit recordings needed.
+        min_check: check recordings needed.
+
+    Returns:
+        The :class:`Inputs` (spec, fit, check, warnings).
+
+    Raises:
+        RecordingError: one line naming what cannot be diagnosed.
+    """
     spec = load_rod_spec(rod)
     fit = load_recordings(fit_dir)
     check = load_recordings(check_dir)

@@ -467,7 +467,17 @@ LIBRARY: dict[str, type[Term]] = {
 
 
 def make_term(name: str, n: int, arclength: np.ndarray, context: dict | None = None) -> Term:
-    """A fresh term of the library, started from the data (``context``)."""
+    """A fresh term of the library, started from the data (``context``).
+
+    Args:
+        name: a key of :data:`LIBRARY`.
+        n: markers (vertices of the simulated rod).
+        arclength: (n,) normalised arc length of each.
+        context: data-driven starts (``lowest_z``, ``peak_s``, ...).
+
+    Returns:
+        The :class:`Term`.
+    """
     term = LIBRARY[name](n, arclength)
     with torch.no_grad():
         term.init_from_data(context or {})
