@@ -34,7 +34,17 @@ def _percentiles(seconds: list[float]) -> dict:
 
 def step_latency(model: DeformModel, positions: np.ndarray, steps: int, step_fn=None) -> dict:
     """Single rollout (B = 1): the whole step, replaying the recording's grippers in a loop.
-    ``step_fn``: the step to time (default ``model.step``; e.g. a :class:`~deform.compiled.CompiledStep`)."""
+    ``step_fn``: the step to time (default ``model.step``; e.g. a :class:`~deform.compiled.CompiledStep`).
+
+    Args:
+        model: the model.
+        positions: (T, n, 3) a recording to replay.
+        steps: steps timed.
+        step_fn: the step, or None.
+
+    Returns:
+        ``{"p50_ms", "p99_ms", "steps"}``.
+    """
     step_fn = step_fn or model.step
     X = torch.tensor(positions, dtype=torch.float64).unsqueeze(0)
     idx = gripped_indices(model.n)
@@ -52,6 +62,18 @@ def step_latency(model: DeformModel, positions: np.ndarray, steps: int, step_fn=
 
 
 def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int, step_fn=None) -> float:
+    """Batched stepping speed.
+
+    Args:
+        model: the model.
+        positions: (T, n, 3) a recording (its grippers drive every rod).
+        batch: rods stepped together.
+        steps: steps timed.
+        step_fn: the step, or None (``model.step``).
+
+    Returns:
+        Rod-steps per second.
+    """
     step_fn = step_fn or model.step
     X = torch.tensor(positions[: steps + 2], dtype=torch.float64).unsqueeze(0).expand(batch, -1, -1, -1)
     X = X + 1e-4 * torch.randn_like(X)
@@ -67,6 +89,15 @@ def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int
 
 
 def vertex_scaling(counts=(13, 25, 50, 100), steps: int = 300) -> dict:
+    """Step latency against the number of vertices (an untrained DLO1-like rod).
+
+    Args:
+        counts: vertex counts.
+        steps: steps timed per count.
+
+    Returns:
+        ``{str(n): step_latency result}``.
+    """
     out = {}
     base = load_rod_config("DLO1")
     for n in counts:
@@ -79,6 +110,18 @@ def vertex_scaling(counts=(13, 25, 50, 100), steps: int = 300) -> dict:
 def training_iteration(
     model: DeformModel, positions: np.ndarray, batch: int = 32, horizon: int = 100, iters: int = 3
 ) -> dict:
+    """Seconds of one training update (forward rollout with graph, backward, no optimizer step).
+
+    Args:
+        model: the model.
+        positions: (T, n, 3) a recording windows are cut from.
+        batch: windows.
+        horizon: steps per window.
+        iters: updates timed.
+
+    Returns:
+        ``{"seconds_p50", "iterations", "batch", "horizon"}``.
+    """
     from deform.io.recordings import Recording
     from deform.train import rollout_loss, sample_windows
 
@@ -96,7 +139,17 @@ def training_iteration(
 
 
 def theta_solver_training_ratio(rod: str, positions: np.ndarray, batch: int = 4, horizon: int = 10) -> dict:
-    """Forward + backward of a small training window with each twist solver, same weights and data."""
+    """Forward + backward of a small training window with each twist solver, same weights and data.
+
+    Args:
+        rod: a shipped rod.
+        positions: (T, n, 3) a recording.
+        batch: windows.
+        horizon: steps per window.
+
+    Returns:
+        Seconds per iteration with each solver and their ratio.
+    """
     out = {}
     for solver in (ThetaSolver.NEWTON, ThetaSolver.THESEUS):
         model = load_model(rod)
@@ -114,6 +167,15 @@ def theta_solver_training_ratio(rod: str, positions: np.ndarray, batch: int = 4,
 
 
 def run_benchmarks(quick: bool = False, rod: str = "DLO1") -> dict:
+    """All of ``deform bench``: latency eager and compiled, throughput, vertex scaling, training.
+
+    Args:
+        quick: fewer steps (a smoke run).
+        rod: the shipped rod to time.
+
+    Returns:
+        The results (``deform bench --json`` prints them).
+    """
     steps = 300 if quick else 2000
     model = load_model(rod)
     positions = _trajectory(model)

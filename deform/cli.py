@@ -26,6 +26,14 @@ def _data_dir(rod: str, split: str, explicit: str | None) -> Path:
 
 
 def cmd_train(args) -> int:
+    """``deform train``: train (or fine-tune with ``--init``) a rod's model; ``--install`` ships it.
+
+    Args:
+        args: the parsed command line.
+
+    Returns:
+        The exit code (errors are raised and reported by :func:`main` as one line, exit code 2).
+    """
     import torch
 
     from deform.config import load_rod_config
@@ -79,6 +87,14 @@ def cmd_train(args) -> int:
 
 
 def cmd_eval(args) -> int:
+    """``deform eval``: the paper's metric on a directory of recordings, DEFORM or a baseline.
+
+    Args:
+        args: the parsed command line.
+
+    Returns:
+        The exit code (errors are raised and reported by :func:`main` as one line, exit code 2).
+    """
     import torch
 
     from deform.evaluate import evaluate
@@ -113,6 +129,14 @@ def cmd_eval(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    """``deform bench``: the speed benchmark.
+
+    Args:
+        args: the parsed command line.
+
+    Returns:
+        The exit code (errors are raised and reported by :func:`main` as one line, exit code 2).
+    """
     from deform.bench import run_benchmarks
 
     result = run_benchmarks(quick=args.quick)
@@ -121,12 +145,28 @@ def cmd_bench(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
+    """``deform diagnose``: see :mod:`deform.diagnose`.
+
+    Args:
+        args: the parsed command line.
+
+    Returns:
+        The exit code (errors are raised and reported by :func:`main` as one line, exit code 2).
+    """
     from deform.diagnose import run_cli
 
     return int(run_cli(args) or 0)
 
 
 def cmd_demo(args) -> int:
+    """``deform demo``: the service demo, or the model alone.
+
+    Args:
+        args: the parsed command line.
+
+    Returns:
+        The exit code (errors are raised and reported by :func:`main` as one line, exit code 2).
+    """
     try:
         from service.demo import main as service_demo
     except ImportError:
@@ -231,6 +271,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``deform`` command.
+
+    Args:
+        argv: arguments (None: ``sys.argv``).
+
+    Returns:
+        The exit code: 0, or 2 for bad input (one line on stderr, nothing written).
+    """
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

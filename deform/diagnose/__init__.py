@@ -17,7 +17,14 @@ from pathlib import Path
 
 
 def run_cli(args) -> int:
-    """Entry point of ``deform diagnose``: errors are raised before anything is written."""
+    """Entry point of ``deform diagnose``: errors are raised before anything is written.
+
+    Args:
+        args: the parsed ``deform diagnose`` arguments.
+
+    Returns:
+        The exit code.
+    """
     import torch
 
     from deform.diagnose.report import write_report

@@ -46,7 +46,19 @@ def make_windows(
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings, and the reference
     directors (B, m, 3) a full rollout would carry at each window's start frame (``margin + 1``), or
-    None when not ``transported`` (fresh frames, the behaviour before they were carried)."""
+    None when not ``transported`` (fresh frames, the behaviour before they were carried).
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+        batch: windows.
+        horizon: steps scored per window.
+        margin: extra frames on each side (for a delay term's shifted inputs).
+        rng: chooses recordings and start frames.
+        transported: start in the directors a full rollout carries.
+
+    Returns:
+        ``(windows, d1)``.
+    """
     out, frames = [], []
     length = horizon + 2 + 2 * margin
     for _ in range(batch):
@@ -60,6 +72,18 @@ def make_windows(
 
 
 def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph: bool) -> torch.Tensor:
+    """Open-loop L1 of the simulator over windows, from their frames ``margin`` and ``margin + 1``.
+
+    Args:
+        sim: the simulator.
+        windows: ``(X, d1)`` from :func:`make_windows`.
+        horizon: steps scored.
+        margin: frames before the start.
+        create_graph: differentiable (fitting) or not (scoring).
+
+    Returns:
+        A scalar [m].
+    """
     X, d1 = windows
     pred = sim.rollout(X, horizon, margin, create_graph=create_graph, d1=d1)
     return (pred - X[:, margin + 2 : margin + 2 + horizon]).abs().mean()
@@ -72,7 +96,14 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
     the nominal parameter NAME (a log), ``"nominal=NAME"`` sets it: a term that takes over part of
     what the nominal model did (drag vs linear damping) is tried together with the nominal share it
     replaces.
-    -> {"grid_loss_m": ..., "chosen": ...} or None."""
+    -> {"grid_loss_m": ..., "chosen": ...} or None.
+
+    Args:
+        sim: the simulator with ``term`` attached.
+        term: the :class:`deform.diagnose.terms.Term` to start.
+        recordings: fit recordings.
+        budget: batch, horizon and seed of the scoring windows.
+    """
     points = term.grid()
     if not points:
         return None
@@ -124,7 +155,19 @@ def fit(
     new_term=None,
 ) -> dict:
     """Fit the simulator's term parameters (and the nominal ones, more slowly) in place.
-    ``new_term`` (a term just added) is first started from the best point of its coarse grid."""
+    ``new_term`` (a term just added) is first started from the best point of its coarse grid.
+
+    Args:
+        sim: the simulator (nominal model and terms).
+        recordings: fit recordings.
+        budget: iterations, windows, learning rates.
+        desc: progress bar label.
+        fit_nominal: also fit the nominal parameters.
+        new_term: the term just added, or None.
+
+    Returns:
+        ``{"loss_history_m", "skipped"}``.
+    """
     if new_term is not None:
         coarse_start(sim, new_term, recordings, budget)
     rng = random.Random(budget.seed)
@@ -170,7 +213,17 @@ def fit(
 def coarse_nominal(
     sim: Simulator, recordings: list[Recording], steps: int = 150, max_recordings: int = 4
 ) -> dict:
-    """Log-grid search of EI (GJ tied at 0.7 EI) and damping: puts Adam in the right basin."""
+    """Log-grid search of EI (GJ tied at 0.7 EI) and damping: puts Adam in the right basin.
+
+    Args:
+        sim: the simulator; its nominal parameters are set in place.
+        recordings: fit recordings (a few are used).
+        steps: open-loop steps scored.
+        max_recordings: recordings used at most.
+
+    Returns:
+        ``{"l1_m", "bend_stiffness", "damping"}`` of the best point.
+    """
     recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
     steps = min(steps, min(r.n_frames for r in recs) - 2)
     X = torch.tensor(np.stack([r.positions[: steps + 2] for r in recs]), dtype=torch.float64)
@@ -195,6 +248,14 @@ def coarse_nominal(
 
 
 def clone_nominal(nominal: Nominal) -> Nominal:
+    """An independent copy (a candidate's fit must not move the nominal model others start from).
+
+    Args:
+        nominal: the nominal parameters.
+
+    Returns:
+        The copy.
+    """
     return copy.deepcopy(nominal)
 
 
@@ -202,7 +263,17 @@ def laplace_uncertainty(
     sim: Simulator, recordings: list[Recording], budget: FitBudget, term
 ) -> dict[str, float]:
     """Approximate 1-sigma of the term's physical parameters: diagonal curvature of the window
-    loss by finite differences, residual windows treated as independent Laplace samples."""
+    loss by finite differences, residual windows treated as independent Laplace samples.
+
+    Args:
+        sim: the fitted simulator.
+        recordings: fit recordings.
+        budget: the windows to evaluate the loss on.
+        term: the term whose parameters are assessed.
+
+    Returns:
+        Physical parameter name -> standard deviation.
+    """
     rng = random.Random(budget.seed + 777)
     windows = make_windows(
         recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng, budget.transported

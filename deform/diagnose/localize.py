@@ -21,7 +21,18 @@ from deform.model import gripped_indices
 def short_rollout_residuals(
     sim: Simulator, recordings: list[Recording], horizon: int = 10, stride: int = 10
 ) -> dict:
-    """Per (window, vertex): error [m] after ``horizon`` steps, and the state features there."""
+    """Per (window, vertex): error [m] after ``horizon`` steps, and the state features there.
+
+    Args:
+        sim: the fitted nominal simulator.
+        recordings: recordings to probe.
+        horizon: steps per short rollout.
+        stride: frames between rollout starts.
+
+    Returns:
+        ``error`` (W, n) [m] and the features per (window, vertex): speed, height, height above the
+        lowest point, curvature, gripper acceleration, time.
+    """
     sim.sync()
     wins, frames, meta = [], [], []
     for ri, r in enumerate(recordings):
@@ -95,7 +106,15 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def localize(res: dict, arclength: np.ndarray) -> dict:
-    """Summaries and findings in words."""
+    """Summaries and findings in words.
+
+    Args:
+        res: from :func:`short_rollout_residuals`.
+        arclength: (n,) normalised marker arc length.
+
+    Returns:
+        Profiles by arc length, time, speed, height...; ``peak_s`` and ``findings`` (sentences).
+    """
     err = res["error"]
     free = np.ones(err.shape[1], bool)
     free[gripped_indices(err.shape[1])] = False
@@ -162,6 +181,12 @@ def localize(res: dict, arclength: np.ndarray) -> dict:
 
 
 def plot_localization(loc: dict, path: Path) -> None:
+    """Plot the error profiles of :func:`localize` (one panel per feature).
+
+    Args:
+        loc: from :func:`localize`.
+        path: the PNG to write.
+    """
     import matplotlib
 
     matplotlib.use("Agg")

@@ -52,7 +52,16 @@ def _layout(markers0: np.ndarray, refine: int) -> tuple[np.ndarray, list[int]]:
 
 
 def planted_truth(effect: str | None, spec: RodSpec, lowest_z: float) -> dict:
-    """Physical parameters of the planted effect, in the tool's conventions (for parameter error)."""
+    """Physical parameters of the planted effect, in the tool's conventions (for parameter error).
+
+    Args:
+        effect: a library term name, or None (a control).
+        spec: the rod.
+        lowest_z: lowest marker height of the source motions [m] (places a contact plane).
+
+    Returns:
+        Parameter name -> value.
+    """
     return {
         None: {},
         # quadratic air drag only (a linear part is indistinguishable from the nominal damping); 3 /m
@@ -108,7 +117,18 @@ def _truth_terms(effect, truth, n_sim, s_sim, marker_ids, refine, mean_marker_ed
 
 def oracle_term(effect: str | None, truth: dict, n: int, arclength: np.ndarray, mean_marker_edge: float):
     """The tool's own term (marker resolution) set to the planted truth: the best the tool's model
-    class can do with the right physics, used as the 'truth' end of the gap in the benchmark."""
+    class can do with the right physics, used as the 'truth' end of the gap in the benchmark.
+
+    Args:
+        effect: a library term name, or None.
+        truth: from :func:`planted_truth`.
+        n: markers.
+        arclength: (n,) normalised marker arc length.
+        mean_marker_edge: mean marker spacing [m].
+
+    Returns:
+        The term, or None for a control.
+    """
     if effect is None:
         return None
     if effect == "mass_scale":
@@ -144,7 +164,26 @@ def generate_planted(
     truth_override: dict | None = None,
 ):
     """-> (recordings, truth params). Each source recording gives the gripper motion of one output.
-    ``truth_override``: planted parameter values replacing :func:`planted_truth`'s (a size study)."""
+    ``truth_override``: planted parameter values replacing :func:`planted_truth`'s (a size study).
+
+    Args:
+        effect: a library term name, or None (a control).
+        sources: recordings whose gripper motions are replayed.
+        spec: the rod.
+        n_frames: frames per recording.
+        refine: simulated nodes per marker interval.
+        substeps: simulator steps per frame.
+        noise_m: marker noise [m].
+        seed: noise and choices.
+        ei: bending stiffness [N m^2].
+        gj: twisting stiffness [N m^2].
+        damping: linear velocity damping [1/s] (in every dataset).
+        settle_s: settling time before the first frame [s].
+        truth_override: planted values to use instead.
+
+    Returns:
+        ``(recordings, truth)``.
+    """
     rng = np.random.default_rng(seed)
     n = spec.n_vertices
     # a table just above the lowest points most recordings reach: the rod touches it in most of them

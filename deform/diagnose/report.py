@@ -87,7 +87,16 @@ def _fmt(d: dict, std: dict | None = None) -> str:
 
 
 def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
-    """Write report.json, the plots and report.md into ``out`` (created)."""
+    """Write report.json, the plots and report.md into ``out`` (created).
+
+    Args:
+        diag: the :class:`Diagnosis`.
+        check: the check recordings (overlay plot).
+        out: the output directory.
+
+    Returns:
+        The path of report.md.
+    """
     out.mkdir(parents=True, exist_ok=True)
     rep = diag.report
     (out / "report.json").write_text(json.dumps(rep, indent=2))

@@ -66,7 +66,14 @@ def _nominal_from_model(path: str) -> Nominal:
 
 
 def contact_height(loc: dict) -> float | None:
-    """The height below which localisation found errors growing (a plane the rod may touch), if any."""
+    """The height below which localisation found errors growing (a plane the rod may touch), if any.
+
+    Args:
+        loc: from :func:`deform.diagnose.localize.localize`.
+
+    Returns:
+        The height [m], or None.
+    """
     h = loc.get("by_height") or {}
     return h.get("low_threshold") if h.get("low_vs_rest_ratio", 0.0) > 1.5 else None
 
@@ -79,7 +86,15 @@ def equivalence_class(
     Per check recording, the difference of relative errors ``(e_other - e_win) / e_ref``; if its
     bootstrap interval over recordings holds 0, the two explanations fit the held-out data equally
     well and the report names both (an identifiability statement, not a choice by noise).
-    -> {"equivalence_class": [name, ...], "equivalence_why": str}"""
+    -> {"equivalence_class": [name, ...], "equivalence_why": str}
+
+    Args:
+        name: the chosen term.
+        e_win: (R,) its check L1 per recording.
+        e_ref: (R,) the reference's.
+        others: (name, (R,) check L1) of the other significant candidates.
+        confidence: of the bootstrap intervals.
+    """
     members, why = [name], []
     for other, e in others:
         d = (np.asarray(e) - np.asarray(e_win)) / np.asarray(e_ref)
@@ -97,7 +112,19 @@ def fit_noise(
     spec, nominal, selected, name, s, context, inputs: Inputs, budget: FitBudget, improvement: float
 ) -> dict:
     """The chosen candidate and its reference fitted again on other windows of fit/ (another seed):
-    how much of the improvement is the fit's own noise. -> {"improvement_refit", "noise"}"""
+    how much of the improvement is the fit's own noise. -> {"improvement_refit", "noise"}
+
+    Args:
+        spec: the rod.
+        nominal: the nominal parameters.
+        selected: terms selected in earlier rounds.
+        name: the chosen term.
+        s: (n,) normalised marker arc length.
+        context: data-driven starts.
+        inputs: fit and check recordings.
+        budget: the candidate fit's budget.
+        improvement: the improvement measured first.
+    """
     other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
     _, e_ref = fit_and_check(
         spec, nominal, [copy.deepcopy(t) for t in selected], inputs, other, "refit: reference"
@@ -120,7 +147,21 @@ def fit_and_check(
     spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None, hidden: int = 0
 ):
     """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
-    per-recording check error."""
+    per-recording check error.
+
+    Args:
+        spec: the rod.
+        nominal: the nominal parameters (copied).
+        terms: the terms to attach.
+        inputs: fit and check recordings.
+        budget: the fit's budget.
+        desc: progress label.
+        new_term: the term just added, started from its coarse grid, or None.
+        hidden: simulated nodes between markers.
+
+    Returns:
+        ``(simulator, (R,) check L1)``.
+    """
     sim = Simulator(spec, copy.deepcopy(nominal), terms, hidden=hidden)
     fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
     err = per_recording_l1(sim.predict(inputs.check), inputs.check)
@@ -130,6 +171,17 @@ def fit_and_check(
 def diagnose(
     inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None
 ) -> Diagnosis:
+    """Run the whole tool: nominal fit, localisation, candidates fitted and scored in forward
+    selection rounds, equivalence classes and fit noise of the chosen terms.
+
+    Args:
+        inputs: from :func:`deform.diagnose.spec.load_inputs`.
+        budget: the work to spend (default: the full budget).
+        start_model: a DEFORM checkpoint to start the nominal parameters from, or None.
+
+    Returns:
+        The :class:`Diagnosis` (``report`` is report.json's content).
+    """
     budget = budget or DiagnoseBudget()
     t0 = time.perf_counter()
     spec = inputs.spec
