@@ -208,15 +208,8 @@ def attach_implicit_gradient(
 
     Args:
         theta_star: (..., m) converged angles [rad].
-        a: (..., n-2, 2) and the other energy inputs, as in :func:`gradient_and_hessian`; the
-            gradient flows to those that require it.
-        b: (..., n-2, 2).
-        m_ref: (..., n-2).
-        theta_ends: (..., 2).
-        beta: (n-2,).
-        gamma: (n-2,).
-        rest_vor: (..., n-2).
-        wbar: (n-2, 2, 2).
+        a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar: as for :func:`newton_theta`; the gradient
+            flows to those that require it.
         converged_tol: largest Newton step [rad] that counts as converged.
 
     Returns:
@@ -254,19 +247,8 @@ def solve_theta(
     """Fast batched solver; differentiable through the implicit function theorem when needed.
 
     Args:
-        a: (..., n-2, 2) and the rest as in :func:`newton_theta`.
-        b: (..., n-2, 2).
-        m_ref: (..., n-2).
-        theta_ends: (..., 2).
-        beta: (n-2,).
-        gamma: (n-2,).
-        rest_vor: (..., n-2).
-        wbar: (n-2, 2, 2).
-        theta_init: (..., m) warm start, or None.
-        tol: target error [rad].
-        max_iter: iterations at most.
-        branch_free: iterations without host synchronisation first.
-        report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
+        a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter, branch_free,
+        report: as for :func:`newton_theta`.
 
     Returns:
         (..., m) energy-minimising angles [rad], differentiable when an input requires grad.
