@@ -8,6 +8,9 @@
 # A loaded run starts one CPU-bound process (a busy loop) for the whole run. The virtualenv is
 # reused between runs through a symlink to this checkout's .venv (installing is not what is tested;
 # `make test` still checks it is complete). Results go to stdout and to ci_repeat.log.
+# CI_REPEAT_LOAD=CMD makes the load a command of your own (e.g. a benchmark that resumes), run in
+# its own process group and stopped at the end of each loaded run; a busy loop follows it if it
+# ends early.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 RUNS=${1:-10}
@@ -28,7 +31,7 @@ for i in $(seq 1 "$RUNS"); do
   fi
   hog=""
   if [ "$i" -gt $((RUNS - LOADED)) ]; then
-    python3 -c "while True: pass" & hog=$!
+    setsid bash -c "${CI_REPEAT_LOAD:-true}; exec python3 -c 'while True: pass'" & hog=$!
   fi
   start=$(date +%s)
   if (cd "$dir/repo" && CI=true bash .ci/run > "$dir/out.txt" 2>&1); then
@@ -36,7 +39,7 @@ for i in $(seq 1 "$RUNS"); do
   else
     result=FAIL; cp "$dir/out.txt" "$HERE/ci_repeat.fail.$i.txt"
   fi
-  [ -n "$hog" ] && kill "$hog"
+  [ -n "$hog" ] && kill -- -"$hog"
   echo "run $i: $result in $(( $(date +%s) - start )) s$([ -n "$hog" ] && echo ' (loaded)')" | tee -a "$LOG"
   rm -rf "$dir"
 done
