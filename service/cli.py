@@ -27,6 +27,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--rerun-url", help="viewer address for --rerun connect (rerun+http://HOST:9876/proxy)")
     run.add_argument("--rrd", help="output .rrd when --rerun file")
     run.add_argument("--perception", help="perception settings YAML (default: perception's defaults)")
+    run.add_argument(
+        "--interface",
+        choices=["zenoh", "ros2"],
+        help="zenoh: plain keys (zenoh-bridge-ros2dds); ros2: rmw_zenoh keys and graph tokens",
+    )
+    run.add_argument("--domain-id", type=int, help="interface ros2: ROS_DOMAIN_ID (default 0)")
     rec = sub.add_parser("record", help="record the input keys to an MCAP file (Ctrl-C to stop)")
     rec.add_argument("file")
     rec.add_argument("--duration", type=float, help="seconds, default until interrupted")
@@ -62,7 +68,10 @@ def _config(args):
             clock=getattr(args, "clock", None),
             rod=getattr(args, "rod", None),
             perception=getattr(args, "perception", None),
+            interface=getattr(args, "interface", None),
         )
+        if getattr(args, "domain_id", None) is not None:
+            over["ros2"] = base.ros2.model_copy(update={"domain_id": args.domain_id}).model_dump()
         rr = {}
         if getattr(args, "rerun", None):
             rr["mode"] = args.rerun

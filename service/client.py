@@ -96,6 +96,8 @@ class ShapeClient:
             mode with multicast scouting, as the service's default.
         session: an open Zenoh session to use instead (not closed by :meth:`close`).
         timeout_s: default time to wait for a reply to ``vertices`` and ``status``.
+        interface: the service's ``interface``: ``zenoh`` (plain keys) or ``ros2`` (the stream on
+            rmw_zenoh's keys in ROS domain ``domain_id``); queries use plain keys in both.
     """
 
     def __init__(
@@ -104,7 +106,12 @@ class ShapeClient:
         connect: list[str] | None = None,
         session: zenoh.Session | None = None,
         timeout_s: float = 2.0,
+        interface: str = "zenoh",
+        domain_id: int = 0,
     ):
+        if interface not in ("zenoh", "ros2"):
+            raise ValueError(f"interface must be zenoh or ros2, not {interface!r}")
+        self.interface, self.domain_id = interface, domain_id
         self.namespace = namespace.strip("/")
         self.timeout_s = timeout_s
         self._own = session is None
@@ -146,7 +153,12 @@ class ShapeClient:
         def on_sample(sample) -> None:
             callback(*parse_vertices(sample.payload.to_bytes()))
 
-        sub = self.session.declare_subscriber(self.key("vertices"), on_sample)
+        key = self.key("vertices")
+        if self.interface == "ros2":
+            from service.ros2 import topic_key
+
+            key = topic_key(self.domain_id, f"/{self.namespace}/vertices", "sensor_msgs/msg/PointCloud2", "*")
+        sub = self.session.declare_subscriber(key, on_sample)
         self._subscribers.append(sub)
         return sub
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
 class ServiceConfigError(ValueError):
@@ -93,6 +93,13 @@ class ZenohSettings(_Strict):
     multicast_scouting: bool = True
 
 
+class Ros2Settings(_Strict):
+    """``interface: ros2``: how the service appears in a ROS 2 graph on rmw_zenoh (service/ros2.py)."""
+
+    domain_id: int = Field(default=0, ge=0, le=232)  # ROS_DOMAIN_ID of the robot
+    node: str = "deform_service"  # node name; its namespace is /<namespace>
+
+
 class RerunSettings(_Strict):
     mode: Literal["off", "file", "viewer", "connect"] = "off"
     path: str = "deform_service.rrd"
@@ -123,6 +130,11 @@ class ServiceConfig(_Strict):
     limits: Limits = Limits()
     workers: Workers = Workers()
     zenoh: ZenohSettings = ZenohSettings()
+    # zenoh: plain keys <namespace>/<name> (with zenoh-bridge-ros2dds for DDS robots); ros2: rmw_zenoh's
+    # keys, attachments and liveliness tokens, so ROS 2 nodes on rmw_zenoh see the topics directly
+    interface: Literal["zenoh", "ros2"] = "zenoh"
+    ros2: Ros2Settings = Ros2Settings()
+    frame_id: str = Field(default="world", min_length=1)  # frame of the published vertices and shape
     rerun: RerunSettings = RerunSettings()
     perception: str | None = None  # perception settings YAML (perception.load_config); null: its defaults
 
@@ -145,6 +157,18 @@ class ServiceConfig(_Strict):
         if not v or any(c in v for c in "*$?#") or "//" in v:
             raise ValueError(f"not a plain key expression: {v!r}")
         return v
+
+    @model_validator(mode="after")
+    def _ros_names(self):
+        if self.interface == "ros2":
+            from service.ros2 import check_names
+
+            check_names(self.namespace, self.ros2.node)
+        return self
+
+    def topic(self, name: str) -> str:
+        """The ROS 2 topic of an input or output: ``/<namespace>/<name>``."""
+        return f"/{self.namespace}/{name}"
 
     @property
     def dt(self) -> float:

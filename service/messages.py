@@ -266,3 +266,43 @@ def parse_vertices(raw: bytes) -> tuple[int, np.ndarray, np.ndarray]:
         np.stack([rec["x"], rec["y"], rec["z"]], axis=1),
         rec["observed"].astype(bool),
     )
+
+
+MARKER = "visualization_msgs/msg/Marker"
+
+
+def shape_marker(stamp: int, x: np.ndarray, frame_id: str = "world", ns: str = "deform") -> bytes:
+    """The estimate as a line RViz and Foxglove draw as they are: a ``Marker`` LINE_STRIP through
+    the vertices (1 cm wide, orange, no lifetime), id 0 in namespace ``ns``."""
+    Mk = T[MARKER]
+    P = T["geometry_msgs/msg/Point"]
+    msg = Mk(
+        header=header(stamp, frame_id),
+        ns=ns,
+        id=0,
+        type=Mk.LINE_STRIP,
+        action=Mk.ADD,
+        pose=_pose((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)),
+        scale=T["geometry_msgs/msg/Vector3"](x=0.01, y=0.0, z=0.0),
+        color=T["std_msgs/msg/ColorRGBA"](r=1.0, g=0.5, b=0.0, a=1.0),
+        lifetime=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        frame_locked=False,
+        points=[P(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in np.asarray(x, dtype=float)],
+        colors=[],
+        texture_resource="",
+        texture=T["sensor_msgs/msg/CompressedImage"](
+            header=header(0, ""), format="", data=np.zeros(0, dtype=np.uint8)
+        ),
+        uv_coordinates=[],
+        text="",
+        mesh_resource="",
+        mesh_file=T["visualization_msgs/msg/MeshFile"](filename="", data=np.zeros(0, dtype=np.uint8)),
+        mesh_use_embedded_materials=False,
+    )
+    return encode(msg, MARKER)
+
+
+def parse_shape_marker(raw: bytes) -> tuple[int, np.ndarray]:
+    """Client side of ``{ns}/shape``: -> stamp, points (n, 3) float64."""
+    msg = decode(raw, MARKER)
+    return stamp_ns(msg.header), np.array([[p.x, p.y, p.z] for p in msg.points], dtype=float).reshape(-1, 3)

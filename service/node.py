@@ -29,7 +29,13 @@ from service.stats import Stats
 from service.workers import make_worker
 
 log = logging.getLogger("deform.service")
-INPUTS = ("ee_poses", "points", "camera_info", "camera_pose")
+INPUT_TYPES = {
+    "ee_poses": M.POSE_ARRAY,
+    "points": M.POINT_CLOUD2,
+    "camera_info": M.CAMERA_INFO,
+    "camera_pose": M.POSE_STAMPED,
+}
+INPUTS = tuple(INPUT_TYPES)
 
 
 def zenoh_config(z: ZenohSettings) -> zenoh.Config:
@@ -120,6 +126,7 @@ class Service:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._decl: list = []
+        self.ros_node = None  # interface ros2: the node whose tokens announce the topics
         self._last_logged_cloud = None
         self._idle = True
         self.predict_ready = False
@@ -133,9 +140,22 @@ class Service:
             self.session = open_session(self.cfg.zenoh)
         s, key = self.session, self.cfg.key
         cc = zenoh.CongestionControl.BLOCK if self.est.message_clock else zenoh.CongestionControl.DROP
-        self.pub = s.declare_publisher(key("vertices"), congestion_control=cc)
-        for name in INPUTS:
-            self._decl.append(s.declare_subscriber(key(name), self._on_input(name)))
+        if self.cfg.interface == "ros2":  # rmw_zenoh's keys and tokens (service/ros2.py)
+            from service.ros2 import Node
+
+            self.ros_node = Node(s, self.cfg.ros2.node, "/" + self.cfg.namespace, self.cfg.ros2.domain_id)
+            topic = self.cfg.topic
+            self.pub = self.ros_node.publisher(topic("vertices"), M.POINT_CLOUD2, congestion_control=cc)
+            self.shape_pub = self.ros_node.publisher(topic("shape"), M.MARKER, congestion_control=cc)
+            for name, typename in INPUT_TYPES.items():
+                self.ros_node.subscription(topic(name), typename, self._on_input(name))
+        else:
+            self.pub = s.declare_publisher(key("vertices"), congestion_control=cc)
+            self.shape_pub = s.declare_publisher(key("shape"), congestion_control=cc)
+            self._decl += [self.pub, self.shape_pub]
+            for name in INPUTS:
+                self._decl.append(s.declare_subscriber(key(name), self._on_input(name)))
+        # queries stay on plain keys in both interfaces (ShapeClient, service/client.py)
         self._decl.append(s.declare_queryable(key("vertices"), self._on_vertices_query))
         self._decl.append(s.declare_queryable(key("status"), self._on_status_query))
         self._decl.append(s.declare_queryable(key("predict"), self._on_predict_query))
@@ -177,6 +197,8 @@ class Service:
                 d.undeclare()
             except Exception:
                 pass
+        if self.ros_node is not None:
+            self.ros_node.close()
         for w in (self.fusion_worker, self.predict_worker):
             if w is not None:
                 w.close()
@@ -240,7 +262,10 @@ class Service:
             def enqueue(sample):
                 self._idle = False
                 att = sample.attachment
-                order = decode_order(att.to_bytes() if att is not None else None)
+                # a replay numbers its samples in the attachment; rmw_zenoh's attachment numbers
+                # each publisher's samples alone, which says nothing about the order between topics
+                ros2 = self.cfg.interface == "ros2"
+                order = decode_order(att.to_bytes() if att is not None and not ros2 else None)
                 self.inbox.put((name, sample.payload.to_bytes(), order))  # blocks: back-pressure, never loss
 
             return enqueue
@@ -262,11 +287,14 @@ class Service:
 
     # ----- loops -------------------------------------------------------------------------------
     def _publish(self, estimate, t_start: float, initial: bool) -> None:
-        payload = M.vertices_cloud(estimate.stamp_ns, estimate.x, estimate.observed)
+        payload = M.vertices_cloud(estimate.stamp_ns, estimate.x, estimate.observed, self.cfg.frame_id)
         self.pub.put(payload)
         self.latest_payload = payload
         self.published += 1
-        publish_s = time.perf_counter() - t_start
+        publish_s = time.perf_counter() - t_start  # tick start -> vertices handed over (the shape follows)
+        self.shape_pub.put(
+            M.shape_marker(estimate.stamp_ns, estimate.x, self.cfg.frame_id, self.cfg.namespace)
+        )
         if not initial:
             self.stats.publish_s.add(publish_s)
         if self.rerun is not None:
