@@ -18,7 +18,7 @@ import torch
 
 from service import messages as M
 from service.config import ServiceConfig
-from service.geometry import grips_from_poses
+from service.geometry import grips_from_poses, pose_matrix
 from service.stats import Stats
 from service.tracking import make_camera, make_tracker
 
@@ -113,7 +113,7 @@ class Estimator:
     def parse_poses(self, raw: bytes, last: int | None):
         """-> (stamp, poses (2, 7), grip (4, 3)) or None (counted and logged)."""
         try:
-            stamp, poses = M.parse_pose_array(raw)
+            stamp, poses = M.parse_pose_array(raw, frame_id=self.cfg.frame_id)
             self._check_stamp("ee_poses", stamp, last)
             return stamp, poses, grips_from_poses(poses, self.cfg.grippers)
         except M.InputError as exc:
@@ -146,7 +146,7 @@ class Estimator:
         if not self.cfg.camera.use_pose_topic:
             return False
         try:
-            stamp, pose = M.parse_pose_stamped(raw)
+            stamp, pose = M.parse_pose_stamped(raw, frame_id=self.cfg.frame_id)
         except M.InputError as exc:
             self.stats.reject("camera_pose", exc.reason, str(exc))
             return False
@@ -172,7 +172,7 @@ class Estimator:
 
     def decode_cloud(self, raw: bytes) -> Cloud:
         """Decode and validate a PointCloud2; raises InputError (the caller counts it)."""
-        stamp, xyz, rgb, _ = M.parse_point_cloud(raw)
+        stamp, xyz, rgb, frame = M.parse_point_cloud(raw)
         with self.lock:
             self._check_stamp("points", stamp, self.last_cloud_ns)
             if self.camera_info is None:
@@ -186,6 +186,9 @@ class Estimator:
             raise M.InputError(
                 "cloud_size_mismatch", f"cloud {xyz.shape[1]}x{xyz.shape[0]}, camera_info {w}x{h}"
             )
+        if frame == self.cfg.frame_id:  # a cloud already in the world: back into the optical frame
+            T = pose_matrix(pose)
+            xyz = ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
         return Cloud(stamp, xyz, rgb, make_camera(K, w, h, pose))
 
     def on_cloud_sync(self, raw: bytes) -> bool:

@@ -100,8 +100,15 @@ def pose_array(stamp: int, poses, frame_id: str = "world") -> bytes:
     return encode(msg, POSE_ARRAY)
 
 
-def parse_pose_array(raw: bytes, expected: int = 2) -> tuple[int, np.ndarray]:
+def check_frame(hdr, frame_id: str | None) -> None:
+    """Refuse a message stamped in another frame than ``frame_id`` (an empty frame_id is taken as it)."""
+    if frame_id is not None and hdr.frame_id not in ("", frame_id):
+        raise InputError("wrong_frame", f"frame_id {hdr.frame_id!r}, expected {frame_id!r}")
+
+
+def parse_pose_array(raw: bytes, expected: int = 2, frame_id: str | None = None) -> tuple[int, np.ndarray]:
     msg = decode(raw, POSE_ARRAY)
+    check_frame(msg.header, frame_id)
     if len(msg.poses) != expected:
         raise InputError("wrong_pose_count", f"{len(msg.poses)} poses, expected {expected}")
     return stamp_ns(msg.header), _check_poses(np.array([_pose_vec(p) for p in msg.poses], dtype=float))
@@ -111,8 +118,9 @@ def pose_stamped(stamp: int, pose, frame_id: str = "world") -> bytes:
     return encode(T[POSE_STAMPED](header=header(stamp, frame_id), pose=_pose(pose)), POSE_STAMPED)
 
 
-def parse_pose_stamped(raw: bytes) -> tuple[int, np.ndarray]:
+def parse_pose_stamped(raw: bytes, frame_id: str | None = None) -> tuple[int, np.ndarray]:
     msg = decode(raw, POSE_STAMPED)
+    check_frame(msg.header, frame_id)
     return stamp_ns(msg.header), _check_poses(np.array([_pose_vec(msg.pose)], dtype=float))[0]
 
 

@@ -163,3 +163,20 @@ def test_fusion_defers_to_a_running_predict_for_a_bounded_time(est):
     t = clock()
     worker._yield()  # a stopping worker does not wait
     assert clock() == t
+
+
+def test_frames_poses_in_another_frame_refused_a_world_cloud_moved_into_the_camera(est):
+    assert not est.on_poses(M.pose_array(T0, GOOD, frame_id="base_link"))
+    assert not est.on_camera_pose(M.pose_stamped(T0, [0, 0, 1, 0, 0, 0, 1], frame_id="base_link"))
+    assert est.status()["rejected"] == {"ee_poses:wrong_frame": 1, "camera_pose:wrong_frame": 1}
+    assert est.on_poses(M.pose_array(T0, GOOD, frame_id=""))  # no frame: taken as the world
+    # camera 1 m above the origin, turned 90 degrees about z
+    pose = np.array([0.0, 0.0, 1.0, 0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])
+    assert est.on_camera_pose(M.pose_stamped(T0, pose))
+    est.on_camera_info(M.camera_info(T0, np.diag([100.0, 100, 1]), 2, 2))
+    cam = np.array([[[0.1, 0.2, 0.5], [0.0, 0.0, 1.0]], [[-0.3, 0.1, 2.0], [0.2, -0.2, 0.7]]], np.float32)
+    world = cam @ np.array([[0.0, 1, 0], [-1, 0, 0], [0, 0, 1]], np.float32) + np.float32([0, 0, 1])
+    rgb = np.zeros((2, 2, 3), np.uint8)
+    as_camera = est.decode_cloud(M.point_cloud(T0 + 1, cam, rgb, frame_id="camera"))
+    as_world = est.decode_cloud(M.point_cloud(T0 + 2, world, rgb, frame_id="world"))
+    assert np.allclose(as_camera.xyz, cam) and np.allclose(as_world.xyz, cam, atol=1e-6)
