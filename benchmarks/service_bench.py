@@ -106,9 +106,14 @@ def counted(s0: dict, s1: dict, key: str) -> int:
     return s1["counts"].get(key, 0) - s0["counts"].get(key, 0)
 
 
-def status(session, key="deform/rod1/status") -> dict:
-    for r in session.get(key, timeout=5.0):
-        return json.loads(r.ok.payload.to_bytes())
+def status(client) -> dict | None:
+    """The service status through the client library (None while it does not answer)."""
+    from service.client import ServiceError
+
+    try:
+        return client.status(timeout_s=5.0)
+    except ServiceError:
+        return None
 
 
 def start_feeder(endpoint: str, seconds: float, fps: float, loop_jumps: bool = False):
@@ -131,39 +136,28 @@ def predict_run(endpoint: str, n: int, stale_plans: bool = False) -> None:
     ``stale_plans``: every plan starts where the grippers were when the client started (the benchmark
     until 2026-11-23): while the rod moves, each plan then opens with a gripper jump of centimetres.
     """
-    import orjson
-
-    from service import messages as M
-    from service.config import ZenohSettings, load_config
+    from service.client import ShapeClient
+    from service.config import load_config
     from service.geometry import poses_from_vertices
-    from service.node import open_session
 
-    s = open_session(ZenohSettings(connect=[endpoint], multicast_scouting=False))
+    rope = ShapeClient(connect=[endpoint], timeout_s=5.0)
     grippers = load_config().grippers
 
     def current_poses():
-        while True:
-            for r in s.get("deform/rod1/vertices", timeout=5.0):
-                if r.ok is not None:
-                    return poses_from_vertices(
-                        M.parse_vertices(r.ok.payload.to_bytes())[1].astype(float), grippers
-                    )
+        return poses_from_vertices(rope.vertices()[1].astype(float), grippers)
 
     base = current_poses()
     rng = np.random.default_rng(0)
-    times, size = [], 0
+    times = []
     for _ in range(n):
         if not stale_plans:
             base = current_poses()
         plans = base[None, None] + np.linspace(0, 1, 100)[None, :, None, None] * np.concatenate(
             [rng.uniform(-0.1, 0.1, (64, 1, 2, 3)), np.zeros((64, 1, 2, 4))], axis=-1
         )
-        # orjson: ~5 ms for the 1.1 MB body against ~60 ms with json, during which the rope moves on
-        body = orjson.dumps({"plans": plans, "dt": 0.01}, option=orjson.OPT_SERIALIZE_NUMPY)
+        # timed as a planner sees it: request encoded (orjson), sent, answered, decoded
         t = time.perf_counter()
-        for r in s.get("deform/rod1/predict", payload=body, timeout=60.0):
-            assert r.ok is not None, r.err.payload.to_bytes()
-            size = len(r.ok.payload.to_bytes())
+        rope.predict_full(plans, dt=0.01, timeout_s=60.0)
         times.append(1e3 * (time.perf_counter() - t))
         time.sleep(0.2)  # a planner asking about five times a second
     print(
@@ -173,12 +167,12 @@ def predict_run(endpoint: str, n: int, stale_plans: bool = False) -> None:
                 "p50_ms": round(float(np.median(times)), 1),
                 "p90_ms": round(float(np.percentile(times, 90)), 1),
                 "max_ms": round(float(np.max(times)), 1),
-                "reply_bytes": size,
+                "reply": "binary float32 (service/predict_codec.py), ShapeClient.predict_full",
             }
         ),
         flush=True,
     )
-    s.close()
+    rope.close()
 
 
 def predict_client(endpoint: str, n: int, stale_plans: bool = False) -> dict:
@@ -228,14 +222,15 @@ def main() -> int:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
+    from service.client import ShapeClient
     from service.config import load_config
     from service.demo import free_port
-    from service.node import Service, open_session
+    from service.node import Service
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     cfg = load_config(args.config, zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
     svc = Service(cfg).start()
-    client = open_session(cfg.zenoh.model_copy(update={"listen": [], "connect": [ep]}))
+    client = ShapeClient(connect=[ep], timeout_s=5.0)
     out: dict = {
         "machine": {
             "cpus": os.cpu_count(),
