@@ -121,9 +121,11 @@ class ServiceConfig(_Strict):
     realtime_priority: int | None = Field(
         default=10, ge=1, le=99
     )  # SCHED_FIFO for the loop thread; null: off
-    compile_step: bool = (
-        True  # wall clock: the loop's step compiled once ready (eager until then, and if it cannot)
-    )
+    # wall clock: the loop's step compiled once ready (eager until then, and if it cannot)
+    compile_step: bool = True
+    # the compiled loop step as an AOTInductor package (deform.aot), cached on disk: a warm start
+    # loads it instead of compiling again; torch.compile if it cannot be built
+    step_ahead_of_time: bool = True
     grippers: Grippers = Grippers()
     camera: Camera = Camera()
     timeouts: Timeouts = Timeouts()

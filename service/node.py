@@ -244,7 +244,9 @@ class Service:
 
         t0 = time.perf_counter()
         with torch.no_grad():
-            step = CompiledStep(self.est.model, branch_free=LOOP_BRANCH_FREE)
+            step = CompiledStep(
+                self.est.model, branch_free=LOOP_BRANCH_FREE, ahead_of_time=self.cfg.step_ahead_of_time
+            )
             if step.warmup((1,)) and not self._stop.is_set():
                 self.est.use_step(step)
                 log.info("[%s] loop step compiled in %.1f s", self.cfg.namespace, time.perf_counter() - t0)
