@@ -60,7 +60,11 @@ def paper_l1(prediction: np.ndarray, truth: np.ndarray, nan_as: float | None = N
 
 
 def predict_recordings(
-    model, recordings: list[Recording], steps: int = 500, batched: bool = True
+    model,
+    recordings: list[Recording],
+    steps: int = 500,
+    batched: bool = True,
+    dtype: torch.dtype = torch.float64,
 ) -> list[RolloutResult]:
     """Roll out every recording open-loop, in input order, from its first two frames with the gripped
     vertices given at every step (the paper's protocol).
@@ -71,6 +75,7 @@ def predict_recordings(
         steps: steps predicted per recording (at most T - 2).
         batched: recordings predicted over the same number of steps share one batch; otherwise one
             rollout each (the timing of a single rollout).
+        dtype: of the rollout's state (float32: the planner's trade of accuracy for speed).
 
     Returns:
         One :class:`RolloutResult` per recording: ``prediction`` and ``truth`` (S, n, 3) and the
@@ -87,9 +92,7 @@ def predict_recordings(
     with torch.no_grad():
         for members in groups:
             s = horizon[members[0]]
-            X = torch.tensor(
-                np.stack([recordings[i].positions[: s + 2] for i in members]), dtype=torch.float64
-            )
+            X = torch.tensor(np.stack([recordings[i].positions[: s + 2] for i in members]), dtype=dtype)
             state = model.initial_state(X[:, 0], X[:, 1])
             preds, times = [], []
             for k in range(s):
@@ -97,7 +100,7 @@ def predict_recordings(
                 state = model.step(state, X[:, k + 2, idx])
                 times.append(time.perf_counter() - t0)
                 preds.append(state.x)
-            P = torch.stack(preds, 1).numpy()
+            P = torch.stack(preds, 1).double().numpy()
             for j, i in enumerate(members):
                 r = recordings[i]
                 results[i] = RolloutResult(r.name, P[j], r.positions[2 : s + 2], np.asarray(times))
