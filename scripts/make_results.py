@@ -45,6 +45,9 @@ KNOWN = {
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
     "diagnose.json": ("deform diagnose: planted-effect benchmark", "python benchmarks/diagnose_planted.py"),
     "real_terms.json": ("Named physics trained into DEFORM, real rods", "python benchmarks/real_terms.py"),
+    "service_startup.json": ("Service start-up, cold and warm", "python benchmarks/service_startup.py"),
+    "roofline.json": ("Roofline of the batched model step", "python benchmarks/roofline.py"),
+    "float32_accuracy.json": ("float32 rollout against float64", "python benchmarks/float32_accuracy.py"),
 }
 
 
@@ -510,7 +513,79 @@ def render_real_terms(d: dict) -> list[str]:
     return out + table(header, rows)
 
 
+def render_startup(d: dict) -> list[str]:
+    out = [
+        "`deform-service run` in a fresh process, a feeder at 100 Hz (poses) and 30 Hz (clouds); ready ="
+        " status says predict_ready and step_ready. Cold: empty compile caches; warm: the same caches again."
+        " Medians over the runs.",
+        "",
+    ]
+    rows = []
+    for kind, v in d.get("summary", {}).items():
+        rows.append(
+            [
+                kind,
+                fmt(v.get("ready_s"), 1),
+                fmt(v.get("predict_ready_s"), 1),
+                fmt(v.get("step_ready_s"), 1),
+                fmt(v.get("warmup_miss_pct"), 2),
+                fmt(v.get("warmup_vertex_gap_max_ms"), 1),
+                fmt(v.get("first_predict_64x100_ms"), 1),
+            ]
+        )
+    header = ["start", "ready [s]", "predict ready [s]", "step ready [s]", "loop misses while warming [%]"]
+    header += ["longest vertex gap [ms]", "first predict 64x100 [ms]"]
+    return out + table(header, rows)
+
+
+def render_roofline(d: dict) -> list[str]:
+    phases = d.get("ops_per_rod_step_by_phase", {})
+    total = d.get("ops_per_rod_step") or 1
+    out = [
+        f"One branch-free step of {d.get('batch')} rods ({d.get('rod')}, {d.get('n_vertices')} vertices),"
+        f" counted op by op: {d.get('ops_per_rod_step')} operations per rod-step;"
+        f" eager traffic {d.get('eager_bytes_per_rod_step')} B per rod-step (state alone:"
+        f" {d.get('state_bytes_per_rod_step')} B). Peaks measured in the same run (2 threads):"
+        f" {get(d, 'peaks_2_threads', 'gemm_gflops')} GFLOP/s float64 GEMM,"
+        f" {get(d, 'peaks_2_threads', 'copy_gb_per_s')} GB/s copy.",
+        "",
+    ]
+    out += table(
+        ["phase", "operations per rod-step", "share"],
+        [[p, v, f"{100 * v / total:.1f} %"] for p, v in phases.items()],
+    )
+    rows = []
+    for label in ("eager", "compiled"):
+        a = d.get(f"achieved_{label}")
+        if a:
+            rate = get(
+                d, "rates_rod_steps_per_s", "eager_here" if label == "eager" else "compiled_speed_json"
+            )
+            rows.append([label, rate, a.get("gops"), f"{100 * a.get('fraction_of_gemm_peak', 0):.1f} %"])
+    return out + [""] + table(["step", "rod-steps/s", "achieved Gop/s", "of the GEMM peak"], rows)
+
+
+def render_float32(d: dict) -> list[str]:
+    rows = [
+        [
+            rod,
+            r.get("recordings"),
+            fmt(r.get("float64_l1_cm"), 4),
+            fmt(r.get("float32_l1_cm"), 4),
+            fmt(r.get("l1_difference_mm"), 5),
+            fmt(r.get("mean_abs_prediction_gap_mm"), 5),
+        ]
+        for rod, r in d.get("rods", {}).items()
+    ]
+    header = ["rod", "eval recordings", "float64 L1 [cm]", "float32 L1 [cm]", "|difference| [mm]"]
+    header += ["mean gap between the predictions [mm]"]
+    return ["The paper's metric, 500 steps, eager step, same model; bound 0.1 mm.", ""] + table(header, rows)
+
+
 RENDER = {
+    "service_startup.json": render_startup,
+    "roofline.json": render_roofline,
+    "float32_accuracy.json": render_float32,
     "accuracy.json": render_accuracy,
     "speed.json": render_speed,
     "perception.json": render_perception,
