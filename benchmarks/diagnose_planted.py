@@ -602,6 +602,8 @@ def summarise(rows: list[dict], rule: str) -> dict:
             ),
             "gap_closed_oracle_median": float(np.median(go)) if go else None,
             "gap_closed_control_median": float(np.median(gc)) if gc else None,
+            "gap_closed_oracle_values": go,
+            "gap_closed_control_values": gc,
             "param_rel_error_median": float(np.median(perr)) if perr else None,
         }
     return out
@@ -609,6 +611,19 @@ def summarise(rows: list[dict], rule: str) -> dict:
 
 def _fmt(x, pct=True):
     return "-" if x is None else (f"{x * 100:.0f} %" if pct else f"{x:.3f}")
+
+
+def _pooled_gap(summ: dict) -> str:
+    """The median gap closed over every planted dataset that has one (all effects pooled)."""
+    out = ""
+    for key, label in (("oracle", "the truth-started oracle"), ("control", "the paired control")):
+        vals = [v for k, s in summ.items() if k != "none" for v in s.get(f"gap_closed_{key}_values") or []]
+        if vals:
+            out += (
+                f" Median gap closed between the nominal model and {label}, all planted datasets with a"
+                f" gap: {np.median(vals) * 100:.0f} % ({len(vals)} datasets)."
+            )
+    return out
 
 
 def write(result: dict, stem: str = "diagnose") -> None:
@@ -670,7 +685,8 @@ def write(result: dict, stem: str = "diagnose") -> None:
                 if rule in ("as_run", "tool")
                 else ""
             )
-            + f"; controls `none`: {summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}.",
+            + f"; controls `none`: {summ.get('none', {}).get('named_correctly', 0)}/{summ.get('none', {}).get('runs', 0)}."
+            + _pooled_gap(summ),
             "",
             "| planted effect | runs | named correctly | in class | marker L1 vs control [cm] | check nominal [cm] | after [cm] | oracle [cm] | gap closed vs oracle (median) | vs control (median) | param rel. error (median) |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
