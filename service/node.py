@@ -149,6 +149,9 @@ class Service:
             self.shape_pub = self.ros_node.publisher(topic("shape"), M.MARKER, congestion_control=cc)
             for name, typename in INPUT_TYPES.items():
                 self.ros_node.subscription(topic(name), typename, self._on_input(name))
+            from service.ros2_predict import PREDICT_SRV
+
+            self.ros_node.service(topic("predict"), PREDICT_SRV, self._on_ros_predict_query)
         else:
             self.pub = s.declare_publisher(key("vertices"), congestion_control=cc)
             self.shape_pub = s.declare_publisher(key("shape"), congestion_control=cc)
@@ -458,21 +461,50 @@ class Service:
             self.stats.reject("predict", "busy", "too many predictions queued")
             query.reply_err(json.dumps({"error": "busy"}).encode())
 
+    def _on_ros_predict_query(self, query) -> None:
+        """``interface: ros2``: the ROS 2 service ``deform_msgs/srv/PredictShapes`` (service/ros2_predict.py)."""
+        from service.ros2 import reply
+        from service.ros2_predict import error_response
+
+        if not self.predict_ready:
+            self.stats.reject("predict", "not_ready", "predict is being prepared")
+            reply(query, error_response("not_ready: predict is being prepared (compiling)"))
+            return
+        try:
+            self.predict_queue.put_nowait(("ros2", query))
+        except queue.Full:
+            self.stats.reject("predict", "busy", "too many predictions queued")
+            reply(query, error_response("busy: too many predictions queued"))
+
     def _predict_loop(self) -> None:
+        from service import ros2, ros2_predict
+
         torch.set_num_threads(self.cfg.torch_threads)
         while not self._stop.is_set():
             try:
-                query = self.predict_queue.get(timeout=0.1)
+                item = self.predict_queue.get(timeout=0.1)
             except queue.Empty:
                 continue
+            kind, query = item if isinstance(item, tuple) else ("json", item)
             try:
-                body = query.payload.to_bytes() if query.payload is not None else b""
+                raw = query.payload.to_bytes() if query.payload is not None else b""
+                if kind == "ros2":
+                    try:
+                        body = ros2_predict.request_body(raw)
+                    except M.InputError as exc:
+                        self.stats.reject("predict", exc.reason, str(exc))
+                        ros2.reply(query, ros2_predict.error_response(str(exc)))
+                        continue
+                else:
+                    body = raw
                 self.predict_running.set()
                 try:
                     ok, reply = predict.handle(self.est, body, self.predict_worker)
                 finally:
                     self.predict_running.clear()
-                if ok:
+                if kind == "ros2":
+                    ros2.reply(query, ros2_predict.response(ok, reply))
+                elif ok:
                     binary = predict_codec.is_binary(reply)
                     encoding = (
                         zenoh.Encoding.APPLICATION_OCTET_STREAM if binary else zenoh.Encoding.APPLICATION_JSON
@@ -482,6 +514,9 @@ class Service:
                     query.reply_err(reply)
             except Exception:
                 log.exception("predict failed")
-                query.reply_err(b'{"error": "internal"}')
+                if kind == "ros2":
+                    ros2.reply(query, ros2_predict.error_response("internal"))
+                else:
+                    query.reply_err(b'{"error": "internal"}')
             finally:
                 query.drop()

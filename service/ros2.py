@@ -235,6 +235,19 @@ class Node:
         sub = self.session.declare_subscriber(topic_key(self.domain_id, topic, typename, "*"), callback)
         self._declared.append(_Endpoint(token, sub))
 
+    def service(self, name: str, typename: str, callback) -> str:
+        """Serve ``name`` of service type ``typename`` (token ``SS``): ``callback(query)`` gets each
+        request (CDR payload, the client's attachment) and answers it with :func:`reply`.
+
+        Returns:
+            The key the queryable is declared on.
+        """
+        token = self._token("SS", name, typename)
+        key = topic_key(self.domain_id, name, typename)
+        queryable = self.session.declare_queryable(key, callback, complete=True)
+        self._declared.append(_Endpoint(token, queryable))
+        return key
+
     def close(self) -> None:
         """Undeclare everything (the tokens' disappearance tells the graph the node left)."""
         for d in reversed(self._declared):
@@ -243,3 +256,13 @@ class Node:
             except Exception:
                 pass
         self._declared.clear()
+
+
+def reply(query, payload: bytes) -> None:
+    """Answer a service request as rmw_zenoh does: the response's CDR, and an attachment with the
+    request's sequence number and client GID (how the client pairs them) and the time of reply."""
+    att = query.attachment
+    sequence, _, gid = decode_attachment(att.to_bytes()) if att is not None else (0, 0, bytes(GID_BYTES))
+    if len(gid) != GID_BYTES:
+        gid = bytes(GID_BYTES)
+    query.reply(query.key_expr, payload, attachment=encode_attachment(sequence, time.time_ns(), gid))

@@ -112,6 +112,22 @@ def test_keys_tokens_and_attachment_follow_rmw_zenoh():
         ros2.decode_attachment(b"\x00" * 10)
 
 
+def test_service_type_hash_is_the_one_ros_publishes():
+    from rosbags.typesys import Stores, get_typestore
+    from zenoh_ros2_sdk.utils import compute_service_type_hash
+
+    from service.ros2_predict import PREDICT_HASH, PREDICT_SRV, REQUEST, RESPONSE, register_service
+
+    # the example in rmw_zenoh's docs/design.md, made by rosidl
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    add = register_service("example_interfaces/srv/AddTwoInts", "int64 a\nint64 b\n", "int64 sum\n", store)
+    assert add == "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+    assert PREDICT_HASH == compute_service_type_hash(PREDICT_SRV, REQUEST, RESPONSE)  # the SDK's own
+    assert ros2.topic_key(0, "/deform/rod1/predict", PREDICT_SRV).endswith(
+        "/deform_msgs::srv::dds_::PredictShapes_/" + PREDICT_HASH
+    )
+
+
 def test_bad_ros_names_are_refused():
     from service.config import ServiceConfigError, load_config
 
@@ -124,7 +140,15 @@ def test_bad_ros_names_are_refused():
 
 @pytest.mark.slow
 def test_a_ros2_node_drives_the_service_and_receives_vertices(model, endpoint, robot):
-    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_message_class, get_topic_names_and_types
+    from zenoh_ros2_sdk import (
+        ROS2Publisher,
+        ROS2ServiceClient,
+        ROS2Subscriber,
+        get_message_class,
+        get_topic_names_and_types,
+    )
+
+    from service.ros2_predict import PREDICT_SRV, REQUEST, RESPONSE
 
     cfg = make_config(endpoint, interface="ros2", timeouts={"pose_s": 2.0})
     got, cond = {"vertices": [], "shape": []}, threading.Condition()
@@ -228,6 +252,28 @@ def test_a_ros2_node_drives_the_service_and_receives_vertices(model, endpoint, r
                 assert wait_for(lambda: rope.status()["rejected"].get("points:unorganized_cloud") == 1)
                 cam.close()
                 info.close()
+                # predict as a ROS 2 service: the SDK computes the type hash from the definition itself
+                assert wait_for(lambda: rope.status()["predict_ready"])
+                caller = ROS2ServiceClient(
+                    "/deform/rod1/predict",
+                    PREDICT_SRV,
+                    request_definition=REQUEST,
+                    response_definition=RESPONSE,
+                    timeout=60.0,
+                    **kw,
+                )
+                plans = np.tile(GOOD, (3, 5, 1, 1))
+                plans[:, :, :, 2] += np.linspace(0, 0.05, 5)[None, :, None]
+                res = caller.call(plans=3, steps=5, poses=plans.ravel(), dt=0.0, return_steps="")
+                assert res.error == "" and (res.plans, res.vertices) == (3, 13)
+                assert list(res.steps) == [1, 2, 3, 4, 5] and len(res.overstretched) == 3
+                shapes = np.asarray(res.positions).reshape(3, 5, 13, 3)
+                assert np.allclose(
+                    shapes[:, -1, 0], GOOD[0, :3] + [0, 0, 0.05], atol=1e-3
+                )  # gripped end lifted
+                bad = caller.call(plans=3, steps=5, poses=plans.ravel()[:-1], dt=0.0, return_steps="")
+                assert bad.error.startswith("bad_shape") and bad.plans == 0
+                caller.close()
             finally:
                 stop.set()
                 feeder.join()
