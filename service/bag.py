@@ -123,9 +123,11 @@ def record(
     path: str | Path,
     stop: threading.Event,
     names=("ee_poses", "points", "camera_info", "camera_pose", "vertices"),
+    key=None,
 ) -> int:
     """Write what arrives on the input keys and the service's vertices until ``stop`` is set (replay
-    reads back the inputs only); returns the message count."""
+    reads back the inputs only); returns the message count. ``key(name)``: the key expression of a
+    topic (default ``{namespace}/{name}``; a ROS 2 graph on rmw_zenoh: see service/cli.py)."""
     w = McapWriter(path, namespace)
     count = [0]
 
@@ -136,7 +138,7 @@ def record(
 
         return cb
 
-    subs = [session.declare_subscriber(f"{namespace}/{n}", on(n)) for n in names]
+    subs = [session.declare_subscriber(key(n) if key else f"{namespace}/{n}", on(n)) for n in names]
     stop.wait()
     for s in subs:
         s.undeclare()

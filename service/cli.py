@@ -11,39 +11,64 @@ import threading
 from service.config import ServiceConfigError, load_config
 
 
+def _common(p: argparse.ArgumentParser, default=None) -> argparse.ArgumentParser:
+    """The options every command shares; accepted before and after the command's name."""
+    p.add_argument(
+        "--config",
+        default=default,
+        help="YAML (default: the built-in defaults, which config/service.yaml lists)",
+    )
+    p.add_argument("--namespace", default=default, help="key prefix, e.g. deform/rod2")
+    p.add_argument(
+        "--mode",
+        choices=["peer", "client"],
+        default=default,
+        help="Zenoh mode (client: through a zenohd router)",
+    )
+    p.add_argument(
+        "--connect", action="append", default=default, help="Zenoh endpoint to connect to (repeatable)"
+    )
+    p.add_argument(
+        "--listen", action="append", default=default, help="Zenoh endpoint to listen on (repeatable)"
+    )
+    p.add_argument(
+        "--interface",
+        choices=["zenoh", "ros2"],
+        default=default,
+        help="zenoh: plain keys (zenoh-bridge-ros2dds); ros2: rmw_zenoh keys and graph tokens (run, record)",
+    )
+    p.add_argument("--domain-id", type=int, default=default, help="interface ros2: ROS_DOMAIN_ID (default 0)")
+    p.add_argument("-v", "--verbose", action="store_true", default=default or False)
+    return p
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="deform-service", description=__doc__)
-    p.add_argument("--config", help="YAML (default: the built-in defaults, which config/service.yaml lists)")
-    p.add_argument("--namespace", help="key prefix, e.g. deform/rod2")
-    p.add_argument("--mode", choices=["peer", "client"], help="Zenoh mode (client: through a zenohd router)")
-    p.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--listen", action="append", help="Zenoh endpoint to listen on (repeatable)")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p = _common(argparse.ArgumentParser(prog="deform-service", description=__doc__))
+    # after the command too; SUPPRESS: a subcommand's unset option does not overwrite the top level's
+    shared = _common(argparse.ArgumentParser(add_help=False), default=argparse.SUPPRESS)
     sub = p.add_subparsers(dest="command")
-    run = sub.add_parser("run", help="run the estimation service")
+    run = sub.add_parser("run", parents=[shared], help="run the estimation service")
     run.add_argument("--clock", choices=["wall", "message"])
     run.add_argument("--rod", help="rod config name or checkpoint")
     run.add_argument("--rerun", choices=["off", "file", "viewer", "connect"])
     run.add_argument("--rerun-url", help="viewer address for --rerun connect (rerun+http://HOST:9876/proxy)")
     run.add_argument("--rrd", help="output .rrd when --rerun file")
     run.add_argument("--perception", help="perception settings YAML (default: perception's defaults)")
-    run.add_argument(
-        "--interface",
-        choices=["zenoh", "ros2"],
-        help="zenoh: plain keys (zenoh-bridge-ros2dds); ros2: rmw_zenoh keys and graph tokens",
+    rec = sub.add_parser(
+        "record", parents=[shared], help="record the input keys to an MCAP file (Ctrl-C to stop)"
     )
-    run.add_argument("--domain-id", type=int, help="interface ros2: ROS_DOMAIN_ID (default 0)")
-    rec = sub.add_parser("record", help="record the input keys to an MCAP file (Ctrl-C to stop)")
     rec.add_argument("file")
     rec.add_argument("--duration", type=float, help="seconds, default until interrupted")
-    rep = sub.add_parser("replay", help="publish an MCAP file on the input keys")
+    rep = sub.add_parser("replay", parents=[shared], help="publish an MCAP file on the input keys")
     rep.add_argument("file")
     rep.add_argument(
         "--fast", action="store_true", help="as fast as possible (use a service with --clock message)"
     )
     rep.add_argument("--speed", type=float, default=1.0)
     bag = sub.add_parser(
-        "demo-bag", help="write the demo recording (poses and rendered clouds) to an MCAP file"
+        "demo-bag",
+        parents=[shared],
+        help="write the demo recording (poses and rendered clouds) to an MCAP file",
     )
     bag.add_argument("file")
     bag.add_argument("--frames", type=int, default=500)
@@ -61,17 +86,17 @@ def _config(args):
         zenoh["listen"] = args.listen
     over = {
         "namespace": args.namespace,
+        "interface": args.interface,
         "zenoh": base.zenoh.model_copy(update=zenoh).model_dump() if zenoh else None,
     }
+    if args.domain_id is not None:
+        over["ros2"] = base.ros2.model_copy(update={"domain_id": args.domain_id}).model_dump()
     if args.command in (None, "run"):
         over.update(
             clock=getattr(args, "clock", None),
             rod=getattr(args, "rod", None),
             perception=getattr(args, "perception", None),
-            interface=getattr(args, "interface", None),
         )
-        if getattr(args, "domain_id", None) is not None:
-            over["ros2"] = base.ros2.model_copy(update={"domain_id": args.domain_id}).model_dump()
         rr = {}
         if getattr(args, "rerun", None):
             rr["mode"] = args.rerun
@@ -117,7 +142,14 @@ def main(argv=None) -> int:
         timer = threading.Timer(args.duration, stop.set) if args.duration else None
         if timer:
             timer.start()
-        n = bag.record(session, cfg.namespace, args.file, stop)
+        key = None
+        if cfg.interface == "ros2":  # the robot's topics on rmw_zenoh keys, any type hash
+            from service.node import INPUT_TYPES
+            from service.ros2 import topic_key
+
+            types = dict(INPUT_TYPES, vertices="sensor_msgs/msg/PointCloud2")
+            key = lambda n: topic_key(cfg.ros2.domain_id, cfg.topic(n), types[n], "*")  # noqa: E731
+        n = bag.record(session, cfg.namespace, args.file, stop, key=key)
         print(f"recorded {n} messages to {args.file}")
         session.close()
         return 0
