@@ -246,6 +246,16 @@ class Service:
         from deform.compiled import LOOP_BRANCH_FREE, CompiledStep
 
         t0 = time.perf_counter()
+        if self.cfg.step_ahead_of_time:
+            # built in a worker process (the fusion worker: idle until clouds come; else predict's),
+            # loaded here from the cache: the loop never waits for the compiler's hold on the GIL
+            builder = self.fusion_worker or self.predict_worker
+            try:
+                builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
+            except Exception as exc:
+                log.warning(
+                    "[%s] loop step not built in a worker (%s): building here", self.cfg.namespace, exc
+                )
         with torch.no_grad():
             step = CompiledStep(
                 self.est.model, branch_free=LOOP_BRANCH_FREE, ahead_of_time=self.cfg.step_ahead_of_time

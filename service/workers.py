@@ -133,13 +133,31 @@ def job_warmup(ctx: JobContext, batch_sizes) -> bool:
     return active
 
 
+def job_build_step(ctx: JobContext, branch_free, batch: int) -> str:
+    """Build (or find) the ahead-of-time package of the one-graph step for ``batch`` rods in the
+    on-disk cache (deform.aot), here rather than in the service process: compiling holds the
+    interpreter lock for long stretches, which the 100 Hz loop would feel. The service then loads
+    the package, keyed on the same model values. -> its path."""
+    import torch
+
+    from deform.aot import AheadOfTimeStep
+
+    return str(AheadOfTimeStep(ctx.model, tuple(branch_free), int(batch), torch.float64).path)
+
+
 def job_ping(ctx: JobContext, delay_s: float = 0.0) -> bool:
     """Health check (the delay stands in for a hung job in tests)."""
     time.sleep(delay_s)
     return True
 
 
-JOBS = {"fuse": job_fuse, "predict": job_predict, "warmup": job_warmup, "ping": job_ping}
+JOBS = {
+    "fuse": job_fuse,
+    "predict": job_predict,
+    "warmup": job_warmup,
+    "build_step": job_build_step,
+    "ping": job_ping,
+}
 
 
 def _serve(conn, model_path: str, cfg, nice: int = 0) -> None:
