@@ -127,6 +127,7 @@ class Service:
         self._threads: list[threading.Thread] = []
         self._decl: list = []
         self.ros_node = None  # interface ros2: the node whose tokens announce the topics
+        self.shape_pub = None  # {ns}/shape, declared by start()
         self._last_logged_cloud = None
         self._idle = True
         self.predict_ready = False
@@ -307,9 +308,10 @@ class Service:
         self.latest_payload = payload
         self.published += 1
         publish_s = time.perf_counter() - t_start  # tick start -> vertices handed over (the shape follows)
-        self.shape_pub.put(
-            M.shape_marker(estimate.stamp_ns, estimate.x, self.cfg.frame_id, self.cfg.namespace)
-        )
+        if self.shape_pub is not None:
+            self.shape_pub.put(
+                M.shape_marker(estimate.stamp_ns, estimate.x, self.cfg.frame_id, self.cfg.namespace)
+            )
         if not initial:
             self.stats.publish_s.add(publish_s)
         if self.rerun is not None:
