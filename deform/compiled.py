@@ -221,20 +221,24 @@ class RolloutStep:
         branch_free: tuple[int, int] = (2, 2),
         max_misses: int = 3,
         ahead_of_time: bool = False,
+        compile_checked: bool = True,
     ):
         self.model = model
         self.fast = CompiledStep(model, enabled, branch_free=branch_free, ahead_of_time=ahead_of_time)
-        self.checked = CompiledStep(model, enabled)
+        # the checked step only redoes the rare steps the fast graph leaves unconverged: eager, it
+        # costs no compilation at start-up (its graphs take dynamo 10-20 s even from a warm cache)
+        self.checked = CompiledStep(model, enabled and compile_checked)
         self.max_misses = max_misses
         self.redone = 0  # steps the fast graph left unconverged, redone with the checked step
         self.paused = 0  # pauses of the fast graph after ``max_misses`` misses in a row
 
     @property
     def active(self) -> bool:
-        return self.fast.active and self.checked.active
+        return self.fast.active and (self.checked.active or not self.checked.enabled)
 
     def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64) -> bool:
-        return self.fast.warmup(batch_sizes, dtype) & self.checked.warmup(batch_sizes, dtype)
+        fast = self.fast.warmup(batch_sizes, dtype)
+        return fast & (self.checked.warmup(batch_sizes, dtype) if self.checked.enabled else True)
 
     def rollout(self, state: RodState, grips: Tensor) -> Tensor:
         out = torch.empty(grips.shape[0], grips.shape[1], state.x.shape[1], 3, dtype=state.x.dtype)

@@ -74,6 +74,9 @@ class Workers(_Strict):
     # its one-graph step as an AOTInductor package (deform.aot: same values, 0.7x per step; cached
     # on disk, torch.compile if it cannot be built); only with compile_predict
     predict_ahead_of_time: bool = True
+    # the checked step that redoes the rare rollout steps the fast graph leaves unconverged (3 of
+    # 2000 in service_bench's live predict): compiled, it costs 10-20 s of start-up even warm
+    compile_checked_step: bool = False
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)
     predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile

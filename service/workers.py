@@ -102,6 +102,7 @@ class JobContext:
                 self.model,
                 enabled=self.cfg.workers.compile_predict,
                 ahead_of_time=self.cfg.workers.predict_ahead_of_time,
+                compile_checked=self.cfg.workers.compile_checked_step,
             )
         return self._step
 
