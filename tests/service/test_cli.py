@@ -47,3 +47,30 @@ def test_bad_config_is_one_line_and_exit_2(tmp_path, capsys):
     assert cli.main(["--interface", "ros2", "--namespace", "deform/7rod", "run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a ROS 2 name" in err[0]
+
+
+def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model, capsys):
+    """What `prebuild` builds must be what the service and its workers look up: the same batch
+    sizes and iterations, and the same cache key for the worker's copy of the model (saved and
+    loaded through a file) as for the model prebuild loads."""
+    import torch
+
+    import deform.aot as aot
+    from deform import DeformModel, load_model
+    from deform.compiled import LOOP_BRANCH_FREE
+
+    built = []
+
+    class Recorder:
+        def __init__(self, m, branch_free, batch, dtype):
+            built.append((tuple(branch_free), batch, aot.package_key(m, branch_free, batch, dtype)))
+            self.path = tmp_path / f"step-{built[-1][2]}.pt2"
+
+    monkeypatch.setattr(aot, "AheadOfTimeStep", Recorder)
+    assert cli.main(["prebuild", "--rod", "DLO1"]) == 0
+    assert [b[:2] for b in built] == [(LOOP_BRANCH_FREE, 1), ((2, 2), 64)]
+    model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
+    worker_copy = DeformModel.load(tmp_path / "worker.pt")
+    for branch_free, batch, key in built:
+        assert aot.package_key(worker_copy, branch_free, batch, torch.float64) == key
+    assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float64) != built[1][2]
