@@ -253,6 +253,8 @@ class Service:
             builder = self.fusion_worker or self.predict_worker
             try:
                 builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
+                if builder is self.fusion_worker:  # the compiler's memory goes with the old child
+                    builder.restart()
             except Exception as exc:
                 log.warning(
                     "[%s] loop step not built in a worker (%s): building here", self.cfg.namespace, exc

@@ -220,6 +220,9 @@ class InlineWorker:
             except Exception as exc:
                 raise WorkerError(f"{type(exc).__name__}: {exc}") from exc
 
+    def restart(self) -> None:
+        pass
+
     def close(self) -> None:
         pass
 
@@ -277,6 +280,11 @@ class WorkerProcess:
         if status == "error":
             raise WorkerError(value)
         return value
+
+    def restart(self) -> None:
+        """A fresh child (e.g. to hand back the memory a compilation left behind, about 0.6 GB)."""
+        with self._lock:
+            self._restart()
 
     def _restart(self) -> None:
         self._proc.kill()

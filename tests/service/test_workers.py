@@ -67,6 +67,13 @@ def test_hung_job_times_out_and_restarts_the_child(child):
     assert child.call("ping", timeout=60) is True
 
 
+@pytest.mark.slow
+def test_restart_gives_a_fresh_child_that_serves(child):
+    before = child.pid
+    child.restart()
+    assert child.pid != before and child.call("ping", timeout=60) is True
+
+
 def test_compiled_step_is_not_pickled_but_resolved_on_each_side(model):
     """A tracker running on a compiled step crosses to a worker without it (each process compiles
     its own) and comes back with the receiving side's step."""
