@@ -572,8 +572,8 @@ def render_float32(d: dict) -> list[str]:
             r.get("recordings"),
             fmt(r.get("float64_l1_cm"), 4),
             fmt(r.get("float32_l1_cm"), 4),
-            fmt(r.get("l1_difference_mm"), 5),
-            fmt(r.get("mean_abs_prediction_gap_mm"), 5),
+            f"{r.get('l1_difference_mm', float('nan')):.1e}",
+            f"{r.get('mean_abs_prediction_gap_mm', float('nan')):.1e}",
         ]
         for rod, r in d.get("rods", {}).items()
     ]
