@@ -638,7 +638,7 @@ def write(result: dict, stem: str = "diagnose") -> None:
         f"# deform diagnose: {title}",
         "",
         f"Run: `{result['command']}` on {result['machine']}; {result['seconds_total_runs']:.0f} s of "
-        f"dataset runs (sum over the rows in `diagnose.runs.jsonl`).",
+        f"dataset runs (sum over the rows in `{stem}.runs.jsonl`).",
         "",
         f"Budget: {result['budget']}",
         "",
