@@ -1,0 +1,81 @@
+"""Batched step throughput at planning scale, today's steps side by side in one run (issue 21).
+
+    python benchmarks/batched_throughput.py [--batch 1024] [--steps 100] [--json benchmarks/results/batched_throughput.json]
+
+Rod-steps per second on 2 threads (``deform.bench.throughput``: B copies of a DLO1 recording's
+grippers, slightly perturbed), for: the eager step; the convergence-checked step under
+torch.compile (``speed.json``'s "compiled"); and predict's step, the one-graph step with 2 twist
+iterations and 2 projection sweeps as an AOTInductor package, unconverged rods redone eagerly
+(``CompiledStep(branch_free=(2, 2), ahead_of_time=True)``), and the same one-graph step under
+torch.compile. Ratios are to the checked compiled step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--batch", type=int, default=1024)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/batched_throughput.json"))
+    args = ap.parse_args()
+    from deform import load_model
+    from deform.bench import _trajectory, throughput
+    from deform.compiled import CompiledStep
+
+    torch.set_num_threads(2)
+    model = load_model("DLO1")
+    positions = _trajectory(model)
+    variants = {
+        "eager": model.step,
+        "compiled_checked": CompiledStep(model),
+        "predict_aot_2_2": CompiledStep(model, branch_free=(2, 2), ahead_of_time=True),
+        "one_graph_2_2_torch_compile": CompiledStep(model, branch_free=(2, 2)),
+    }
+    out = {
+        "command": "python benchmarks/batched_throughput.py " + " ".join(sys.argv[1:]),
+        "commit": subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip(),
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+        "batch": args.batch,
+        "steps": args.steps,
+        "rod_steps_per_s": {},
+    }
+    for name, fn in variants.items():  # compile / build / load first
+        t0 = time.perf_counter()
+        throughput(model, positions, args.batch, 2, fn)
+        out.setdefault("warmup_s", {})[name] = round(time.perf_counter() - t0, 1)
+    rates = {name: [] for name in variants}
+    for _ in range(args.repeats):  # interleaved: the VM's speed drifts by tens of percent in minutes
+        for name, fn in variants.items():
+            rates[name].append(throughput(model, positions, args.batch, args.steps, fn))
+    for name, r in rates.items():
+        out["rod_steps_per_s"][name] = {"median": round(sorted(r)[len(r) // 2]), "all": [round(x) for x in r]}
+        print(name, out["rod_steps_per_s"][name], flush=True)
+    base = out["rod_steps_per_s"]["compiled_checked"]["median"]
+    out["ratio_to_compiled_checked"] = {
+        k: round(v["median"] / base, 2) for k, v in out["rod_steps_per_s"].items()
+    }
+    print(json.dumps(out["ratio_to_compiled_checked"]))
+    Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
