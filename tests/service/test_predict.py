@@ -171,6 +171,30 @@ def test_binary_reply_refuses_other_versions_and_truncation():
         predict_codec.decode(raw[:-4])
 
 
+def test_binary_request_answers_as_json_and_bad_ones_are_refused(est):
+    from service import predict_codec
+
+    plans = np.tile(GOOD, (2, 6, 1, 1))
+    plans[1, :, :, 2] += np.linspace(0, 0.05, 6)[:, None]
+    ok, as_json = handle(est, body(plans, id=3, **{"return": "final"}))
+    for dtype in ("<f8", "<f4"):
+        raw = predict_codec.encode_request(plans, {"id": 3, "return": "final"}, dtype=dtype)
+        ok, reply = handle(est, raw)
+        assert ok and json.loads(reply)["id"] == 3
+        atol = 0 if dtype == "<f8" else 1e-5
+        assert np.allclose(json.loads(reply)["vertices"], json.loads(as_json)["vertices"], atol=atol, rtol=0)
+    raw = predict_codec.encode_request(plans, {})
+    bad = [
+        raw[:-8],  # truncated
+        raw[:4] + (2).to_bytes(2, "little") + raw[6:],  # another version
+        predict_codec.encode_request(plans, {"plans": 1}),  # plans in the header
+        predict_codec.encode_request(plans[..., :5], {}),  # not (P, S, 2, 7)
+        predict_codec.encode_request(np.tile(GOOD, (9, 2, 1, 1)), {}),  # over max_plans
+    ]
+    reasons = [json.loads(handle(est, b)[1])["error"] for b in bad]
+    assert reasons == ["bad_request", "bad_request", "bad_request", "bad_shape", "too_large"]
+
+
 def test_cost_mode_scores_plans_in_the_worker(est):
     plans = np.tile(GOOD, (3, 10, 1, 1))
     plans[1, :, :, 2] += np.linspace(0, 0.05, 10)[:, None]  # lift 5 cm
