@@ -60,10 +60,10 @@ class Timeouts(_Strict):
 
 
 class Limits(_Strict):
-    max_plans: int = Field(default=256, ge=1)
+    max_plans: int = Field(default=1024, ge=1)  # a sampling planner's batch (MPPI, CEM)
     max_steps: int = Field(default=500, ge=1)
-    max_plan_steps_total: int = Field(default=64000, ge=1)
-    max_request_bytes: int = Field(default=8_000_000, ge=1000)
+    max_plan_steps_total: int = Field(default=102400, ge=1)
+    max_request_bytes: int = Field(default=16_000_000, ge=1000)  # 1024 x 100 plans binary: 11.5 MB
     max_cloud_bytes: int = Field(default=40_000_000, ge=1000)
     max_cloud_rate_hz: float = Field(default=60.0, gt=0)
 

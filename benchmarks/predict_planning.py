@@ -1,0 +1,146 @@
+"""Planning-scale predict in the service (issue 21): request to reply at a client, while the loop runs.
+
+    python benchmarks/predict_planning.py [--n 20] [--json benchmarks/results/predict_planning.json]
+
+One service (default config, except limits raised to 1024 plans and predict warmed up for 64, 256
+and 1024 plans), a feeder publishing poses at 100 Hz and clouds at 30 Hz, and a client process
+(``ShapeClient``, binary requests and replies) asking in turn, ``--n`` times each:
+1024 plans x 100 steps in cost mode (only the P costs come back), 256 x 100 final shapes only, and
+64 x 100 all steps. Plans start at the grippers' current poses and move each gripper up to 10 cm
+per axis. The loop's misses and tick-to-publish p99 over the whole run are reported beside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+CASES = (("1024x100 cost", 1024, "none"), ("256x100 final", 256, "final"), ("64x100 all", 64, "all"))
+
+
+def client(endpoint: str, n: int) -> None:
+    """The planner's process: prints one JSON line of timings."""
+    from service.client import ShapeClient
+    from service.config import load_config
+    from service.geometry import poses_from_vertices
+
+    rope = ShapeClient(connect=[endpoint], timeout_s=5.0)
+    grippers = load_config().grippers
+    rng = np.random.default_rng(0)
+    times = {label: [] for label, _, _ in CASES}
+    for _ in range(n):
+        for label, P, ret in CASES:
+            x = rope.vertices()[1].astype(float)
+            base = poses_from_vertices(x, grippers)
+            plans = base[None, None] + np.linspace(0, 1, 100)[None, :, None, None] * np.concatenate(
+                [rng.uniform(-0.1, 0.1, (P, 1, 2, 3)), np.zeros((P, 1, 2, 4))], axis=-1
+            )
+            cost = {"goal": x, "weights": {"goal": 1.0, "stretch": 1.0}} if ret == "none" else None
+            t = time.perf_counter()
+            out = rope.predict_full(plans, steps=ret, cost=cost, timeout_s=120.0)
+            times[label].append(1e3 * (time.perf_counter() - t))
+            assert (out.costs is not None) if ret == "none" else out.vertices.shape[0] == P
+            time.sleep(0.2)
+    print(json.dumps(times), flush=True)
+    rope.close()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=20)
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/predict_planning.json"))
+    ap.add_argument("--client")
+    args = ap.parse_args()
+    if args.client:
+        client(args.client, args.n)
+        return 0
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+    from service_bench import start_feeder, status
+
+    from service.client import ShapeClient
+    from service.config import load_config
+    from service.demo import free_port
+    from service.node import Service
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    cfg = load_config(
+        zenoh={"listen": [ep], "multicast_scouting": False},
+        limits={"max_plans": 1024, "max_plan_steps_total": 102400, "max_request_bytes": 16_000_000},
+        workers={"predict_warmup": [64, 256, 1024]},
+    )
+    svc = Service(cfg).start()
+    rope = ShapeClient(connect=[ep], timeout_s=5.0)
+    t0 = time.perf_counter()
+    while not all((status(rope) or {}).get(k) for k in ("predict_ready", "step_ready")):
+        time.sleep(0.5)
+    warmup = time.perf_counter() - t0
+    feed = start_feeder(ep, 3600, 30.0)
+    time.sleep(3.0)
+    s0 = status(rope)
+    p = subprocess.run(
+        [sys.executable, __file__, "--client", ep, "--n", str(args.n)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=3600,
+    )
+    s1 = status(rope)
+    feed.kill()
+    lines = [line for line in p.stdout.splitlines() if line.startswith("{")]
+    if not lines:
+        raise SystemExit(f"client failed: {p.stderr[-2000:]}")
+    times = json.loads(lines[-1])
+    ticks = s1["counts"]["ticks"] - s0["counts"]["ticks"]
+    misses = sum(
+        s1["counts"].get(k, 0) - s0["counts"].get(k, 0) for k in ("deadline_misses", "ticks_skipped")
+    )
+    out = {
+        "command": "python benchmarks/predict_planning.py " + " ".join(sys.argv[1:]),
+        "commit": subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip(),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+        },
+        "warmup_s": round(warmup, 1),
+        "requests": {
+            label: {
+                "p50_ms": round(float(np.median(v)), 1),
+                "p90_ms": round(float(np.percentile(v, 90)), 1),
+                "max_ms": round(float(np.max(v)), 1),
+                "n": len(v),
+            }
+            for label, v in times.items()
+        },
+        "targets_p50_ms": {"1024x100 cost": 300, "256x100 final": 100, "64x100 all": 100},
+        "loop": {
+            "ticks": ticks,
+            "miss_pct": round(100.0 * misses / max(ticks, 1), 3),
+            "tick_to_publish_ms": s1["tick_to_publish_ms"],
+        },
+    }
+    print(json.dumps(out, indent=1))
+    Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    rope.close()
+    svc.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
