@@ -119,6 +119,28 @@ def _build(
     )
 
 
+def ensure_package(
+    model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype
+) -> tuple[Path, bool]:
+    """The cached package of this step, compiled now if the cache has none (not loaded: another
+    process may build it for one that loads it).
+
+    Args:
+        model: the model whose step it is.
+        branch_free: (twist iterations, projection sweeps).
+        batch: rods per step.
+        dtype: the state's dtype.
+
+    Returns:
+        ``(path, built)``: built is True when it was compiled by this call.
+    """
+    path = cache_dir() / f"step-{package_key(model, branch_free, batch, dtype)}.pt2"
+    if path.exists():
+        return path, False
+    _build(model, branch_free, batch, dtype, path)
+    return path, True
+
+
 class AheadOfTimeStep:
     """``(state, grip_next) -> (new state, unconverged (B,) bool)`` for exactly ``batch`` rods of
     ``dtype``, no gradients; values identical to the ``torch.compile`` one-graph step.
@@ -139,11 +161,7 @@ class AheadOfTimeStep:
 
     def load(self) -> None:
         """The package for the model's current parameters: from the cache, else compiled now."""
-        self.path = (
-            cache_dir() / f"step-{package_key(self.model, self.branch_free, self.batch, self.dtype)}.pt2"
-        )
-        if not self.path.exists():
-            _build(self.model, self.branch_free, self.batch, self.dtype, self.path)
+        self.path, _ = ensure_package(self.model, self.branch_free, self.batch, self.dtype)
         self._runner = torch._inductor.aoti_load_package(str(self.path))
         # their version counters change on any in-place update (an optimiser step, load_state_dict);
         # kept as a list because walking the modules costs 60 us, a tenth of a step

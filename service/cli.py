@@ -129,7 +129,7 @@ def prebuild(cfg) -> int:
     import torch
 
     from deform import load_model
-    from deform.aot import AheadOfTimeStep, cache_dir
+    from deform.aot import cache_dir, ensure_package
     from deform.compiled import LOOP_BRANCH_FREE, RolloutStep
 
     model = load_model(cfg.rod)
@@ -142,7 +142,7 @@ def prebuild(cfg) -> int:
     for label, branch_free, batch in jobs:
         t0 = time.perf_counter()
         try:
-            path = AheadOfTimeStep(model, branch_free, batch, torch.float64).path
+            path, _ = ensure_package(model, branch_free, batch, torch.float64)
         except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
             print(f"{label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
             return 1

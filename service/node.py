@@ -252,8 +252,8 @@ class Service:
             # loaded here from the cache: the loop never waits for the compiler's hold on the GIL
             builder = self.fusion_worker or self.predict_worker
             try:
-                builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
-                if builder is self.fusion_worker:  # the compiler's memory goes with the old child
+                _, built = builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
+                if built and builder is self.fusion_worker:  # the compiler's memory goes with the old child
                     builder.restart()
             except Exception as exc:
                 log.warning(

@@ -134,16 +134,17 @@ def job_warmup(ctx: JobContext, batch_sizes) -> bool:
     return active
 
 
-def job_build_step(ctx: JobContext, branch_free, batch: int) -> str:
+def job_build_step(ctx: JobContext, branch_free, batch: int) -> tuple[str, bool]:
     """Build (or find) the ahead-of-time package of the one-graph step for ``batch`` rods in the
     on-disk cache (deform.aot), here rather than in the service process: compiling holds the
     interpreter lock for long stretches, which the 100 Hz loop would feel. The service then loads
-    the package, keyed on the same model values. -> its path."""
+    the package, keyed on the same model values. -> (its path, whether it was compiled now)."""
     import torch
 
-    from deform.aot import AheadOfTimeStep
+    from deform.aot import ensure_package
 
-    return str(AheadOfTimeStep(ctx.model, tuple(branch_free), int(batch), torch.float64).path)
+    path, built = ensure_package(ctx.model, tuple(branch_free), int(batch), torch.float64)
+    return str(path), built
 
 
 def job_ping(ctx: JobContext, delay_s: float = 0.0) -> bool:

@@ -61,12 +61,11 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
 
     built = []
 
-    class Recorder:
-        def __init__(self, m, branch_free, batch, dtype):
-            built.append((tuple(branch_free), batch, aot.package_key(m, branch_free, batch, dtype)))
-            self.path = tmp_path / f"step-{built[-1][2]}.pt2"
+    def recorder(m, branch_free, batch, dtype):
+        built.append((tuple(branch_free), batch, aot.package_key(m, branch_free, batch, dtype)))
+        return tmp_path / f"step-{built[-1][2]}.pt2", True
 
-    monkeypatch.setattr(aot, "AheadOfTimeStep", Recorder)
+    monkeypatch.setattr(aot, "ensure_package", recorder)
     assert cli.main(["prebuild", "--rod", "DLO1"]) == 0
     assert [b[:2] for b in built] == [(LOOP_BRANCH_FREE, 1), ((2, 2), 64)]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
