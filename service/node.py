@@ -170,6 +170,12 @@ class Service:
         self._warm = threading.Thread(target=self._warmup, name=f"warmup[{self.cfg.namespace}]", daemon=True)
         self._warm.start()
         if self.cfg.compile_step and not self.est.message_clock:
+            # importing the compiler's runtime takes the interpreter lock for a second or two: done
+            # here, before the loop runs, rather than in the compile thread beside it
+            import torch._inductor  # noqa: F401
+
+            import deform.compiled  # noqa: F401
+
             # not on the message clock: a replay must not depend on when compilation finished
             threading.Thread(
                 target=self._compile_step, name=f"compile[{self.cfg.namespace}]", daemon=True
