@@ -36,7 +36,7 @@ def main() -> int:
     args = ap.parse_args()
     from deform import load_model
     from deform.bench import _trajectory, throughput
-    from deform.compiled import CompiledStep
+    from deform.compiled import PREDICT_BRANCH_FREE, CompiledStep
 
     torch.set_num_threads(2)
     model = load_model("DLO1")
@@ -44,8 +44,8 @@ def main() -> int:
     variants = {
         "eager": model.step,
         "compiled_checked": CompiledStep(model),
-        "predict_aot_2_2": CompiledStep(model, branch_free=(2, 2), ahead_of_time=True),
-        "one_graph_2_2_torch_compile": CompiledStep(model, branch_free=(2, 2)),
+        "predict_aot_2_2": CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True),
+        "one_graph_2_2_torch_compile": CompiledStep(model, branch_free=PREDICT_BRANCH_FREE),
     }
     out = {
         "command": "python benchmarks/batched_throughput.py " + " ".join(sys.argv[1:]),

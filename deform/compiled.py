@@ -34,6 +34,7 @@ BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 # Newton step; a rope pulled nearly taut) need more. Converged rods are masked but the iterations
 # still run and enlarge the compiled code, so the rare harder steps are redone eagerly instead.
 LOOP_BRANCH_FREE = (12, 6)
+PREDICT_BRANCH_FREE = (2, 2)  # the predict rollout's fast graph (see RolloutStep)
 
 
 def bucket_size(batch: int) -> int:
@@ -218,7 +219,7 @@ class RolloutStep:
         self,
         model: DeformModel,
         enabled: bool = True,
-        branch_free: tuple[int, int] = (2, 2),
+        branch_free: tuple[int, int] = PREDICT_BRANCH_FREE,
         max_misses: int = 3,
         ahead_of_time: bool = False,
         compile_checked: bool = True,

@@ -130,15 +130,14 @@ def prebuild(cfg) -> int:
 
     from deform import load_model
     from deform.aot import cache_dir, ensure_package
-    from deform.compiled import LOOP_BRANCH_FREE, RolloutStep
+    from deform.compiled import LOOP_BRANCH_FREE, PREDICT_BRANCH_FREE
 
     model = load_model(cfg.rod)
     jobs = []
     if cfg.compile_step and cfg.step_ahead_of_time:
         jobs.append(("loop step", LOOP_BRANCH_FREE, 1))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
-        fast = RolloutStep(model, enabled=False).fast.branch_free
-        jobs += [(f"predict step, {b} plans", fast, b) for b in cfg.workers.predict_warmup]
+        jobs += [(f"predict step, {b} plans", PREDICT_BRANCH_FREE, b) for b in cfg.workers.predict_warmup]
     for label, branch_free, batch in jobs:
         t0 = time.perf_counter()
         try:

@@ -193,22 +193,19 @@ class ShapeClient:
         plans = np.ascontiguousarray(plans, dtype=float)
         if plans.ndim != 4 or plans.shape[2:] != (2, 7):
             raise BadRequest("bad_shape", f"plans must be (P, S, 2, 7), got {plans.shape}")
-        request = {"plans": plans, "return": steps, "encoding": "binary" if binary else "json"}
+        fields = {"return": steps, "encoding": "binary" if binary else "json"}  # all but the plans
         if dt is not None:
-            request["dt"] = float(dt)
+            fields["dt"] = float(dt)
         if request_id is not None:
-            request["id"] = request_id
+            fields["id"] = request_id
         if cost is not None:
-            request["cost"] = {
-                k: (np.ascontiguousarray(v, dtype=float) if k == "goal" else v) for k, v in cost.items()
+            fields["cost"] = {
+                k: (np.asarray(v, dtype=float).tolist() if k == "goal" else v) for k, v in cost.items()
             }
         if binary:  # the plans as float64 behind a header (service/predict_codec.py): no text at all
-            fields = {k: v for k, v in request.items() if k != "plans"}
-            if "cost" in fields and "goal" in fields["cost"]:
-                fields["cost"] = {**fields["cost"], "goal": fields["cost"]["goal"].tolist()}
             body = predict_codec.encode_request(plans, fields)
-        else:  # orjson writes the numpy arrays directly: 5 ms for 64 x 100 plans against 60 ms via lists
-            body = orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
+        else:  # orjson writes the numpy array directly: 5 ms for 64 x 100 plans against 60 ms via lists
+            body = orjson.dumps({"plans": plans, **fields}, option=orjson.OPT_SERIALIZE_NUMPY)
         payload = self._get("predict", body, timeout_s)
         if predict_codec.is_binary(payload):
             out, vertices = predict_codec.decode(payload)

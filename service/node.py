@@ -470,33 +470,39 @@ class Service:
         query.reply(self.cfg.key("status"), json.dumps(status).encode())
 
     def _on_predict_query(self, query) -> None:
-        if not self.predict_ready:  # warming up: say so now instead of answering after the compile
-            self.stats.reject("predict", "not_ready", "predict is being prepared")
-            detail = (
-                "predict is being prepared (compiling); status.predict_ready turns true when it can answer"
-            )
-            query.reply_err(json.dumps({"error": "not_ready", "detail": detail}).encode())
-            return
-        try:
-            self.predict_queue.put_nowait(query)
-        except queue.Full:
-            self.stats.reject("predict", "busy", "too many predictions queued")
-            query.reply_err(json.dumps({"error": "busy"}).encode())
+        def refuse(reason: str) -> None:
+            err = {"error": reason}
+            if reason == "not_ready":
+                err["detail"] = (
+                    "predict is being prepared (compiling); status.predict_ready turns true when it can answer"
+                )
+            query.reply_err(json.dumps(err).encode())
+
+        self._admit_predict("json", query, refuse)
 
     def _on_ros_predict_query(self, query) -> None:
         """``interface: ros2``: the ROS 2 service ``deform_msgs/srv/PredictShapes`` (service/ros2_predict.py)."""
         from service.ros2 import reply
         from service.ros2_predict import error_response
 
+        texts = {
+            "not_ready": "not_ready: predict is being prepared (compiling)",
+            "busy": "busy: too many predictions queued",
+        }
+        self._admit_predict("ros2", query, lambda reason: reply(query, error_response(texts[reason])))
+
+    def _admit_predict(self, kind: str, query, refuse) -> None:
+        """Queue a predict query for the predict thread, or ``refuse(reason)`` it at once: warming up
+        (``not_ready``: said now instead of answering after the compile) or too many queued (``busy``)."""
         if not self.predict_ready:
             self.stats.reject("predict", "not_ready", "predict is being prepared")
-            reply(query, error_response("not_ready: predict is being prepared (compiling)"))
+            refuse("not_ready")
             return
         try:
-            self.predict_queue.put_nowait(("ros2", query))
+            self.predict_queue.put_nowait((kind, query))
         except queue.Full:
             self.stats.reject("predict", "busy", "too many predictions queued")
-            reply(query, error_response("busy: too many predictions queued"))
+            refuse("busy")
 
     def _predict_loop(self) -> None:
         from service import ros2, ros2_predict
@@ -504,10 +510,9 @@ class Service:
         torch.set_num_threads(self.cfg.torch_threads)
         while not self._stop.is_set():
             try:
-                item = self.predict_queue.get(timeout=0.1)
+                kind, query = self.predict_queue.get(timeout=0.1)  # kind: "json" or "ros2"
             except queue.Empty:
                 continue
-            kind, query = item if isinstance(item, tuple) else ("json", item)
             try:
                 raw = query.payload.to_bytes() if query.payload is not None else b""
                 if kind == "ros2":
