@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 import torch
 
@@ -34,6 +36,16 @@ def sim_stream(sim_positions):
 
     grippers = scenario.offsets_for(sim_positions)
     return grippers, scenario.build_stream(sim_positions, grippers, fps=30.0)
+
+
+def wait_for(cond, timeout=20.0):
+    """Poll ``cond`` (a query: nothing to be notified by) until true or ``timeout``."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
 
 
 def make_config(endpoint=None, connect=None, **over):

@@ -4,34 +4,10 @@ import pytest
 
 from service import cli
 
+SHARED = ["--mode", "client", "--connect", "tcp/10.0.0.2:7447", "--interface", "ros2", "--domain-id", "3"]
 
-@pytest.mark.parametrize(
-    "argv",
-    [
-        [
-            "run",
-            "--mode",
-            "client",
-            "--connect",
-            "tcp/10.0.0.2:7447",
-            "--interface",
-            "ros2",
-            "--domain-id",
-            "3",
-        ],
-        [
-            "--mode",
-            "client",
-            "--connect",
-            "tcp/10.0.0.2:7447",
-            "--interface",
-            "ros2",
-            "--domain-id",
-            "3",
-            "run",
-        ],
-    ],
-)
+
+@pytest.mark.parametrize("argv", [["run", *SHARED], [*SHARED, "run"]])
 def test_shared_options_before_or_after_the_command(argv):
     cfg = cli._config(cli._parser().parse_args(argv))
     assert cfg.zenoh.mode == "client" and cfg.zenoh.connect == ["tcp/10.0.0.2:7447"]

@@ -14,12 +14,13 @@ import pytest
 from service import messages as M
 from service import ros2
 from service.node import Service
-from tests.service.conftest import make_config
+from tests.service.conftest import make_config, wait_for
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
 pytestmark = pytest.mark.zenoh
 
 TYPES = (M.POSE_ARRAY, M.POINT_CLOUD2, M.MARKER, M.CAMERA_INFO)
+WAIT_S = 30.0  # status conditions (a loaded machine starts the service slowly)
 GOOD = np.array([[-0.4, 0, 0.5, 0, 0, 0, 1], [0.4, 0, 0.5, 0, 0, 1, 0]], dtype=float)
 
 
@@ -35,15 +36,6 @@ def write_definitions(root, typenames) -> None:
             path = root / pkg / "msg" / f"{msg}.msg"
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(body.strip() + "\n")
-
-
-def wait_for(cond, timeout=30.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def sdk_cloud(get_message_class, height: int, width: int, stamp_ns: int) -> dict:
@@ -243,17 +235,19 @@ def test_a_ros2_node_drives_the_service_and_receives_vertices(model, endpoint, r
                     binning_y=0,
                     roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
                 )
-                assert wait_for(lambda: "camera_info" in rope.status()["input_age_s"])
+                assert wait_for(lambda: "camera_info" in rope.status()["input_age_s"], WAIT_S)
                 cam.publish(**sdk_cloud(get_message_class, 4, 4, time.time_ns()))
-                assert wait_for(lambda: rope.status()["counts"].get("clouds_fused", 0) >= 1), json.dumps(
-                    rope.status()
+                assert wait_for(lambda: rope.status()["counts"].get("clouds_fused", 0) >= 1, WAIT_S), (
+                    json.dumps(rope.status())
                 )
                 cam.publish(**sdk_cloud(get_message_class, 1, 16, time.time_ns()))
-                assert wait_for(lambda: rope.status()["rejected"].get("points:unorganized_cloud") == 1)
+                assert wait_for(
+                    lambda: rope.status()["rejected"].get("points:unorganized_cloud") == 1, WAIT_S
+                )
                 cam.close()
                 info.close()
                 # predict as a ROS 2 service: the SDK computes the type hash from the definition itself
-                assert wait_for(lambda: rope.status()["predict_ready"])
+                assert wait_for(lambda: rope.status()["predict_ready"], WAIT_S)
                 caller = ROS2ServiceClient(
                     "/deform/rod1/predict",
                     PREDICT_SRV,

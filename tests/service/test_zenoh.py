@@ -17,21 +17,11 @@ import pytest
 from service import bag, demo
 from service import messages as M
 from service.node import Service, open_session
-from tests.service.conftest import make_config
+from tests.service.conftest import make_config, wait_for
 
 pytestmark = pytest.mark.zenoh
 
 GOOD = np.array([[-0.4, 0, 0.5, 0, 0, 0, 1], [0.4, 0, 0.5, 0, 0, 1, 0]], dtype=float)
-
-
-def wait_for(cond, timeout=20.0):
-    """Poll ``cond`` (a query: nothing to be notified by) until true or ``timeout``."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 class Received:
