@@ -173,10 +173,16 @@ def _serve(conn, model_path: str, cfg, nice: int = 0) -> None:
     if nice:
         os.nice(nice)
     ctx = JobContext(DeformModel.load(model_path), cfg)
+    import service.tracking  # noqa: F401  (perception, for fuse: imported once here, not in a timed job)
+
     # Long-lived objects (torch, the model, later the compiled code: ~600k objects) out of the
     # collector's reach: a full collection of them took 0.4 s, and JSON parsing triggers one every
     # few predict requests (measured: 3 of 20 requests took 0.4 s instead of 0.13 s).
     gc.freeze()
+    try:
+        conn.send(("ready", os.getpid()))  # start-up done: the parent times jobs from here on
+    except (BrokenPipeError, OSError):
+        return
     while True:
         try:
             op, args = conn.recv()
@@ -231,10 +237,14 @@ class InlineWorker:
 class WorkerProcess:
     """A spawned child holding its own model; ``call`` sends one job and waits for its reply.
     Calls from several threads are serialised. A call that times out restarts the child (the
-    reply would otherwise arrive to the next caller)."""
+    reply would otherwise arrive to the next caller). A job's timeout counts the job only: the
+    first call after a (re)start first waits up to ``start_timeout_s`` for the child to say it is
+    ready (importing torch and perception and loading the model take seconds, tens of seconds for
+    a niced child on a busy machine, which a 5 s fusion timeout must not be charged with)."""
 
-    def __init__(self, model, cfg, name: str, nice: int = 0):
+    def __init__(self, model, cfg, name: str, nice: int = 0, start_timeout_s: float = 300.0):
         self.cfg, self.name, self.nice = cfg, name, nice
+        self.start_timeout_s = start_timeout_s
         self._dir = tempfile.TemporaryDirectory(prefix="deform-worker-")
         self._model_path = str(Path(self._dir.name) / "model.pt")
         model.save(self._model_path)
@@ -262,6 +272,18 @@ class WorkerProcess:
         )
         theirs.close()
         self._conn = Connection(ours.detach())
+        self._ready = False
+
+    def _wait_ready(self) -> None:
+        """Block until the child has started (its "ready" message), at most ``start_timeout_s``."""
+        if self._ready:
+            return
+        if not self._conn.poll(self.start_timeout_s):
+            raise TimeoutError(f"{self.name}: not started within {self.start_timeout_s} s")
+        status, _ = self._conn.recv()
+        if status != "ready":
+            raise EOFError(f"{self.name}: unexpected first message {status!r}")
+        self._ready = True
 
     @property
     def pid(self) -> int:
@@ -270,6 +292,7 @@ class WorkerProcess:
     def call(self, op: str, *args, timeout: float | None = None):
         with self._lock:
             try:
+                self._wait_ready()
                 self._conn.send((op, args))
                 if timeout is not None and not self._conn.poll(timeout):
                     raise TimeoutError(f"{self.name}: {op} took longer than {timeout} s")

@@ -68,6 +68,21 @@ def test_hung_job_times_out_and_restarts_the_child(child):
 
 
 @pytest.mark.slow
+def test_a_jobs_timeout_does_not_count_the_childs_start_up(model):
+    """A fresh child imports torch and perception and loads the model (seconds; tens of seconds for
+    a niced child on a busy machine) before it serves: a job's timeout starts once it is ready.
+    Timed from the send, the first 1 s ping of a new or restarted child would time out."""
+    w = WorkerProcess(model, make_config(), "test-cold", nice=5)
+    try:
+        assert w.call("ping", timeout=1.0) is True
+        before = w.pid
+        w.restart()
+        assert w.call("ping", timeout=1.0) is True and w.pid != before
+    finally:
+        w.close()
+
+
+@pytest.mark.slow
 def test_restart_gives_a_fresh_child_that_serves(child):
     before = child.pid
     child.restart()
