@@ -84,7 +84,9 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # rule is not part of it: every summary re-derives the decisions from the stored candidate scores with
 # today's rule (deform.diagnose.scoring.reselect; v4 of the tool changed only the rule). v6: candidates
 # scored on the windowed check error (one-second predictions along each check recording), the full
-# rollout's improvement kept beside it as "improvement_rollout".
+# rollout's improvement kept beside it as "improvement_rollout"; two descents from a new term's grid
+# (the better end on held-out fit windows kept); contact friction that never reverses the sliding in
+# a step; the contact grid also with the nominal stiffness halved; damping shares 1, 1/2, 1/5.
 TOOL_VERSION = 6
 RULE = "v6: the mean windowed improvement above the threshold"
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)

@@ -249,7 +249,9 @@ def diagnose(
             cb,
             f"round {rnd + 1}: reference",
         )
-        if c_ref.window.mean() > base_err.window.mean():  # a refit that got worse must not make candidates look good
+        if (
+            c_ref.window.mean() > base_err.window.mean()
+        ):  # a refit that got worse must not make candidates look good
             c_ref = base_err
         e_ref = c_ref.window
         results = []
@@ -288,7 +290,9 @@ def diagnose(
         if not sig:
             break
         name, term, csim, checked, sc = max(sig, key=lambda r: r[4].improvement)
-        cls = equivalence_class(name, checked.window, e_ref, [(r[0], r[3].window) for r in sig if r[0] != name])
+        cls = equivalence_class(
+            name, checked.window, e_ref, [(r[0], r[3].window) for r in sig if r[0] != name]
+        )
         cls["fit_noise"] = fit_noise(
             spec, base_nominal, selected, name, s, context, inputs, cb, sc.improvement
         )
