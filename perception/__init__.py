@@ -29,8 +29,20 @@ API used by the service (keep it stable)::
 
 from perception.camera import Camera, look_at
 from perception.config import PerceptionConfig, load_config
-from perception.render import RenderedFrame, camera_steps, default_camera, render_recording
 from perception.tracker import Tracker
+
+_RENDERER = ("RenderedFrame", "camera_steps", "default_camera", "render_recording")
+
+
+def __getattr__(name: str):
+    """The renderer's names load on first use: it imports open3d (1-3 s), which the tracker, and so
+    the service's start-up, never needs."""
+    if name in _RENDERER:
+        from perception import render
+
+        return getattr(render, name)
+    raise AttributeError(f"module 'perception' has no attribute {name!r}")
+
 
 __all__ = [
     "Camera",
