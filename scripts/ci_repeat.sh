@@ -10,7 +10,7 @@
 # `make test` still checks it is complete). Results go to stdout and to ci_repeat.log.
 # CI_REPEAT_LOAD=CMD makes the load a command of your own (e.g. a benchmark that resumes), run in
 # its own process group and stopped at the end of each loaded run; a busy loop follows it if it
-# ends early.
+# ends early. ../shared is linked beside each clone when it is beside this checkout, as in CI.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 RUNS=${1:-10}
@@ -19,10 +19,14 @@ HERE=$(pwd)
 COMMIT=$(git rev-parse HEAD)
 LOG="$HERE/ci_repeat.log"
 echo "commit $COMMIT, $RUNS runs, the last $LOADED with a CPU-bound process on another core" | tee "$LOG"
+# CI_REPEAT_NOTE: what else ran on the machine meanwhile (e.g. benchmarks), recorded with the results
+[ -n "${CI_REPEAT_NOTE:-}" ] && echo "note: $CI_REPEAT_NOTE" | tee -a "$LOG"
 pass=0
 for i in $(seq 1 "$RUNS"); do
   dir=$(mktemp -d "$(dirname "$HERE")/ci-repeat-XXXX")
   git clone -q "$HERE" "$dir/repo" && git -C "$dir/repo" checkout -q "$COMMIT"
+  # as in CI, ../shared beside the clone: the tests that need the dataset run instead of skipping
+  [ -d "$(dirname "$HERE")/shared" ] && ln -s "$(dirname "$HERE")/shared" "$dir/shared"
   if [ -d "$HERE/.venv" ]; then
     ln -s "$HERE/.venv" "$dir/repo/.venv"
     # older than the install stamp: the shared venv is not reinstalled (editable) from a clone
