@@ -44,7 +44,7 @@ for i in $(seq 1 "$RUNS"); do
     result=FAIL; cp "$dir/out.txt" "$HERE/ci_repeat.fail.$i.txt"
   fi
   [ -n "$hog" ] && kill -- -"$hog"
-  echo "run $i: $result in $(( $(date +%s) - start )) s$([ -n "$hog" ] && echo ' (loaded)')" | tee -a "$LOG"
+  echo "run $i: $result in $(( $(date +%s) - start )) s, started $(date -d "@$start" +%H:%M)$([ -n "$hog" ] && echo ' (loaded)')" | tee -a "$LOG"
   rm -rf "$dir"
 done
 echo "$pass/$RUNS passed" | tee -a "$LOG"
