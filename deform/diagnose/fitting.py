@@ -93,7 +93,6 @@ def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph
 def _grid_handles(sim: Simulator, term) -> dict:
     named = {k: p for k, p in term.named_parameters()}
     named.update({f"nominal:{k}": p for k, p in sim.nominal.named_parameters()})
-    named.update({f"nominal={k}": p for k, p in sim.nominal.named_parameters()})
     return named
 
 
@@ -110,8 +109,6 @@ def apply_point(sim: Simulator, term, point: dict | None) -> None:
     for k, v in (point or {}).items():
         if k.startswith("nominal:"):
             named[k].add_(v)
-        elif k.startswith("nominal="):
-            named[k].fill_(min(v, float(named[k])))  # brought down to, never raised to
         elif isinstance(v, (list, tuple)):
             named[k].copy_(torch.tensor(v, dtype=named[k].dtype))
         else:
@@ -123,7 +120,7 @@ def apply_point(sim: Simulator, term, point: dict | None) -> None:
 def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBudget) -> list[tuple]:
     """The term's current raw values and each point of ``term.grid()``, scored on one fixed batch
     of windows (forward rollouts only), best first. A grid key ``"nominal:NAME"`` adds its value to
-    the nominal parameter NAME (a log), ``"nominal=NAME"`` sets it: a term that takes over part of
+    the nominal parameter NAME (a log): a term that takes over part of
     what the nominal model did (drag vs linear damping) is tried together with the nominal share it
     replaces. The simulator is left as it was.
 
@@ -152,10 +149,7 @@ def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBu
     for point in [None] + points:
         _restore(sim, saved)
         apply_point(sim, term, point)
-        loss = float(
-            torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf)
-        )
-        scored.append((loss, point))
+        scored.append((_forward_loss(sim, windows, budget), point))
     _restore(sim, saved)
     return sorted(scored, key=lambda lp: lp[0])
 
@@ -175,6 +169,14 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
         return None
     apply_point(sim, term, ranked[0][1])
     return {"grid_loss_m": ranked[0][0], "chosen": ranked[0][1]}
+
+
+@torch.no_grad()
+def _forward_loss(sim: Simulator, windows, budget: FitBudget) -> float:
+    """Window loss without gradients; a diverged rollout scores infinity."""
+    return float(
+        torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf)
+    )
 
 
 def _snapshot(sim: Simulator) -> list[torch.Tensor]:
@@ -236,13 +238,8 @@ def fit(
         _restore(sim, origin)
         apply_point(sim, new_term, point)
         out = _descend(sim, recordings, budget, f"{desc} (start {k + 1})", fit_nominal)
-        with torch.no_grad():
-            sim.sync()
-            loss = float(
-                torch.nan_to_num(
-                    window_loss(sim, held_out, budget.horizon, budget.margin, False), nan=math.inf
-                )
-            )
+        sim.sync()
+        loss = _forward_loss(sim, held_out, budget)
         starts.append({"point": point, "loss_m": loss})
         if best is None or loss < best[0]:
             best = (loss, _snapshot(sim), out)
