@@ -61,7 +61,14 @@ def step_latency(model: DeformModel, positions: np.ndarray, steps: int, step_fn=
     return _percentiles(times[20:])
 
 
-def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int, step_fn=None) -> float:
+def throughput(
+    model: DeformModel,
+    positions: np.ndarray,
+    batch: int,
+    steps: int,
+    step_fn=None,
+    dtype: torch.dtype = torch.float64,
+) -> float:
     """Batched stepping speed.
 
     Args:
@@ -70,12 +77,13 @@ def throughput(model: DeformModel, positions: np.ndarray, batch: int, steps: int
         batch: rods stepped together.
         steps: steps timed.
         step_fn: the step, or None (``model.step``).
+        dtype: of the rods' state (the step follows it).
 
     Returns:
         Rod-steps per second.
     """
     step_fn = step_fn or model.step
-    X = torch.tensor(positions[: steps + 2], dtype=torch.float64).unsqueeze(0).expand(batch, -1, -1, -1)
+    X = torch.tensor(positions[: steps + 2], dtype=dtype).unsqueeze(0).expand(batch, -1, -1, -1)
     X = X + 1e-4 * torch.randn_like(X)
     idx = gripped_indices(model.n)
     with torch.no_grad():
