@@ -459,6 +459,7 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
     data = find_data_root()
     for rod in rods:
         key = f"real:{rod}"
+        done.update(load_runs(runs_path, _config(args)))  # rows another process finished meanwhile
         if key in done:
             continue
         L, M, n = RODS[rod]
