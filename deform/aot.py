@@ -13,13 +13,6 @@ the package was made builds a new one rather than use stale weights.
 Only the branch-free step (fixed twist iterations and projection sweeps, see
 :class:`deform.compiled.CompiledStep`) is compiled this way: the convergence-checked step has
 data-dependent loops that do not export into one graph.
-
-Batched packages take their inputs with the batch dimension innermost in memory (a ``(B, n, 3)``
-tensor stored as ``(n, 3, B)``). Why: per rod the step works on 3-13 elements at a time, so with the
-usual layout inductor's loops over them barely vectorise; with the batch innermost its kernels run
-along the rods. Same values (to 1e-6 mm after 50 steps), about 1.4-1.8x the rod-steps per second at
-1024 rods (``benchmarks/batched_throughput.py``). The package assumes the strides it was exported
-with, so :class:`AheadOfTimeStep` lays out every input that is not already so.
 """
 
 from __future__ import annotations
@@ -87,25 +80,6 @@ def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dt
     return h.hexdigest()[:32]
 
 
-def batch_innermost(t: Tensor) -> Tensor:
-    """The same (B, ...) values with the batch dimension innermost in memory (a copy unless they
-    already are); a batch of one is left as it is (its layout is the usual one).
-
-    Args:
-        t: (B, ...) tensor.
-
-    Returns:
-        (B, ...) tensor whose stride along dim 0 is 1 and whose other dims are row-major over B.
-    """
-    if t.dim() < 2 or t.shape[0] == 1:
-        return t
-    last = t.dim() - 1
-    want = t.new_empty(t.shape[1:] + t.shape[:1]).stride()  # row-major strides of (..., B)
-    if t.stride() == (1, *want[:-1]):
-        return t
-    return t.permute(*range(1, t.dim()), 0).contiguous().permute(last, *range(last))
-
-
 class _BranchFreeStep(torch.nn.Module):
     """``model.step`` with fixed iterations on flat tensors, and the rods it left unconverged."""
 
@@ -125,9 +99,7 @@ def _build(
 ) -> None:
     """Export the step for a rod at rest (shapes and dtype are all that matter) and compile it."""
     state, grip = rod_at_rest(model, batch, dtype)
-    args = tuple(
-        batch_innermost(t.contiguous()) for t in (state.x, state.v, state.d1, state.theta, state.rest, grip)
-    )
+    args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
     t0 = time.perf_counter()
     with torch.no_grad():
         exported = torch.export.export(_BranchFreeStep(model, branch_free), args, strict=False)
@@ -202,9 +174,7 @@ class AheadOfTimeStep:
     def __call__(self, state: RodState, grip_next: Tensor) -> tuple[RodState, Tensor]:
         if self._current_versions() != self._versions:  # parameters changed in place: not these weights
             self.load()
-        # the layout the package was exported with (its outputs x, v, rest keep it, so a rollout
-        # copies only d1 and theta each step)
         x, v, d1, theta, rest, unconverged = self._runner(
-            *(batch_innermost(t) for t in (state.x, state.v, state.d1, state.theta, state.rest, grip_next))
+            state.x, state.v, state.d1, state.theta, state.rest, grip_next
         )
         return RodState(x, v, d1, theta, rest), unconverged

@@ -21,7 +21,7 @@ import threading
 import torch
 from torch import Tensor
 
-from deform.aot import AheadOfTimeStep, batch_innermost
+from deform.aot import AheadOfTimeStep
 from deform.model import DeformModel, RodState, overstretched
 from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 
@@ -52,12 +52,11 @@ def bucket_size(batch: int) -> int:
     return batch
 
 
-def _pad(t: Tensor, size: int, layout=Tensor.contiguous) -> Tensor:
-    """Padded to ``size`` rods and in ``layout`` (compiled code is specialised on strides too:
-    contiguous for torch.compile, :func:`deform.aot.batch_innermost` for an ahead-of-time package)."""
-    if t.shape[0] != size:
-        t = torch.cat([t, t[:1].expand(size - t.shape[0], *t.shape[1:])], dim=0)
-    return layout(t)
+def _pad(t: Tensor, size: int) -> Tensor:
+    """Padded to ``size`` rods and contiguous (compiled code is specialised on strides too)."""
+    if t.shape[0] == size:
+        return t.contiguous()
+    return torch.cat([t, t[:1].expand(size - t.shape[0], *t.shape[1:])], dim=0)
 
 
 class ConvergenceCheck(str, enum.Enum):
@@ -148,14 +147,14 @@ class CompiledStep:
             return self.model.step(state, grip_next), None
         batch = state.x.shape[0]
         size = bucket_size(batch)
-        tensors = (state.x, state.v, state.d1, state.theta, state.rest)
+        padded = RodState(*(_pad(t, size) for t in (state.x, state.v, state.d1, state.theta, state.rest)))
+        grip = None if grip_next is None else _pad(grip_next, size)
         try:
             with torch.no_grad(), self._lock:
-                fn = self._aot_fn(size, state.x.dtype) if grip_next is not None else None
+                fn = self._aot_fn(size, state.x.dtype) if grip is not None else None
                 if fn is not None:
-                    padded = RodState(*(_pad(t, size, batch_innermost) for t in tensors))
                     try:
-                        out, unconverged = fn(padded, _pad(grip_next, size, batch_innermost))
+                        out, unconverged = fn(padded, grip)
                     except Exception as exc:
                         # torch.compile step of the same graph is still good, so only this path goes
                         self.ahead_of_time, fn = False, None
@@ -164,8 +163,6 @@ class CompiledStep:
                             "ahead-of-time step failed (%s: %s); using torch.compile", type(exc).__name__, exc
                         )
                 if fn is None:
-                    padded = RodState(*(_pad(t, size) for t in tensors))
-                    grip = None if grip_next is None else _pad(grip_next, size)
                     out, unconverged = self._step_fn()(padded, grip)
         except Exception as exc:
             self._failed = True
