@@ -65,6 +65,7 @@ def predict_recordings(
     steps: int = 500,
     batched: bool = True,
     dtype: torch.dtype = torch.float64,
+    step=None,
 ) -> list[RolloutResult]:
     """Roll out every recording open-loop, in input order, from its first two frames with the gripped
     vertices given at every step (the paper's protocol).
@@ -76,12 +77,15 @@ def predict_recordings(
         batched: recordings predicted over the same number of steps share one batch; otherwise one
             rollout each (the timing of a single rollout).
         dtype: of the rollout's state (float32: the planner's trade of accuracy for speed).
+        step: ``(state, grip_next) -> state``, or None for ``model.step`` (a compiled step, such as
+            the one predict rolls out with, to score what the service answers).
 
     Returns:
         One :class:`RolloutResult` per recording: ``prediction`` and ``truth`` (S, n, 3) and the
         seconds of each step.
     """
     idx = gripped_indices(model.n)
+    step = step or model.step
     horizon = [min(steps, r.n_frames - 2) for r in recordings]
     groups = (
         list(batches_by_horizon(recordings, steps).values())
@@ -97,7 +101,7 @@ def predict_recordings(
             preds, times = [], []
             for k in range(s):
                 t0 = time.perf_counter()
-                state = model.step(state, X[:, k + 2, idx])
+                state = step(state, X[:, k + 2, idx])
                 times.append(time.perf_counter() - t0)
                 preds.append(state.x)
             P = torch.stack(preds, 1).double().numpy()

@@ -135,13 +135,14 @@ def prebuild(cfg) -> int:
     model = load_model(cfg.rod)
     jobs = []
     if cfg.compile_step and cfg.step_ahead_of_time:
-        jobs.append(("loop step", LOOP_BRANCH_FREE, 1))
+        jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
-        jobs += [(f"predict step, {b} plans", PREDICT_BRANCH_FREE, b) for b in cfg.workers.predict_warmup]
-    for label, branch_free, batch in jobs:
+        dtype = getattr(torch, cfg.workers.predict_dtype)
+        jobs += [(f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype) for b in cfg.workers.predict_warmup]
+    for label, branch_free, batch, dtype in jobs:
         t0 = time.perf_counter()
         try:
-            path, _ = ensure_package(model, branch_free, batch, torch.float64)
+            path, _ = ensure_package(model, branch_free, batch, dtype)
         except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
             print(f"{label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
             return 1

@@ -124,15 +124,15 @@ def snapshot(est: Estimator) -> tuple[tuple, int]:
         ), stamp
 
 
-def rollout(step, base: tuple, grips: np.ndarray) -> np.ndarray:
-    """Every plan from the same state: grips (P, S, 4, 3) -> vertices (P, S, n, 3). ``step`` is a
-    :class:`deform.compiled.RolloutStep` (or a ``CompiledStep``, or the model)."""
+def rollout(step, base: tuple, grips: np.ndarray, dtype: torch.dtype = torch.float64) -> np.ndarray:
+    """Every plan from the same state: grips (P, S, 4, 3) -> vertices (P, S, n, 3) of ``dtype``.
+    ``step`` is a :class:`deform.compiled.RolloutStep` (or a ``CompiledStep``, or the model)."""
     from deform import RodState
     from deform.compiled import rollout as batched_rollout
 
     P = grips.shape[0]
-    state = RodState(*(torch.from_numpy(a).expand(P, *a.shape[1:]).clone() for a in base))
-    return batched_rollout(step, state, torch.from_numpy(grips)).numpy()
+    state = RodState(*(torch.from_numpy(a).to(dtype).expand(P, *a.shape[1:]).clone() for a in base))
+    return batched_rollout(step, state, torch.from_numpy(grips).to(dtype)).numpy()
 
 
 def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, str | None, str | None]:
@@ -144,7 +144,7 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
     except InputError as exc:
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
     grips = grips_from_poses(req.plans, ctx.cfg.grippers)
-    verts = rollout(ctx.step, base, grips)
+    verts = rollout(ctx.step, base, grips, getattr(ctx, "dtype", torch.float64))
     # plans that at some step hold the rod farther apart than it is long: no real rope follows them
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()

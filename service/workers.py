@@ -94,6 +94,13 @@ class JobContext:
         self._step = None
 
     @property
+    def dtype(self):
+        """The predict rollout's state dtype (``workers.predict_dtype``)."""
+        import torch
+
+        return getattr(torch, self.cfg.workers.predict_dtype)
+
+    @property
     def step(self):
         if self._step is None:
             from deform.compiled import RolloutStep
@@ -129,7 +136,7 @@ def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
 
 
 def job_warmup(ctx: JobContext, batch_sizes) -> bool:
-    active = ctx.step.warmup(tuple(batch_sizes)) if batch_sizes else ctx.step.active
+    active = ctx.step.warmup(tuple(batch_sizes), ctx.dtype) if batch_sizes else ctx.step.active
     gc.freeze()  # the compiled code's objects too (see _serve)
     return active
 

@@ -100,6 +100,26 @@ def test_prediction_batched_and_state_untouched(est):
     np.testing.assert_allclose(np.array(json.loads(single)["vertices"])[0], v[1], atol=2e-5)
 
 
+def test_rollout_runs_in_the_configured_dtype_and_both_agree(est):
+    # float32 is predict's default (faster at planning scale); float64 stays available. They must
+    # give the same shapes to well under the estimate's own 0.01 mm resolution of a JSON reply
+    from service.geometry import grips_from_poses
+    from service.workers import InlineWorker
+
+    plans = np.tile(GOOD, (2, 20, 1, 1))
+    plans[1, :, :, 2] -= np.linspace(0, 0.05, 20)[:, None]
+    base, stamp = predict.snapshot(est)
+    out = {}
+    for dtype in ("float32", "float64"):
+        cfg = est.cfg.model_copy(update={"workers": est.cfg.workers.model_copy(update={"predict_dtype": dtype})})
+        ctx = InlineWorker(est.model, cfg).ctx
+        grips = grips_from_poses(plans, cfg.grippers)
+        out[dtype] = predict.rollout(ctx.step, base, grips, ctx.dtype)
+    assert out["float32"].dtype == np.float32 and out["float64"].dtype == np.float64
+    gap = np.abs(out["float32"] - out["float64"]).max()
+    assert 0 < gap < 1e-5, gap  # not the same computation, but the same shapes
+
+
 def test_no_estimate_yet(model):
     e = Estimator(make_config(), model, OpenLoopTracker(model))
     ok, reply = handle(e, body(np.tile(GOOD, (1, 1, 1, 1))))
