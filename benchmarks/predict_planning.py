@@ -8,6 +8,10 @@ and 1024 plans), a feeder publishing poses at 100 Hz and clouds at 30 Hz, and a 
 1024 plans x 100 steps in cost mode (only the P costs come back), 256 x 100 final shapes only, and
 64 x 100 all steps. Plans start at the grippers' current poses and move each gripper up to 10 cm
 per axis. The loop's misses and tick-to-publish p99 over the whole run are reported beside.
+
+``--dtypes float32 float64`` compares predict's rollout dtype (``workers.predict_dtype``) in one run:
+a service per (round, dtype), rounds interleaved (``--rounds``) because the VM's speed drifts; the
+first dtype is the headline, the others are reported beside with the ratio of their p50s.
 """
 
 from __future__ import annotations
@@ -62,6 +66,8 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=20)
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/predict_planning.json"))
     ap.add_argument("--client")
+    ap.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "float64"])
+    ap.add_argument("--rounds", type=int, default=1, help="services per dtype, interleaved")
     args = ap.parse_args()
     if args.client:
         client(args.client, args.n)
@@ -76,38 +82,75 @@ def main() -> int:
     from service.demo import free_port
     from service.node import Service
 
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    cfg = load_config(
-        zenoh={"listen": [ep], "multicast_scouting": False},
-        limits={"max_plans": 1024, "max_plan_steps_total": 102400, "max_request_bytes": 16_000_000},
-        workers={"predict_warmup": [64, 256, 1024]},
-    )
-    svc = Service(cfg).start()
-    rope = ShapeClient(connect=[ep], timeout_s=5.0)
-    t0 = time.perf_counter()
-    while not all((status(rope) or {}).get(k) for k in ("predict_ready", "step_ready")):
-        time.sleep(0.5)
-    warmup = time.perf_counter() - t0
-    feed = start_feeder(ep, 3600, 30.0)
-    time.sleep(3.0)
-    s0 = status(rope)
-    p = subprocess.run(
-        [sys.executable, __file__, "--client", ep, "--n", str(args.n)],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=3600,
-    )
-    s1 = status(rope)
-    feed.kill()
-    lines = [line for line in p.stdout.splitlines() if line.startswith("{")]
-    if not lines:
-        raise SystemExit(f"client failed: {p.stderr[-2000:]}")
-    times = json.loads(lines[-1])
-    ticks = s1["counts"]["ticks"] - s0["counts"]["ticks"]
-    misses = sum(
-        s1["counts"].get(k, 0) - s0["counts"].get(k, 0) for k in ("deadline_misses", "ticks_skipped")
-    )
+    def one_service(dtype: str, n: int) -> dict:
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        cfg = load_config(
+            zenoh={"listen": [ep], "multicast_scouting": False},
+            limits={"max_plans": 1024, "max_plan_steps_total": 102400, "max_request_bytes": 16_000_000},
+            workers={"predict_warmup": [64, 256, 1024], "predict_dtype": dtype},
+        )
+        svc = Service(cfg).start()
+        rope = ShapeClient(connect=[ep], timeout_s=5.0)
+        t0 = time.perf_counter()
+        while not all((status(rope) or {}).get(k) for k in ("predict_ready", "step_ready")):
+            time.sleep(0.5)
+        warmup = time.perf_counter() - t0
+        feed = start_feeder(ep, 3600, 30.0)
+        time.sleep(3.0)
+        s0 = status(rope)
+        p = subprocess.run(
+            [sys.executable, __file__, "--client", ep, "--n", str(n)],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=3600,
+        )
+        s1 = status(rope)
+        feed.kill()
+        rope.close()
+        svc.stop()
+        lines = [line for line in p.stdout.splitlines() if line.startswith("{")]
+        if not lines:
+            raise SystemExit(f"client failed: {p.stderr[-2000:]}")
+        misses = sum(
+            s1["counts"].get(k, 0) - s0["counts"].get(k, 0) for k in ("deadline_misses", "ticks_skipped")
+        )
+        return {
+            "warmup_s": warmup,
+            "times": json.loads(lines[-1]),
+            "ticks": s1["counts"]["ticks"] - s0["counts"]["ticks"],
+            "misses": misses,
+            "tick_to_publish_ms": s1["tick_to_publish_ms"],
+        }
+
+    per_round = max(1, args.n // args.rounds)
+    runs: dict[str, list[dict]] = {d: [] for d in args.dtypes}
+    for _ in range(args.rounds):
+        for dtype in args.dtypes:
+            runs[dtype].append(one_service(dtype, per_round))
+
+    def summary(rs: list[dict]) -> dict:
+        times = {label: [t for r in rs for t in r["times"][label]] for label in rs[0]["times"]}
+        ticks, misses = sum(r["ticks"] for r in rs), sum(r["misses"] for r in rs)
+        return {
+            "warmup_s": round(rs[0]["warmup_s"], 1),
+            "requests": {
+                label: {
+                    "p50_ms": round(float(np.median(v)), 1),
+                    "p90_ms": round(float(np.percentile(v, 90)), 1),
+                    "max_ms": round(float(np.max(v)), 1),
+                    "n": len(v),
+                }
+                for label, v in times.items()
+            },
+            "loop": {
+                "ticks": ticks,
+                "miss_pct": round(100.0 * misses / max(ticks, 1), 3),
+                "tick_to_publish_ms": rs[-1]["tick_to_publish_ms"],
+            },
+        }
+
+    head = summary(runs[args.dtypes[0]])
     out = {
         "command": "python benchmarks/predict_planning.py " + " ".join(sys.argv[1:]),
         "commit": subprocess.run(
@@ -118,27 +161,24 @@ def main() -> int:
             "platform": platform.platform(),
             "python": platform.python_version(),
         },
-        "warmup_s": round(warmup, 1),
-        "requests": {
-            label: {
-                "p50_ms": round(float(np.median(v)), 1),
-                "p90_ms": round(float(np.percentile(v, 90)), 1),
-                "max_ms": round(float(np.max(v)), 1),
-                "n": len(v),
-            }
-            for label, v in times.items()
-        },
+        "predict_dtype": args.dtypes[0],
+        "rounds": args.rounds,
+        "warmup_s": head["warmup_s"],
+        "requests": head["requests"],
         "targets_p50_ms": {"1024x100 cost": 300, "256x100 final": 100, "64x100 all": 100},
-        "loop": {
-            "ticks": ticks,
-            "miss_pct": round(100.0 * misses / max(ticks, 1), 3),
-            "tick_to_publish_ms": s1["tick_to_publish_ms"],
-        },
+        "loop": head["loop"],
     }
+    for dtype in args.dtypes[1:]:
+        other = summary(runs[dtype])
+        out.setdefault("compared", {})[dtype] = {
+            **other,
+            "p50_ratio_to_headline": {
+                label: round(other["requests"][label]["p50_ms"] / head["requests"][label]["p50_ms"], 2)
+                for label in head["requests"]
+            },
+        }
     print(json.dumps(out, indent=1))
     Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
-    rope.close()
-    svc.stop()
     return 0
 
 
