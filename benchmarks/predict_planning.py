@@ -9,9 +9,10 @@ and 1024 plans), a feeder publishing poses at 100 Hz and clouds at 30 Hz, and a 
 64 x 100 all steps. Plans start at the grippers' current poses and move each gripper up to 10 cm
 per axis. The loop's misses and tick-to-publish p99 over the whole run are reported beside.
 
-``--dtypes float32 float64`` compares predict's rollout dtype (``workers.predict_dtype``) in one run:
-a service per (round, dtype), rounds interleaved (``--rounds``) because the VM's speed drifts; the
-first dtype is the headline, the others are reported beside with the ratio of their p50s.
+``--compare predict_dtype=float64 predict_threads=1`` also runs the service with each of these
+``workers`` settings changed (one at a time) in the same run: a service per (round, variant), rounds
+interleaved (``--rounds``) because the VM's speed drifts; the default configuration is the headline,
+the variants are reported beside with the ratio of their p50s to it.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -66,8 +68,8 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=20)
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/predict_planning.json"))
     ap.add_argument("--client")
-    ap.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "float64"])
-    ap.add_argument("--rounds", type=int, default=1, help="services per dtype, interleaved")
+    ap.add_argument("--compare", nargs="*", default=[], help="workers settings KEY=VALUE, one per variant")
+    ap.add_argument("--rounds", type=int, default=1, help="services per variant, interleaved")
     args = ap.parse_args()
     if args.client:
         client(args.client, args.n)
@@ -82,12 +84,12 @@ def main() -> int:
     from service.demo import free_port
     from service.node import Service
 
-    def one_service(dtype: str, n: int) -> dict:
+    def one_service(workers: dict, n: int) -> dict:
         ep = f"tcp/127.0.0.1:{free_port()}"
         cfg = load_config(
             zenoh={"listen": [ep], "multicast_scouting": False},
             limits={"max_plans": 1024, "max_plan_steps_total": 102400, "max_request_bytes": 16_000_000},
-            workers={"predict_warmup": [64, 256, 1024], "predict_dtype": dtype},
+            workers={"predict_warmup": [64, 256, 1024], **workers},
         )
         svc = Service(cfg).start()
         rope = ShapeClient(connect=[ep], timeout_s=5.0)
@@ -124,10 +126,16 @@ def main() -> int:
         }
 
     per_round = max(1, args.n // args.rounds)
-    runs: dict[str, list[dict]] = {d: [] for d in args.dtypes}
+    defaults = load_config().workers
+    cfg_workers = defaults.model_dump()
+    variants = {"default": {}}
+    for item in args.compare:
+        key, value = item.split("=", 1)
+        variants[item] = {key: yaml.safe_load(value)}
+    runs: dict[str, list[dict]] = {name: [] for name in variants}
     for _ in range(args.rounds):
-        for dtype in args.dtypes:
-            runs[dtype].append(one_service(dtype, per_round))
+        for name, workers in variants.items():
+            runs[name].append(one_service(workers, per_round))
 
     def summary(rs: list[dict]) -> dict:
         times = {label: [t for r in rs for t in r["times"][label]] for label in rs[0]["times"]}
@@ -150,7 +158,7 @@ def main() -> int:
             },
         }
 
-    head = summary(runs[args.dtypes[0]])
+    head = summary(runs["default"])
     out = {
         "command": "python benchmarks/predict_planning.py " + " ".join(sys.argv[1:]),
         "commit": subprocess.run(
@@ -161,16 +169,16 @@ def main() -> int:
             "platform": platform.platform(),
             "python": platform.python_version(),
         },
-        "predict_dtype": args.dtypes[0],
+        "workers": cfg_workers,
         "rounds": args.rounds,
         "warmup_s": head["warmup_s"],
         "requests": head["requests"],
         "targets_p50_ms": {"1024x100 cost": 300, "256x100 final": 100, "64x100 all": 100},
         "loop": head["loop"],
     }
-    for dtype in args.dtypes[1:]:
-        other = summary(runs[dtype])
-        out.setdefault("compared", {})[dtype] = {
+    for name in list(variants)[1:]:
+        other = summary(runs[name])
+        out.setdefault("compared", {})[name] = {
             **other,
             "p50_ratio_to_headline": {
                 label: round(other["requests"][label]["p50_ms"] / head["requests"][label]["p50_ms"], 2)
