@@ -75,6 +75,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--install", action="store_true", help="ship a with-term model validation picks")
     ap.add_argument("--runs", default=str(ROOT / "runs" / "real_terms"))
+    ap.add_argument("--stem", default="real_terms", help="result files benchmarks/results/<stem>.{json,md}")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     root = find_data_root()
@@ -83,6 +84,28 @@ def main() -> int:
     named = named_terms(args.rods, args.terms)
     rows = []
     t_all = time.perf_counter()
+
+    def write(complete: bool) -> dict:
+        """The rows so far (after every term: an interrupted run keeps what it measured)."""
+        result = {
+            "command": "python benchmarks/real_terms.py " + " ".join(sys.argv[1:]),
+            **provenance(),
+            "threads": args.threads,
+            "budget": {
+                "iterations": args.iterations,
+                "batch": args.batch,
+                "horizon": args.horizon,
+                "lr_scale": args.lr_scale,
+            },
+            "seconds_total": time.perf_counter() - t_all,
+            "complete": complete,
+            "rows": rows,
+        }
+        RESULTS.mkdir(exist_ok=True)
+        (RESULTS / f"{args.stem}.json").write_text(json.dumps(result, indent=2))
+        (RESULTS / f"{args.stem}.md").write_text(markdown(result))
+        return result
+
     for rod in args.rods:
         shipped = load_model(rod)
         train_recs, val_recs = split_validation(load_recordings(root / rod / "train", shipped.n))
@@ -145,23 +168,8 @@ def main() -> int:
                     "installed": installed,
                 }
             )
-    result = {
-        "command": "python benchmarks/real_terms.py " + " ".join(sys.argv[1:]),
-        **provenance(),
-        "threads": args.threads,
-        "budget": {
-            "iterations": args.iterations,
-            "batch": args.batch,
-            "horizon": args.horizon,
-            "lr_scale": args.lr_scale,
-        },
-        "seconds_total": time.perf_counter() - t_all,
-        "rows": rows,
-    }
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "real_terms.json").write_text(json.dumps(result, indent=2))
-    (RESULTS / "real_terms.md").write_text(markdown(result))
-    print(markdown(result))
+            write(complete=False)
+    print(markdown(write(complete=True)))
     return 0
 
 
