@@ -566,7 +566,11 @@ def render_roofline(d: dict) -> list[str]:
 
 
 def render_float32(d: dict) -> list[str]:
-    names = [("float32", "eager float32"), ("predict_float64", "predict's step"), ("predict_float32", "predict's step, float32")]
+    names = [
+        ("float32", "eager float32"),
+        ("predict_float64", "predict's step"),
+        ("predict_float32", "predict's step, float32"),
+    ]
     names = [(k, label) for k, label in names if any(f"{k}_l1_cm" in r for r in d.get("rods", {}).values())]
     rows = []
     for rod, r in d.get("rods", {}).items():

@@ -138,7 +138,9 @@ def prebuild(cfg) -> int:
         jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
         dtype = getattr(torch, cfg.workers.predict_dtype)
-        jobs += [(f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype) for b in cfg.workers.predict_warmup]
+        jobs += [
+            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype) for b in cfg.workers.predict_warmup
+        ]
     for label, branch_free, batch, dtype in jobs:
         t0 = time.perf_counter()
         try:

@@ -108,10 +108,12 @@ def test_rollout_runs_in_the_configured_dtype_and_both_agree(est):
 
     plans = np.tile(GOOD, (2, 20, 1, 1))
     plans[1, :, :, 2] -= np.linspace(0, 0.05, 20)[:, None]
-    base, stamp = predict.snapshot(est)
+    base, _ = predict.snapshot(est)
     out = {}
     for dtype in ("float32", "float64"):
-        cfg = est.cfg.model_copy(update={"workers": est.cfg.workers.model_copy(update={"predict_dtype": dtype})})
+        cfg = est.cfg.model_copy(
+            update={"workers": est.cfg.workers.model_copy(update={"predict_dtype": dtype})}
+        )
         ctx = InlineWorker(est.model, cfg).ctx
         grips = grips_from_poses(plans, cfg.grippers)
         out[dtype] = predict.rollout(ctx.step, base, grips, ctx.dtype)
