@@ -45,6 +45,11 @@ KNOWN = {
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
     "diagnose.json": ("deform diagnose: planted-effect benchmark", "python benchmarks/diagnose_planted.py"),
     "real_terms.json": ("Named physics trained into DEFORM, real rods", "python benchmarks/real_terms.py"),
+    "real_terms.v6.json": (
+        "Named physics trained into DEFORM, real rods: the terms tool v6 newly named",
+        "python benchmarks/real_terms.py --rods DLO1 DLO2 DLO4 DLO5 --terms DLO1=internal_damping "
+        "DLO2=external_force DLO4=external_force DLO5=external_force --stem real_terms.v6",
+    ),
     "service_startup.json": ("Service start-up, cold and warm", "python benchmarks/service_startup.py"),
     "roofline.json": ("Roofline of the batched model step", "python benchmarks/roofline.py"),
     "float32_accuracy.json": ("float32 rollout against float64", "python benchmarks/float32_accuracy.py"),
@@ -601,6 +606,7 @@ RENDER = {
     "ablations.json": render_ablations,
     "diagnose.json": render_diagnose,
     "real_terms.json": render_real_terms,
+    "real_terms.v6.json": render_real_terms,
 }
 
 

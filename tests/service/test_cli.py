@@ -38,14 +38,15 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
     built = []
 
     def recorder(m, branch_free, batch, dtype):
-        built.append((tuple(branch_free), batch, aot.package_key(m, branch_free, batch, dtype)))
-        return tmp_path / f"step-{built[-1][2]}.pt2", True
+        built.append((tuple(branch_free), batch, dtype, aot.package_key(m, branch_free, batch, dtype)))
+        return tmp_path / f"step-{built[-1][3]}.pt2", True
 
     monkeypatch.setattr(aot, "ensure_package", recorder)
     assert cli.main(["prebuild", "--rod", "DLO1"]) == 0
-    assert [b[:2] for b in built] == [(LOOP_BRANCH_FREE, 1), ((2, 2), 64)]
+    # the loop's state is float64; predict rolls out in workers.predict_dtype (float32 by default)
+    assert [b[:3] for b in built] == [(LOOP_BRANCH_FREE, 1, torch.float64), ((2, 2), 64, torch.float32)]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
     worker_copy = DeformModel.load(tmp_path / "worker.pt")
-    for branch_free, batch, key in built:
-        assert aot.package_key(worker_copy, branch_free, batch, torch.float64) == key
-    assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float64) != built[1][2]
+    for branch_free, batch, dtype, key in built:
+        assert aot.package_key(worker_copy, branch_free, batch, dtype) == key
+    assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float32) != built[1][3]
