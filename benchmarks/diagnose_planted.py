@@ -122,6 +122,13 @@ def load_runs(path: Path, config: dict) -> dict[str, dict]:
     return done
 
 
+def finished(key: str, done: dict, runs_path: Path, args) -> bool:
+    """Whether the row ``key`` is already computed, by this process or by another one appending to
+    the same runs file (parallel runs then share the work instead of repeating it)."""
+    done.update(load_runs(runs_path, _config(args)))
+    return key in done
+
+
 def append_run(path: Path, row: dict) -> None:
     with path.open("a") as f:
         f.write(json.dumps(row) + "\n")
@@ -205,7 +212,7 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
             len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check
         )
         src = [sources[i] for i in pick]
-        if key in done:
+        if finished(key, done, runs_path, args):
             continue
         t0 = time.perf_counter()
         recs, truth = generate_elastica(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
@@ -401,7 +408,7 @@ def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
     spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name="DLO2-planted")
     for effect, seed in jobs:
         key = f"{effect or 'none'}:{seed}"
-        if key in done:
+        if finished(key, done, runs_path, args):
             continue
         rng = np.random.default_rng(seed)
         pick = rng.choice(len(sources), args.fit + args.check, replace=False)
@@ -459,8 +466,7 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
     data = find_data_root()
     for rod in rods:
         key = f"real:{rod}"
-        done.update(load_runs(runs_path, _config(args)))  # rows another process finished meanwhile
-        if key in done:
+        if finished(key, done, runs_path, args):
             continue
         L, M, n = RODS[rod]
         recs = load_recordings(data / rod / "train")

@@ -1,7 +1,7 @@
 """Does a float32 rollout keep the accuracy, and does predict's step? The paper's metric on the eval
 recordings in the same run: the eager step in float64 and float32, and predict's step (the one-graph
-step with 2 twist iterations and 2 projection sweeps as an ahead-of-time package, batch innermost,
-unconverged rods redone eagerly) in float64 and float32; each against the eager float64 step, and how
+step with 2 twist iterations and 2 projection sweeps as an ahead-of-time package, unconverged rods
+redone eagerly) in float64 and float32; each against the eager float64 step, and how
 far its predictions are from that step's.
 
     python benchmarks/float32_accuracy.py [--rods DLO1 DLO2 DLO3] [--json benchmarks/results/float32_accuracy.json]

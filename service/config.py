@@ -77,9 +77,9 @@ class Workers(_Strict):
     # the checked step that redoes the rare rollout steps the fast graph leaves unconverged (3 of
     # 2000 in service_bench's live predict): compiled, it costs 10-20 s of start-up even warm
     compile_checked_step: bool = False
-    # the rollout's state: float32 is 1.2-1.3x the rod-steps per second of float64 at 1024 plans and
+    # the rollout's state: float64 took 1.21-1.24x float32's time at 256-1024 plans, and float32
     # scores the paper's metric within 0.003 mm of the eager float64 step on DLO1-DLO3
-    # (benchmarks/batched_throughput.py, benchmarks/float32_accuracy.py); replies are float32 anyway
+    # (benchmarks/predict_planning.py, benchmarks/float32_accuracy.py); replies are float32 anyway
     predict_dtype: Literal["float32", "float64"] = "float32"
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)

@@ -137,14 +137,14 @@ def rollout(step, base: tuple, grips: np.ndarray, dtype: torch.dtype = torch.flo
 
 def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, str | None, str | None]:
     """Validate, roll out, encode: -> (ok, reply JSON, error reason, detail). Pure of service state,
-    so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg`` and ``step``."""
+    so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg``, ``step`` and ``dtype``."""
     try:
         req = parse_request(body, ctx.cfg.limits, ctx.model.dt)
         cost = None if req.cost is None else plan_cost.parse_cost(req.cost, ctx.model.n)
     except InputError as exc:
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
     grips = grips_from_poses(req.plans, ctx.cfg.grippers)
-    verts = rollout(ctx.step, base, grips, getattr(ctx, "dtype", torch.float64))
+    verts = rollout(ctx.step, base, grips, ctx.dtype)
     # plans that at some step hold the rod farther apart than it is long: no real rope follows them
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
