@@ -528,6 +528,10 @@ class DeformModel(nn.Module):
             raise RuntimeError(
                 f"{path}: checkpoint does not match the model (missing {missing}, unexpected {unexpected})"
             )
+        if payload.get("terms"):
+            from deform.terms import fix_rest
+
+            fix_rest(model)  # on the loaded typical rest lengths
         return model
 
 

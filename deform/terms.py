@@ -95,7 +95,21 @@ def attach(model, names: list[str] | tuple[str, ...], recordings=None) -> list[s
                 term.set_dt(model.dt)
             model.extensions.append(term)
             added.append(name)
+    fix_rest(model)
     return added
+
+
+def fix_rest(model) -> None:
+    """Put the attached terms that depend on rest lengths on the model's typical ones
+    (``model.nominal_rest``), fixed for the run: a trained model's step then exports ahead of time
+    (see ``InternalDamping.fix_rest``). Called on attaching and after a checkpoint is loaded.
+
+    Args:
+        model: a :class:`deform.model.DeformModel`.
+    """
+    for term in model.extensions:
+        if hasattr(term, "fix_rest"):
+            term.fix_rest(model.nominal_rest)
 
 
 def coarse_start(model, names, recordings, steps: int = 100, max_recordings: int = 4) -> dict[str, dict]:

@@ -453,6 +453,8 @@ def train(
     long_enough(train_recs, cfg.horizon)  # before any work: the first training batch could not be cut
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():  # before attaching: terms are fixed on these typical rest lengths
+        model.nominal_rest.copy_(nominal_rest_lengths(train_recs))
     attach(model, cfg.terms, train_recs)
     without(model, cfg.without)
     model.options.residual = cfg.residual
@@ -462,8 +464,6 @@ def train(
     ckpt_path = out_dir / "checkpoint.pt"
     state = resume_from(ckpt_path, model, opt, scheduler, rng) if resume else Progress()
     start = state.iteration
-    with torch.no_grad():
-        model.nominal_rest.copy_(nominal_rest_lengths(train_recs))
     coarse = None
     if start == 0 and cfg.sysid and cfg.coarse_sysid:
         coarse = coarse_identification(model, train_recs, progress=progress)

@@ -123,6 +123,30 @@ class AerodynamicDrag(Term):
         return {"linear_1_per_s": float(self.log_lin.exp()), "quadratic_1_per_m": float(self.log_quad.exp())}
 
 
+def damping_modes(rest: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Modes of the bending-rate damping operator ``M^-1 K`` for rest lengths ``rest`` (B, m).
+
+    ``K = D^T diag(1/lbar) D`` with ``D`` the divided second differences in arc length and ``M`` the
+    Voronoi lengths ``lbar`` (the vertex masses up to the density). With ``si = lbar^(-1/2)``,
+    ``si K si = U diag(lam) U^T`` is symmetric, so ``M^-1 K = diag(si) U diag(lam) U^T diag(1/si)``.
+
+    Returns:
+        ``lam`` (B, n) (clamped at 0), ``U`` (B, n, n), ``si`` (B, n), all float64.
+    """
+    l = rest.to(torch.float64)  # (B, m)
+    lbar = torch.cat([l[..., :1] / 2, (l[..., :-1] + l[..., 1:]) / 2, l[..., -1:] / 2], -1)  # (B, n)
+    n = lbar.shape[-1]
+    D = l.new_zeros(*l.shape[:-1], n - 2, n)
+    i = torch.arange(n - 2)
+    D[..., i, i] = 1.0 / l[..., :-1]
+    D[..., i, i + 1] = -(1.0 / l[..., :-1] + 1.0 / l[..., 1:])
+    D[..., i, i + 2] = 1.0 / l[..., 1:]
+    K = D.transpose(-1, -2) @ (D / lbar[..., 1:-1, None])
+    si = lbar.rsqrt()
+    lam, U = torch.linalg.eigh(si[..., :, None] * K * si[..., None, :])
+    return lam.clamp_min(0.0), U, si
+
+
 class InternalDamping(Term):
     """Bending-rate damping (Kelvin-Voigt-like internal friction), independent of the discretisation.
 
@@ -162,24 +186,32 @@ class InternalDamping(Term):
         key = (rest.data_ptr(), rest._version, tuple(rest.shape), rest.dtype)
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
-        l = rest.to(torch.float64)  # (B, m)
-        lbar = torch.cat([l[..., :1] / 2, (l[..., :-1] + l[..., 1:]) / 2, l[..., -1:] / 2], -1)  # (B, n)
-        n = lbar.shape[-1]
-        D = l.new_zeros(*l.shape[:-1], n - 2, n)
-        i = torch.arange(n - 2)
-        D[..., i, i] = 1.0 / l[..., :-1]
-        D[..., i, i + 1] = -(1.0 / l[..., :-1] + 1.0 / l[..., 1:])
-        D[..., i, i + 2] = 1.0 / l[..., 1:]
-        K = D.transpose(-1, -2) @ (D / lbar[..., 1:-1, None])
-        si = lbar.rsqrt()
-        lam, U = torch.linalg.eigh(si[..., :, None] * K * si[..., None, :])
-        out = (lam.clamp_min(0.0), U, si)
+        out = damping_modes(rest)
         self._cache = (key, out)
         return out
 
+    @torch.no_grad()
+    def fix_rest(self, rest: Tensor) -> None:
+        """Freeze the operator at one set of rest lengths ``rest`` (m,), e.g. a trained model's typical
+        ones (``DeformModel.nominal_rest``). Why: the per-call cache above is keyed on a tensor's
+        address, which ``torch.export`` cannot trace, and an eigendecomposition per step inside the
+        graph halves a batched step's rate; with the modes fixed the term is one (n, n) product per
+        step. A recording's own edge lengths then enter the damping only through this typical set
+        (they differ by a few per cent; the damping is a smooth function of them)."""
+        lam, U, si = damping_modes(rest.reshape(1, -1))
+        self.register_buffer("fixed_lam", lam[0], persistent=False)
+        self.register_buffer("fixed_U", U[0], persistent=False)
+        self.register_buffer("fixed_si", si[0], persistent=False)
+
     def acceleration(self, x, v, mass, rest):
         # integrated exactly over the (explicit) step: each mode decays by exp(-dt nu lambda) in one
-        # step; -nu M^-1 K v for small dt, but never overshoots for stiff damping of short modes
+        # step; -nu M^-1 K v for small dt, but never overshoots for stiff damping of short modes.
+        # M^-1 K = S^(1/2) U diag(lam) U^T S^(-1/2) with S = diag(si^2) = M^-1 up to the density.
+        if getattr(self, "fixed_lam", None) is not None:
+            rate = -torch.expm1(-self.dt * self.nu * self.fixed_lam) / self.dt  # (n,)
+            U, si = self.fixed_U, self.fixed_si
+            op = si[:, None] * ((U * rate) @ U.T) / si[None, :]  # (n, n)
+            return -(op.to(v.dtype) @ v)
         lam, U, si = self._modes(rest)
         rate = -torch.expm1(-self.dt * self.nu * lam) / self.dt  # (B, n)
         U, si = U.to(v.dtype), si.to(v.dtype)

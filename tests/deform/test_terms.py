@@ -114,3 +114,67 @@ def test_cli_refuses_a_bad_term_in_one_line_before_reading_data():
     )
     assert out.returncode == 2
     assert len(out.stderr.strip().splitlines()) == 1 and "actuation_delay" in out.stderr
+
+
+def _damped_model(nu_raw: float = math.log(50.0)) -> DeformModel:
+    model = DeformModel(load_rod_config("DLO1"))
+    model.options.residual = False
+    with torch.no_grad():
+        model.nominal_rest.copy_(torch.linspace(0.02, 0.11, model.n - 1, dtype=torch.float64))
+    attach(model, ["internal_damping"])
+    with torch.no_grad():
+        model.extensions[0].log_nu.fill_(nu_raw)
+    return model
+
+
+def test_internal_damping_on_fixed_rest_lengths_is_the_per_recording_operator_there():
+    """The trained model's damping is fixed on its typical edge lengths (so the step exports); on
+    those lengths it is the same operator the discrepancy tool builds per recording, it leaves a
+    rigid translation alone and it only removes energy."""
+    model = _damped_model()
+    term = model.extensions[0]
+    torch.manual_seed(0)
+    x = torch.randn(3, model.n, 3, dtype=torch.float64)
+    v = torch.randn(3, model.n, 3, dtype=torch.float64)
+    rest = model.nominal_rest.expand(3, -1).clone()
+    mass = model.vertex_mass(rest)
+    fixed = term.acceleration(x, v, mass, rest)
+    del term.fixed_lam, term.fixed_U, term.fixed_si
+    per_recording = term.acceleration(x, v, mass, rest)
+    assert torch.allclose(fixed, per_recording, atol=1e-12 * float(per_recording.abs().max()))
+    assert fixed.abs().max() > 1e-3  # it acts
+    term.fix_rest(model.nominal_rest)
+    translation = torch.ones(1, model.n, 3, dtype=torch.float64)
+    assert term.acceleration(x[:1], translation, mass[:1], rest[:1]).abs().max() < 1e-9
+    power = (mass.unsqueeze(-1) * v * fixed).sum((-1, -2))  # dE/dt of the kinetic energy
+    assert (power < 0).all()
+
+
+class _Step(torch.nn.Module):
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x, v, d1, theta, rest, grip):
+        from deform.model import RodState
+        from deform.step_graph import branch_free_step
+
+        new, _ = branch_free_step(self.model, RodState(x, v, d1, theta, rest), grip, (2, 2))
+        return new.x
+
+
+def test_a_model_with_internal_damping_exports_its_step(tmp_path):
+    """The service runs a trained model's step ahead of time (torch.export): a term must not need
+    Python state per call (a cache keyed on a tensor's address broke the export)."""
+    from deform.step_graph import rod_at_rest
+
+    model = _damped_model()
+    model.save(tmp_path / "m.pt")
+    model = DeformModel.load(tmp_path / "m.pt")  # the operator is fixed again after loading
+    state, grip = rod_at_rest(model, 2, torch.float64)
+    v = state.v.clone()  # a bending motion the damping acts on (~0.2 m/s^2), which the solvers converge on
+    v[..., 2] = 0.01 * torch.sin(torch.linspace(0, math.pi, model.n, dtype=torch.float64))
+    args = (state.x, v, state.d1, state.theta, state.rest, grip)
+    with torch.no_grad():
+        exported = torch.export.export(_Step(model), args, strict=False)
+        assert torch.allclose(exported.module()(*args), _Step(model)(*args), atol=1e-12)
