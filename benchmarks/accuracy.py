@@ -6,6 +6,7 @@ fifth of the train recordings of DLO4 and DLO5 (which have no eval split).
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import torch
@@ -52,7 +53,10 @@ def main():
         )
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
-    (out / "accuracy.json").write_text(json.dumps(rows, indent=2))
+    from diagnose_planted import provenance  # the commit and machine, stored with the result
+
+    meta = {"command": "python benchmarks/accuracy.py " + " ".join(sys.argv[1:]), **provenance()}
+    (out / "accuracy.json").write_text(json.dumps({**meta, **rows}, indent=2))
     lines = [
         "| rod | recordings | L1 [cm] | paper DEFORM [cm] | ratio | interior vertex dist [cm] | L1 at 1/10/100/500 steps [cm] |",
         "|---|---|---:|---:|---:|---:|---|",

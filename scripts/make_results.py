@@ -50,6 +50,10 @@ KNOWN = {
         "python benchmarks/real_terms.py --rods DLO1 DLO2 DLO4 DLO5 --terms DLO1=internal_damping "
         "DLO2=external_force DLO4=external_force DLO5=external_force --stem real_terms.v6",
     ),
+    "real_terms.dlo1.json": (
+        "DLO1 with internal damping trained into DEFORM and installed (the shipped model since)",
+        "python benchmarks/real_terms.py --rods DLO1 --terms DLO1=internal_damping --stem real_terms.dlo1 --install",
+    ),
     "service_startup.json": ("Service start-up, cold and warm", "python benchmarks/service_startup.py"),
     "roofline.json": ("Roofline of the batched model step", "python benchmarks/roofline.py"),
     "float32_accuracy.json": ("float32 rollout against float64", "python benchmarks/float32_accuracy.py"),
@@ -607,6 +611,7 @@ RENDER = {
     "diagnose.json": render_diagnose,
     "real_terms.json": render_real_terms,
     "real_terms.v6.json": render_real_terms,
+    "real_terms.dlo1.json": render_real_terms,
 }
 
 

@@ -130,7 +130,9 @@ def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, st
     jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
     step = RolloutStep(model)
     out = rollout(step, state, jump)
-    assert step.redone == 1 and step.paused == 0
+    # the jump's step, and with the shipped DLO1 (internal damping) the one after it: then the one graph
+    # again, with no pause (three misses in a row would pause it)
+    assert 1 <= step.redone <= 2 and step.paused == 0
     for k in range(out.shape[1]):  # every step within the projection's tolerance
         assert max_relative_error(out[:, k], state.rest).max() < model.options.pbd_tol
     # the checked step throughout: the same motion; rods converged early sweep on in its batch-wide
