@@ -119,6 +119,21 @@ def _build(
     )
 
 
+def package_path(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype) -> Path:
+    """Where the package of this step is (or would be) cached.
+
+    Args:
+        model: the model whose step it is.
+        branch_free: (twist iterations, projection sweeps).
+        batch: rods per step.
+        dtype: the state's dtype.
+
+    Returns:
+        The path in :func:`cache_dir`.
+    """
+    return cache_dir() / f"step-{package_key(model, branch_free, batch, dtype)}.pt2"
+
+
 def ensure_package(
     model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype
 ) -> tuple[Path, bool]:
@@ -134,7 +149,7 @@ def ensure_package(
     Returns:
         ``(path, built)``: built is True when it was compiled by this call.
     """
-    path = cache_dir() / f"step-{package_key(model, branch_free, batch, dtype)}.pt2"
+    path = package_path(model, branch_free, batch, dtype)
     if path.exists():
         return path, False
     _build(model, branch_free, batch, dtype, path)

@@ -164,6 +164,10 @@ def main(argv=None) -> int:
     except ServiceConfigError as exc:
         print(f"deform-service: {exc}", file=sys.stderr)
         return 2
+    if args.command in (None, "run"):
+        from service.workers import prestart
+
+        prestart(cfg)  # the workers import torch while this process does
     from service import bag
     from service.node import Service, open_session
 

@@ -121,6 +121,13 @@ class ShapeClient:
             if connect:  # explicit endpoints: no multicast scouting of other peers
                 conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
                 conf.insert_json5("scouting/multicast/enabled", "false")
+                # a client started before the service (a controller on the robot) retries every
+                # 0.1-0.5 s, so it sees the service soon after it listens; Zenoh's default back-off
+                # (1 s doubling to 4 s) could add up to 4 s
+                conf.insert_json5(
+                    "connect/retry",
+                    json.dumps({"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}),
+                )
             session = zenoh.open(conf)
         self.session = session
         self._subscribers: list = []

@@ -26,7 +26,7 @@ from service.estimator import Estimator
 from service.fusion import FusionWorker
 from service.ordering import SequenceBuffer, decode_order
 from service.stats import Stats
-from service.workers import make_worker
+from service.workers import fusion_worker_spec, make_worker, predict_worker_spec
 
 log = logging.getLogger("deform.service")
 INPUT_TYPES = {
@@ -102,11 +102,8 @@ class Service:
             self.rerun = RerunLogger(cfg.rerun, cfg.namespace, self.stats)
         # child processes (or inline workers) for cloud fusion (wall clock only: the message clock
         # fuses in order, in the loop, for bit-exact replays) and for predict
-        self.fusion_worker = (
-            None
-            if self.est.message_clock
-            else make_worker(model, cfg, f"fusion[{cfg.namespace}]", cfg.workers.fusion_nice)
-        )
+        fusion_spec = fusion_worker_spec(cfg)
+        self.fusion_worker = None if fusion_spec is None else make_worker(model, cfg, *fusion_spec)
         self.predict_running = threading.Event()  # fusion defers to it (workers.fusion_yields_to_predict_s)
         self.fusion = (
             None
@@ -118,7 +115,7 @@ class Service:
                 max_yield_s=cfg.workers.fusion_yields_to_predict_s,
             )
         )
-        self.predict_worker = make_worker(model, cfg, f"predict[{cfg.namespace}]")
+        self.predict_worker = make_worker(model, cfg, *predict_worker_spec(cfg))
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
         self.latest_payload: bytes | None = None
@@ -256,9 +253,15 @@ class Service:
         if self.cfg.step_ahead_of_time:
             # built in a worker process (the fusion worker: idle until clouds come; else predict's),
             # loaded here from the cache: the loop never waits for the compiler's hold on the GIL
+            from deform.aot import package_path
+
             builder = self.fusion_worker or self.predict_worker
+            if package_path(self.est.model, LOOP_BRANCH_FREE, 1, torch.float64).exists():
+                builder = None  # a warm cache: loaded below, without waiting for a worker to start
             try:
-                _, built = builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
+                built = False
+                if builder is not None:
+                    _, built = builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
                 if built and builder is self.fusion_worker:  # the compiler's memory goes with the old child
                     builder.restart()
             except Exception as exc:
@@ -312,8 +315,8 @@ class Service:
     # ----- loops -------------------------------------------------------------------------------
     def _publish(self, estimate, t_start: float, initial: bool) -> None:
         payload = M.vertices_cloud(estimate.stamp_ns, estimate.x, estimate.observed, self.cfg.frame_id)
+        self.latest_payload = payload  # first: a client that queries on receiving the sample finds it
         self.pub.put(payload)
-        self.latest_payload = payload
         self.published += 1
         publish_s = time.perf_counter() - t_start  # tick start -> vertices handed over (the shape follows)
         if self.shape_pub is not None:

@@ -12,6 +12,7 @@ runs the job in the caller's thread (tests, or ``workers.processes: false``).
 
 from __future__ import annotations
 
+import atexit
 import gc
 import io
 import logging
@@ -25,9 +26,6 @@ import threading
 import time
 from multiprocessing.connection import Connection
 from pathlib import Path
-
-from deform.compiled import CompiledStep
-from service import predict
 
 log = logging.getLogger("deform.service")
 
@@ -49,13 +47,15 @@ class WorkerError(RuntimeError):
 # ----- tracker state across processes ------------------------------------------------------------
 class _TrackerPickler(pickle.Pickler):
     def __init__(self, file, model):
+        from deform.compiled import CompiledStep
+
         super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
-        self._model = model
+        self._model, self._step_type = model, CompiledStep
 
     def persistent_id(self, obj):
         if obj is self._model:
             return "model"
-        return "step" if isinstance(obj, CompiledStep) else None
+        return "step" if isinstance(obj, self._step_type) else None
 
 
 class _TrackerUnpickler(pickle.Unpickler):
@@ -129,6 +129,8 @@ def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
     """-> ``predict.answer``'s (ok, reply, reason, detail), the seconds it took in here, and the
     rollout steps its one-graph step left unconverged (redone with the checked step; they double a
     step's cost, so status counts them)."""
+    from service import predict
+
     t0 = time.perf_counter()
     redone0 = getattr(ctx.step, "redone", 0)
     out = predict.answer(ctx, body, base, stamp_ns)
@@ -169,19 +171,28 @@ JOBS = {
 }
 
 
-def _serve(conn, model_path: str, cfg, nice: int = 0) -> None:
-    """Child process main: lower its priority by ``nice``, load the model, then answer jobs in
-    order until the pipe closes."""
+def _serve(conn, cfg, nice: int = 0) -> None:
+    """Child process main: lower its priority by ``nice``, import what the jobs need, then wait
+    for the model (a ``("model", path)`` message: the child may be started before the parent has
+    loaded it, so that both import at once), load it, say ready and answer jobs in order until the
+    pipe closes."""
+    if nice:
+        os.nice(nice)
     import torch
 
     torch.set_num_threads(cfg.torch_threads)
+    import deform.compiled  # noqa: F401  (the predict step's code)
+    import service.predict  # the predict job's code
+    import service.tracking  # noqa: F401  (perception, for fuse: imported once here, not in a timed job)
     from deform import DeformModel
 
-    if nice:
-        os.nice(nice)
-    ctx = JobContext(DeformModel.load(model_path), cfg)
-    import service.tracking  # noqa: F401  (perception, for fuse: imported once here, not in a timed job)
-
+    try:
+        op, args = conn.recv()
+    except (EOFError, OSError, KeyboardInterrupt):
+        return
+    if op != "model":  # "stop" before any model, or a protocol error
+        return
+    ctx = JobContext(DeformModel.load(args[0]), cfg)
     # Long-lived objects (torch, the model, later the compiled code: ~600k objects) out of the
     # collector's reach: a full collection of them took 0.4 s, and JSON parsing triggers one every
     # few predict requests (measured: 3 of 20 requests took 0.4 s instead of 0.13 s).
@@ -208,16 +219,11 @@ def _serve(conn, model_path: str, cfg, nice: int = 0) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m service.workers FD MODEL CONFIG_JSON [NICE]``: a worker on an inherited socket."""
+    """``python -m service.workers FD CONFIG_JSON [NICE]``: a worker on an inherited socket."""
     from service.config import ServiceConfig
 
-    fd, model_path, cfg_json, *rest = argv or sys.argv[1:]
-    _serve(
-        Connection(int(fd)),
-        model_path,
-        ServiceConfig.model_validate_json(cfg_json),
-        int(rest[0]) if rest else 0,
-    )
+    fd, cfg_json, *rest = argv or sys.argv[1:]
+    _serve(Connection(int(fd)), ServiceConfig.model_validate_json(cfg_json), int(rest[0]) if rest else 0)
 
 
 class InlineWorker:
@@ -253,10 +259,27 @@ class WorkerProcess:
         self.cfg, self.name, self.nice = cfg, name, nice
         self.start_timeout_s = start_timeout_s
         self._dir = tempfile.TemporaryDirectory(prefix="deform-worker-")
-        self._model_path = str(Path(self._dir.name) / "model.pt")
-        model.save(self._model_path)
+        self._model_path: str | None = None
         self._lock = threading.Lock()
         self._start()
+        if model is not None:
+            self.set_model(model)
+
+    def set_model(self, model) -> None:
+        """The model the child holds (a copy through a file): sent once; a restart sends it again.
+
+        Args:
+            model: a :class:`deform.model.DeformModel`.
+        """
+        self._model_path = str(Path(self._dir.name) / "model.pt")
+        model.save(self._model_path)
+        self._send_model()
+
+    def _send_model(self) -> None:
+        try:
+            self._conn.send(("model", (self._model_path,)))
+        except (BrokenPipeError, OSError) as exc:
+            log.warning("%s: could not send the model (%s)", self.name, exc)
 
     def _start(self) -> None:
         # a fresh interpreter (`python -m service.workers`) on one end of a socket pair: fork would
@@ -269,7 +292,6 @@ class WorkerProcess:
                 "-m",
                 "service.workers",
                 str(theirs.fileno()),
-                self._model_path,
                 self.cfg.model_dump_json(),
                 str(self.nice),
             ],
@@ -280,6 +302,8 @@ class WorkerProcess:
         theirs.close()
         self._conn = Connection(ours.detach())
         self._ready = False
+        if self._model_path is not None:  # a restart
+            self._send_model()
 
     def _wait_ready(self) -> None:
         """Block until the child has started (its "ready" message), at most ``start_timeout_s``."""
@@ -338,10 +362,54 @@ class WorkerProcess:
         self._dir.cleanup()
 
 
+def fusion_worker_spec(cfg) -> tuple[str, int] | None:
+    """(name, nice) of the service's fusion worker; None on the message clock (it fuses in the loop)."""
+    return None if cfg.clock == "message" else (f"fusion[{cfg.namespace}]", cfg.workers.fusion_nice)
+
+
+def predict_worker_spec(cfg) -> tuple[str, int]:
+    """(name, nice) of the service's predict worker."""
+    return f"predict[{cfg.namespace}]", 0
+
+
+_PRESTARTED: dict[tuple[str, int, str], WorkerProcess] = {}
+
+
+def prestart(cfg) -> None:
+    """Start worker processes before the caller has imported torch or loaded its model: the
+    children's imports (3-4 s each) then overlap the parent's instead of following them.
+    :func:`make_worker` hands them out; a started worker nobody asks for is stopped at exit.
+
+    Args:
+        cfg: the service config the workers will serve (must be the one ``make_worker`` gets).
+    """
+    if not cfg.workers.processes:
+        return
+    for name, nice in filter(None, (fusion_worker_spec(cfg), predict_worker_spec(cfg))):
+        key = (name, nice, cfg.model_dump_json())
+        if key not in _PRESTARTED:
+            worker = WorkerProcess(None, cfg, name, nice)
+            _PRESTARTED[key] = worker
+            atexit.register(_close_unused, key)
+
+
+def _close_unused(key) -> None:
+    worker = _PRESTARTED.pop(key, None)
+    if worker is not None:
+        worker.close()
+
+
 def make_worker(model, cfg, name: str, nice: int = 0):
     """A worker process (``nice``: its CPU priority below the service's), or inline when
-    ``workers.processes`` is off."""
-    return WorkerProcess(model, cfg, name, nice) if cfg.workers.processes else InlineWorker(model, cfg)
+    ``workers.processes`` is off. A worker :func:`prestart` started for the same name, nice and
+    config is used when there is one."""
+    if not cfg.workers.processes:
+        return InlineWorker(model, cfg)
+    worker = _PRESTARTED.pop((name, nice, cfg.model_dump_json()), None)
+    if worker is None:
+        return WorkerProcess(model, cfg, name, nice)
+    worker.set_model(model)
+    return worker
 
 
 if __name__ == "__main__":

@@ -155,3 +155,29 @@ def test_the_service_lowers_its_fusion_worker_not_predict(model):
     finally:
         svc.fusion_worker.close()
         svc.predict_worker.close()
+
+
+@pytest.mark.slow
+def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(model):
+    """`deform-service run` starts its workers before importing torch (so the imports overlap):
+    the service then takes them, sends its model, and they answer as any worker; a second service
+    gets new ones, and a restart hands the model to the new child again."""
+    import os
+
+    from service.node import Service
+    from service.workers import _PRESTARTED, prestart
+
+    cfg = make_config(workers={"processes": True, "compile_predict": False})
+    prestart(cfg)
+    early = {w.name: w.pid for w in _PRESTARTED.values()}
+    svc = Service(cfg, model=model)
+    try:
+        assert {svc.fusion_worker.pid, svc.predict_worker.pid} == set(early.values())
+        assert not _PRESTARTED  # handed out once
+        assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
+        assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) > os.getpriority(os.PRIO_PROCESS, 0)
+        svc.predict_worker.restart()
+        assert svc.predict_worker.pid not in early.values() and svc.predict_worker.call("ping")
+    finally:
+        svc.fusion_worker.close()
+        svc.predict_worker.close()
