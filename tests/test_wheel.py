@@ -33,6 +33,8 @@ for rod in available_rods():
     load_rod_config(rod)
 model = load_model("DLO2")
 assert model.residual is not None and float(model.log_beta.exp().mean()) != model.cfg.bend_stiffness
+from deform.terms import attached_names
+assert attached_names(load_model("DLO1")) == ["internal_damping"]  # a trained-in term loads from the wheel
 from service.config import load_config
 from perception import load_config as perception_config
 assert load_config().rod == "DLO1" and perception_config().tracker.stale_after_s > 0
