@@ -891,6 +891,66 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
     return out
 
 
+def hidden_damping_study(kind: str, seed: int, args) -> list[dict]:
+    """Would a model finer than the markers see PyElastica's internal damping? On the planted dataset
+    and its paired control (same motions and noise), the nominal fit at marker resolution, then at 0
+    and 1 hidden node per marker interval a reference refit and the internal_damping candidate (same
+    budget, scored on the windowed check error as the tool scores candidates)."""
+    from elastica_planted import generate_elastica
+
+    from deform.diagnose.fitting import coarse_nominal, fit
+    from deform.diagnose.scoring import score
+    from deform.diagnose.selection import fit_and_check
+    from deform.diagnose.simulator import Nominal, Simulator, arclength_of
+    from deform.diagnose.terms import make_term
+
+    rod = ELASTICA_SOURCES[kind]
+    sources = load_recordings(find_data_root() / rod / "train")
+    L, M, n = RODS[rod]
+    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+    pick = np.random.default_rng(seed).choice(
+        len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check
+    )
+    quick = budget(True)
+    cb = dataclasses.replace(quick.candidate, progress=False)
+    out = []
+    for effect in ("internal_damping", None):
+        recs, _ = generate_elastica(
+            effect, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=args.frames, seed=seed
+        )
+        inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
+        sim = Simulator(inputs.spec, Nominal())
+        coarse_nominal(sim, inputs.fit)
+        fit(sim, inputs.fit, dataclasses.replace(cb, iterations=quick.nominal_iterations))
+        for hidden in (0, 1):
+            t0 = time.perf_counter()
+            ref, c_ref = fit_and_check(inputs.spec, sim.nominal, [], inputs, cb, "reference", hidden=hidden)
+            term = make_term("internal_damping", ref.n, ref.node_arclength(arclength_of(inputs.fit)), {})
+            _, c = fit_and_check(
+                inputs.spec, sim.nominal, [term], inputs, cb, "internal_damping", new_term=term, hidden=hidden
+            )
+            sc = score(c_ref.window, c.window, term.n_params)
+            out.append(
+                {
+                    "rod_kind": kind,
+                    "effect": effect or "none",
+                    "seed": seed,
+                    "hidden_nodes": hidden,
+                    "reference_window_cm": float(c_ref.window.mean() * 100),
+                    "internal_damping_window_cm": float(c.window.mean() * 100),
+                    "improvement": sc.improvement,
+                    "significant": sc.significant,
+                    "improvement_rollout": score(c_ref.rollout, c.rollout, term.n_params).improvement,
+                    "fitted_nu_m4_per_s": term.params()["bending_rate_damping_m4_per_s"],
+                    "nominal": sim.nominal.params(),
+                    "seconds": time.perf_counter() - t0,
+                    **provenance(),
+                }
+            )
+            print(json.dumps(out[-1]), flush=True)
+    return out
+
+
 def main() -> None:
     import sys
 
@@ -953,6 +1013,14 @@ def main() -> None:
         help="only compare the mass_scale candidate at 0 and 1 hidden node per marker interval (JSON rows)",
     )
     p.add_argument(
+        "--hidden-damping",
+        nargs="*",
+        default=None,
+        metavar="KIND:SEED",
+        help="only compare the internal_damping candidate at 0 and 1 hidden node on PyElastica's "
+        "planted internal damping and its control (JSON rows), e.g. light:0 stiff:0",
+    )
+    p.add_argument(
         "--fits-version",
         type=int,
         default=None,
@@ -981,6 +1049,12 @@ def main() -> None:
         torch.set_num_threads(1)
         sys.path.insert(0, str(ROOT))
         print(json.dumps(calibrate_damping(args)))
+        return
+    if args.hidden_damping is not None:
+        torch.set_num_threads(1)
+        for item in args.hidden_damping:
+            kind, seed = item.split(":")
+            hidden_damping_study(kind, int(seed), args)
         return
     if args.hidden_nodes is not None:
         torch.set_num_threads(1)
