@@ -138,13 +138,7 @@ def ensure_package(
     model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype
 ) -> tuple[Path, bool]:
     """The cached package of this step, compiled now if the cache has none (not loaded: another
-    process may build it for one that loads it).
-
-    Args:
-        model: the model whose step it is.
-        branch_free: (twist iterations, projection sweeps).
-        batch: rods per step.
-        dtype: the state's dtype.
+    process may build it for one that loads it). Arguments as for :func:`package_path`.
 
     Returns:
         ``(path, built)``: built is True when it was compiled by this call.

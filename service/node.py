@@ -255,19 +255,17 @@ class Service:
             # loaded here from the cache: the loop never waits for the compiler's hold on the GIL
             from deform.aot import package_path
 
-            builder = self.fusion_worker or self.predict_worker
-            if package_path(self.est.model, LOOP_BRANCH_FREE, 1, torch.float64).exists():
-                builder = None  # a warm cache: loaded below, without waiting for a worker to start
-            try:
-                built = False
-                if builder is not None:
+            # a warm cache is loaded below at once, without waiting for a worker to start
+            if not package_path(self.est.model, LOOP_BRANCH_FREE, 1, torch.float64).exists():
+                builder = self.fusion_worker or self.predict_worker
+                try:
                     _, built = builder.call("build_step", list(LOOP_BRANCH_FREE), 1, timeout=900.0)
-                if built and builder is self.fusion_worker:  # the compiler's memory goes with the old child
-                    builder.restart()
-            except Exception as exc:
-                log.warning(
-                    "[%s] loop step not built in a worker (%s): building here", self.cfg.namespace, exc
-                )
+                    if built and builder is self.fusion_worker:
+                        builder.restart()  # the compiler's memory goes with the old child
+                except Exception as exc:
+                    log.warning(
+                        "[%s] loop step not built in a worker (%s): building here", self.cfg.namespace, exc
+                    )
         with torch.no_grad():
             step = CompiledStep(
                 self.est.model, branch_free=LOOP_BRANCH_FREE, ahead_of_time=self.cfg.step_ahead_of_time
