@@ -195,6 +195,21 @@ def equivalence_of(rep: dict) -> list[str]:
     return first.get("equivalence_class", rep["selected"][:1])
 
 
+def elastica_rod(kind: str, root: Path | None = None) -> tuple[RodSpec, list]:
+    """The PyElastica benchmark's rod of ``kind`` (light, stiff): its spec as a user gives it and
+    the recorded train motions of its source rod that drive it."""
+    rod = ELASTICA_SOURCES[kind]
+    L, M, n = RODS[rod]
+    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+    return spec, load_recordings((root or find_data_root()) / rod / "train")
+
+
+def seeded_sources(sources: list, seed: int, count: int) -> list:
+    """``count`` source recordings picked by ``seed`` (with repeats only when there are fewer)."""
+    pick = np.random.default_rng(seed).choice(len(sources), count, replace=len(sources) < count)
+    return [sources[i] for i in pick]
+
+
 def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
     """Effects planted by PyElastica (benchmarks/elastica_planted.py), a simulator we did not write,
     on a light and a stiff rod, each driven by real gripper motions; inputs go through the user path."""
@@ -204,14 +219,8 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
     controls: dict = {}
     for kind, effect, seed in jobs:
         key = f"elastica:{kind}:{effect or 'none'}:{seed}"
-        rod = ELASTICA_SOURCES[kind]
-        sources = load_recordings(data / rod / "train")
-        L, M, n = RODS[rod]
-        spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
-        pick = np.random.default_rng(seed).choice(
-            len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check
-        )
-        src = [sources[i] for i in pick]
+        spec, sources = elastica_rod(kind, data)
+        src = seeded_sources(sources, seed, args.fit + args.check)
         if finished(key, done, runs_path, args):
             continue
         t0 = time.perf_counter()
@@ -301,10 +310,7 @@ def calibrate_damping(args) -> dict:
     b = budget(args.quick)
     fitted = []
     for kind in args.rod_kinds:
-        rod = ELASTICA_SOURCES[kind]
-        sources = load_recordings(data / rod / "train")
-        L, M, n = RODS[rod]
-        spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+        spec, sources = elastica_rod(kind, data)
         for seed in range(args.control_seeds):
             pick = np.random.default_rng(seed).choice(len(sources), args.fit + args.check, replace=False)
             recs, _ = generate_elastica(
@@ -352,10 +358,7 @@ def full_size_timing(args) -> dict:
     from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
-    rod = ELASTICA_SOURCES[kind]
-    sources = load_recordings(find_data_root() / rod / "train")
-    L, M, n = RODS[rod]
-    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+    spec, sources = elastica_rod(kind)
     pick = np.random.default_rng(0).choice(len(sources), 12, replace=False)
     recs, _ = generate_elastica(effect, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=500, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
@@ -364,7 +367,16 @@ def full_size_timing(args) -> dict:
             (tmp / name).mkdir()
             for i, r in enumerate(part):
                 save_recording(tmp / name / f"{i:02d}.pkl", r.positions)
-        (tmp / "rod.json").write_text(json.dumps({"length_m": L, "mass_kg": M, "n_vertices": n, "dt": 0.01}))
+        (tmp / "rod.json").write_text(
+            json.dumps(
+                {
+                    "length_m": spec.length_m,
+                    "mass_kg": spec.mass_kg,
+                    "n_vertices": spec.n_vertices,
+                    "dt": 0.01,
+                }
+            )
+        )
         cmd = [
             sys.executable,
             "-m",
@@ -904,20 +916,13 @@ def hidden_damping_study(kind: str, seed: int, args) -> list[dict]:
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of
     from deform.diagnose.terms import make_term
 
-    rod = ELASTICA_SOURCES[kind]
-    sources = load_recordings(find_data_root() / rod / "train")
-    L, M, n = RODS[rod]
-    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
-    pick = np.random.default_rng(seed).choice(
-        len(sources), args.fit + args.check, replace=len(sources) < args.fit + args.check
-    )
+    spec, sources = elastica_rod(kind)
+    src = seeded_sources(sources, seed, args.fit + args.check)
     quick = budget(True)
     cb = dataclasses.replace(quick.candidate, progress=False)
     out = []
     for effect in ("internal_damping", None):
-        recs, _ = generate_elastica(
-            effect, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=args.frames, seed=seed
-        )
+        recs, _ = generate_elastica(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
         inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
         sim = Simulator(inputs.spec, Nominal())
         coarse_nominal(sim, inputs.fit)
