@@ -6,6 +6,7 @@ which is how zenoh-bridge-ros2dds maps them. Replay can remap to another namespa
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -17,6 +18,8 @@ from mcap.writer import Writer
 
 from service import messages as M
 from service.ordering import encode_order, new_stream_id
+
+log = logging.getLogger(__name__)
 
 TYPES = {
     "ee_poses": M.POSE_ARRAY,
@@ -146,13 +149,33 @@ def record(
     return count[0]
 
 
+def wait_for_subscribers(publishers, timeout_s: float) -> list:
+    """Wait until every publisher has a matching subscriber, or ``timeout_s``; returns those that
+    have none. Why: a sample published before the receiver's subscription has reached this session
+    goes nowhere, and a replay's first samples would then be missing for the service (it waits
+    ``gap_s`` for them, then counts a sequence gap)."""
+    end = time.monotonic() + timeout_s
+    while True:
+        unmatched = [p for p in publishers if not p.matching_status.matching]
+        if not unmatched or time.monotonic() >= end:
+            return unmatched
+        time.sleep(0.005)
+
+
 def replay(
-    session: zenoh.Session, namespace: str, messages: list[Message], fast: bool = True, speed: float = 1.0
+    session: zenoh.Session,
+    namespace: str,
+    messages: list[Message],
+    fast: bool = True,
+    speed: float = 1.0,
+    wait_s: float = 10.0,
 ) -> int:
     """Publish on ``{namespace}/<name>``: as fast as possible (reliable, blocking: nothing dropped) or
     paced by the recorded log times. Every sample carries its place in the send order (see
     :mod:`service.ordering`), so a message-clock service handles them in this order whatever order
-    the transport delivers them in. Returns the number of messages sent."""
+    the transport delivers them in. Sending starts once every topic has a subscriber, or after
+    ``wait_s`` (then with a warning: what nobody subscribes to is lost). Returns the number of
+    messages sent."""
     pubs = {
         n: session.declare_publisher(
             f"{namespace}/{n}",
@@ -161,6 +184,13 @@ def replay(
         )
         for n in {m.name for m in messages}
     }
+    unmatched = wait_for_subscribers(list(pubs.values()), wait_s)
+    if unmatched:
+        log.warning(
+            "replay: no subscriber on %s after %.0f s: sending anyway",
+            ", ".join(str(p.key_expr) for p in unmatched),
+            wait_s,
+        )
     t0_log, t0_wall = (messages[0].log_time if messages else 0), time.perf_counter()
     stream = new_stream_id()
     for seq, m in enumerate(messages):

@@ -61,7 +61,8 @@ def run(
     rope = ShapeClient(cfg.namespace, session=client, timeout_s=5.0)
     try:
         rope.subscribe(lambda stamp, x, observed: got.__setitem__(stamp, x.astype(np.float64)))
-        _wait_for(lambda: _status(rope) is not None, 10)
+        if not _wait_for(lambda: _status(rope) is not None, 30):
+            raise RuntimeError(f"the service at {ep} did not answer its status query within 30 s")
         t1 = time.perf_counter()
         bag.replay(client, cfg.namespace, stream, fast=True)
         _wait_for(lambda: len(got) >= n_poses, 120)

@@ -1,7 +1,9 @@
 """Fitting through the simulator: Adam on open-loop multi-step L1 windows of the fit recordings.
 
-Windows are short (tens of steps) and batched so that one candidate costs seconds; every candidate
-sees the same window sequence (same seed) so that their fits are comparable.
+Windows start short (tens of steps, many per batch) and grow to the one-second windows the check
+error is scored on (fewer per batch), so that one candidate costs seconds and is fitted for the
+prediction it is judged by; every candidate sees the same window sequence (same seed) so that their
+fits are comparable.
 """
 
 from __future__ import annotations
@@ -269,7 +271,8 @@ def window_schedule(budget: FitBudget, recordings: list[Recording], iteration: i
     Why: the decision scores one-second predictions, and a fit on 25-step windows cannot tell slow
     dissipation from stiffness or damping shares: on a stiff rope with internal damping it fitted
     the damping's size right but left the nominal damping in place, and the one-second check error
-    came out worse than without the term; fitted on growing windows the term closed 8 %.
+    came out 1.9 % worse than without the term; fitted on growing windows the term closed 6.6 %
+    (PyElastica, stiff rod, seed 0).
     Short windows first keep the early, far-from-optimal steps out of long chaotic rollouts."""
     h0 = min(budget.horizon, longest_horizon(budget, recordings))
     h1 = longest_horizon(budget, recordings)

@@ -239,8 +239,7 @@ def test_mcap_record_then_replay(tmp_path, endpoint, sim_stream):
     recording = CountingSession(a, expected=len(sent))
     recorder = threading.Thread(target=bag.record, args=(recording, "deform/rod1", path, stop))
     recorder.start()
-    try:  # the replay starts once b routes every key to the recorder, and stops once all is written
-        assert wait_matched(b, sorted({f"deform/rod1/{m.name}" for m in sent}))
+    try:  # the replay itself waits until b routes every key to the recorder; stops once all is written
         bag.replay(b, "deform/rod1", sent, fast=True)
         assert recording.all_in.wait(30.0), f"{recording.count} of {len(sent)} messages recorded"
     finally:
@@ -257,6 +256,28 @@ def test_mcap_record_then_replay(tmp_path, endpoint, sim_stream):
     assert "/deform/rod1/ee_poses" in {c.topic for c in summary.channels.values()}
     a.close()
     b.close()
+
+
+def test_replay_waits_for_subscribers_and_says_which_topic_has_none(endpoint, caplog):
+    a = open_session(make_config(endpoint).zenoh)
+    b = open_session(make_config(connect=endpoint).zenoh)
+    got = Received()
+    try:
+        a.declare_subscriber("deform/rod1/ee_poses", got)
+        poses = b.declare_publisher("deform/rod1/ee_poses")
+        nobody = b.declare_publisher("deform/rod1/points")
+        assert bag.wait_for_subscribers([poses], 20.0) == []  # once matched, a put reaches ``a``
+        t0 = time.monotonic()
+        assert bag.wait_for_subscribers([poses, nobody], 0.2) == [nobody]
+        assert time.monotonic() - t0 >= 0.2
+        sent = [bag.Message("ee_poses", 0, b"p"), bag.Message("points", 1, b"c")]
+        with caplog.at_level("WARNING"):
+            assert bag.replay(b, "deform/rod1", sent, wait_s=0.2) == 2
+        assert "no subscriber on deform/rod1/points" in caplog.text
+        assert got.wait_until(lambda keys: keys == ["deform/rod1/ee_poses"])
+    finally:
+        a.close()
+        b.close()
 
 
 def test_message_clock_waits_wall_time_for_a_cloud_in_transit(model):
