@@ -86,12 +86,8 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # scored on the windowed check error (one-second predictions along each check recording), the full
 # rollout's improvement kept beside it as "improvement_rollout"; two descents from a new term's grid
 # (the better end on held-out fit windows kept); contact friction that never reverses the sliding in
-# a step; the contact grid also with the nominal stiffness halved; damping shares 1, 1/2, 1/5. v7: fit
-# windows grow from the budget's horizon to the one-second scoring windows during each descent (rod-
-# steps per iteration kept), starts ranked and chosen on one-second windows; internal damping holds
-# the gripped vertices as boundary conditions; its per-recording operator no longer goes stale when a
-# freed rest-length tensor's memory is reused.
-TOOL_VERSION = 7
+# a step; the contact grid also with the nominal stiffness halved; damping shares 1, 1/2, 1/5.
+TOOL_VERSION = 6
 RULE = "v6: the mean windowed improvement above the threshold"
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 

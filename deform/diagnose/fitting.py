@@ -1,9 +1,7 @@
 """Fitting through the simulator: Adam on open-loop multi-step L1 windows of the fit recordings.
 
-Windows start short (tens of steps, many per batch) and grow to the one-second windows the check
-error is scored on (fewer per batch), so that one candidate costs seconds and is fitted for the
-prediction it is judged by; every candidate sees the same window sequence (same seed) so that their
-fits are comparable.
+Windows are short (tens of steps) and batched so that one candidate costs seconds; every candidate
+sees the same window sequence (same seed) so that their fits are comparable.
 """
 
 from __future__ import annotations
@@ -17,7 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deform.diagnose.simulator import CHECK_HORIZON, Nominal, Simulator
+from deform.diagnose.simulator import Nominal, Simulator
 from deform.io.recordings import Recording
 
 
@@ -33,13 +31,6 @@ class FitBudget:
     seed: int = 0
     progress: bool = True
     transported: bool = True  # windows start with the reference frames a full rollout carries (make_windows)
-    # the descent's windows grow from `horizon` to this many steps (the one-second windows the check
-    # error is scored on, simulator.CHECK_HORIZON) over its first `grow` share of iterations, with
-    # fewer windows per batch (rod-steps per iteration kept, at least `min_batch`); starts are ranked
-    # and chosen on windows of this length. None: fixed `horizon`, the tool's fits before v7
-    final_horizon: int | None = CHECK_HORIZON
-    grow: float = 0.6
-    min_batch: int = 4
     anneal: bool = (
         True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
     )
@@ -148,7 +139,7 @@ def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBu
     windows = make_windows(
         recordings,
         budget.batch,
-        longest_horizon(budget, recordings),
+        budget.horizon,
         budget.margin,
         random.Random(budget.seed + 1),
         budget.transported,
@@ -183,8 +174,9 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
 @torch.no_grad()
 def _forward_loss(sim: Simulator, windows, budget: FitBudget) -> float:
     """Window loss without gradients; a diverged rollout scores infinity."""
-    horizon = windows[0].shape[1] - 2 - 2 * budget.margin  # the windows' own length
-    return float(torch.nan_to_num(window_loss(sim, windows, horizon, budget.margin, False), nan=math.inf))
+    return float(
+        torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf)
+    )
 
 
 def _snapshot(sim: Simulator) -> list[torch.Tensor]:
@@ -236,7 +228,7 @@ def fit(
     held_out = make_windows(
         recordings,
         max(budget.batch, 16),
-        longest_horizon(budget, recordings),
+        budget.horizon,
         budget.margin,
         random.Random(budget.seed + 2),
         budget.transported,
@@ -253,32 +245,6 @@ def fit(
             best = (loss, _snapshot(sim), out)
     _restore(sim, best[1])
     return {**best[2], "starts": starts}
-
-
-def longest_horizon(budget: FitBudget, recordings: list[Recording]) -> int:
-    """The window length starts are ranked and chosen on: ``final_horizon`` (else ``horizon``),
-    shortened to what the shortest recording holds."""
-    want = budget.final_horizon or budget.horizon
-    room = min(r.n_frames for r in recordings) - 2 - 2 * budget.margin
-    return max(1, min(want, room))
-
-
-def window_schedule(budget: FitBudget, recordings: list[Recording], iteration: int) -> tuple[int, int]:
-    """(horizon, batch) of a descent's ``iteration``: the horizon grows linearly from
-    ``budget.horizon`` to :func:`longest_horizon` over the first ``grow`` share of the iterations,
-    the batch shrinks so that rod-steps per iteration stay those of the first.
-
-    Why: the decision scores one-second predictions, and a fit on 25-step windows cannot tell slow
-    dissipation from stiffness or damping shares: on a stiff rope with internal damping it fitted
-    the damping's size right but left the nominal damping in place, and the one-second check error
-    came out 1.9 % worse than without the term; fitted on growing windows the term closed 6.6 %
-    (PyElastica, stiff rod, seed 0).
-    Short windows first keep the early, far-from-optimal steps out of long chaotic rollouts."""
-    h0 = min(budget.horizon, longest_horizon(budget, recordings))
-    h1 = longest_horizon(budget, recordings)
-    ramp = max(1.0, budget.grow * budget.iterations)
-    h = round(h0 + (h1 - h0) * min(1.0, iteration / ramp))
-    return h, max(budget.min_batch, round(budget.batch * h0 / h))
 
 
 def _descend(
@@ -302,12 +268,13 @@ def _descend(
     )
     history, skipped = [], 0
     bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
-    for i in bar:
-        horizon, batch = window_schedule(budget, recordings, i)
-        windows = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
+    for _ in bar:
+        windows = make_windows(
+            recordings, budget.batch, budget.horizon, budget.margin, rng, budget.transported
+        )
         opt.zero_grad(set_to_none=True)
         exprs = sim.sync()
-        loss = window_loss(sim, windows, horizon, budget.margin, create_graph=True)
+        loss = window_loss(sim, windows, budget.horizon, budget.margin, create_graph=True)
         params = sim.parameters()
         if torch.isfinite(loss):
             sim.backward(loss, exprs)
@@ -389,13 +356,14 @@ def laplace_uncertainty(
         Physical parameter name -> standard deviation.
     """
     rng = random.Random(budget.seed + 777)
-    horizon = longest_horizon(budget, recordings)
-    windows = make_windows(recordings, max(budget.batch, 16), horizon, budget.margin, rng, budget.transported)
+    windows = make_windows(
+        recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng, budget.transported
+    )
 
     def loss() -> float:
         sim.sync()
         with torch.no_grad():
-            return float(window_loss(sim, windows, horizon, budget.margin, False))
+            return float(window_loss(sim, windows, budget.horizon, budget.margin, False))
 
     base = loss()
     n_eff = windows[0].shape[0]

@@ -147,33 +147,6 @@ def damping_modes(rest: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return lam.clamp_min(0.0), U, si
 
 
-def clamped_damping_modes(rest: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Modes of the bending-rate damping of the *free* vertices, the gripped ones (0, 1, n-2, n-1)
-    held at their velocities: ``M_ff^-1 K_ff`` and the velocity field the damping relaxes toward,
-    ``v*_f = -K_ff^-1 K_fg v_g`` (the smoothest free motion the grippers allow; rigid motion is one).
-
-    Returns:
-        ``lam`` (B, f), ``U`` (B, f, f), ``si`` (B, f), ``E`` (B, f, 4) with ``v*_f = E v_g``; float64.
-    """
-    l = rest.to(torch.float64)
-    lbar = torch.cat([l[..., :1] / 2, (l[..., :-1] + l[..., 1:]) / 2, l[..., -1:] / 2], -1)
-    n = lbar.shape[-1]
-    D = l.new_zeros(*l.shape[:-1], n - 2, n)
-    i = torch.arange(n - 2)
-    D[..., i, i] = 1.0 / l[..., :-1]
-    D[..., i, i + 1] = -(1.0 / l[..., :-1] + 1.0 / l[..., 1:])
-    D[..., i, i + 2] = 1.0 / l[..., 1:]
-    K = D.transpose(-1, -2) @ (D / lbar[..., 1:-1, None])
-    free = torch.arange(2, n - 2)
-    held = torch.tensor([0, 1, n - 2, n - 1])
-    Kff = K[..., free[:, None], free[None, :]]
-    Kfg = K[..., free[:, None], held[None, :]]
-    si = lbar[..., 2:-2].rsqrt()
-    lam, U = torch.linalg.eigh(si[..., :, None] * Kff * si[..., None, :])
-    E = -torch.linalg.solve(Kff, Kfg)
-    return lam.clamp_min(0.0), U, si, E
-
-
 class InternalDamping(Term):
     """Bending-rate damping (Kelvin-Voigt-like internal friction), independent of the discretisation.
 
@@ -193,12 +166,6 @@ class InternalDamping(Term):
         "damping that mode's rate and damping the velocity look the same at the markers"
     )
     scale = 1e-5  # m^4/s per exp(raw): about 0.1 /s in units of a 10 cm marker spacing
-    # the gripped vertices 0, 1, n-2, n-1 are boundary conditions of the damping (tool v7): the free
-    # vertices relax toward the smoothest motion the grippers allow, the grippers are not damped.
-    # False: the whole rod's modes, the gripped vertices included (the operator DLO1 was trained with;
-    # deform.terms keeps it for trained models). On a stiff rope with planted internal damping the
-    # held ends closed 6.6 % of the one-second check error where the whole-rod modes closed 5.0 %.
-    held_ends = True
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -218,11 +185,11 @@ class InternalDamping(Term):
         """Eigen-decomposition of the mass-normalised operator for these rest lengths (cached).
 
         The cache holds the tensor itself and checks identity and version: a key made of its address
-        alone went stale when a freed tensor's memory was reused for other rest lengths: a rollout
-        could run with another recording's operator, depending on the allocator."""
+        alone went stale when a freed tensor's memory was reused for other rest lengths, and a
+        rollout then ran with another recording's operator, depending on the allocator."""
         if self._cache is not None and self._cache[0] is rest and self._cache[1] == rest._version:
             return self._cache[2]
-        out = clamped_damping_modes(rest) if self.held_ends else damping_modes(rest)
+        out = damping_modes(rest)
         self._cache = (rest, rest._version, out)
         return out
 
@@ -233,8 +200,7 @@ class InternalDamping(Term):
         address, which ``torch.export`` cannot trace, and an eigendecomposition per step inside the
         graph halves a batched step's rate; with the modes fixed the term is one (n, n) product per
         step. A recording's own edge lengths then enter the damping only through this typical set
-        (they differ by a few per cent; the damping is a smooth function of them). The fixed operator
-        is the whole rod's (``held_ends`` False), the one the shipped DLO1 was trained with."""
+        (they differ by a few per cent; the damping is a smooth function of them)."""
         lam, U, si = damping_modes(rest.reshape(1, -1))
         self.register_buffer("fixed_lam", lam[0], persistent=False)
         self.register_buffer("fixed_U", U[0], persistent=False)
@@ -249,15 +215,6 @@ class InternalDamping(Term):
             U, si = self.fixed_U, self.fixed_si
             op = si[:, None] * ((U * rate) @ U.T) / si[None, :]  # (n, n)
             return -(op.to(v.dtype) @ v)
-        if self.held_ends:
-            lam, U, si, E = self._modes(rest)
-            rate = -torch.expm1(-self.dt * self.nu * lam) / self.dt  # (B, f)
-            U, si, E = U.to(v.dtype), si.to(v.dtype), E.to(v.dtype)
-            vg = v[..., [0, 1, -2, -1], :]
-            rel = v[..., 2:-2, :] - E @ vg
-            modal = U.transpose(-1, -2) @ (rel / si.unsqueeze(-1))
-            af = -si.unsqueeze(-1) * (U @ (rate.to(v.dtype).unsqueeze(-1) * modal))
-            return torch.cat([torch.zeros_like(v[..., :2, :]), af, torch.zeros_like(v[..., :2, :])], -2)
         lam, U, si = self._modes(rest)
         rate = -torch.expm1(-self.dt * self.nu * lam) / self.dt  # (B, n)
         U, si = U.to(v.dtype), si.to(v.dtype)

@@ -140,7 +140,6 @@ def test_internal_damping_on_fixed_rest_lengths_is_the_per_recording_operator_th
     mass = model.vertex_mass(rest)
     fixed = term.acceleration(x, v, mass, rest)
     del term.fixed_lam, term.fixed_U, term.fixed_si
-    term.held_ends = False  # the whole rod's modes, as fixed (the tool's own default holds the ends)
     per_recording = term.acceleration(x, v, mass, rest)
     assert torch.allclose(fixed, per_recording, atol=1e-12 * float(per_recording.abs().max()))
     assert fixed.abs().max() > 1e-3  # it acts
