@@ -31,6 +31,7 @@ from deform.diagnose.fitting import FitBudget
 from deform.diagnose.planted import EFFECTS, generate_planted, oracle_term
 from deform.diagnose.scoring import MIN_GAIN, PER_PARAM, calibrate_min_gain, reselect
 from deform.diagnose.selection import DiagnoseBudget, diagnose
+from deform.diagnose.simulator import CHECK_HORIZON
 from deform.diagnose.spec import Inputs, RodSpec
 from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import find_data_root, load_recordings
@@ -903,11 +904,12 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
     return out
 
 
-def hidden_damping_study(kind: str, seed: int, args) -> list[dict]:
-    """Would a model finer than the markers see PyElastica's internal damping? On the planted dataset
-    and its paired control (same motions and noise), the nominal fit at marker resolution, then at 0
-    and 1 hidden node per marker interval a reference refit and the internal_damping candidate (same
-    budget, scored on the windowed check error as the tool scores candidates)."""
+def damping_study(kind: str, seed: int, args, variants=((0, None), (1, None))) -> list[dict]:
+    """Would another fit see PyElastica's internal damping? On the planted dataset and its paired
+    control (same motions and noise), the nominal fit at marker resolution, then per variant
+    ``(hidden, final_horizon)`` a reference refit and the internal_damping candidate (same budget,
+    scored on the windowed check error as the tool scores candidates): ``hidden`` nodes per marker
+    interval (--hidden-damping), fit windows growing to ``final_horizon`` steps (--growing-windows)."""
     from elastica_planted import generate_elastica
 
     from deform.diagnose.fitting import coarse_nominal, fit
@@ -927,12 +929,13 @@ def hidden_damping_study(kind: str, seed: int, args) -> list[dict]:
         sim = Simulator(inputs.spec, Nominal())
         coarse_nominal(sim, inputs.fit)
         fit(sim, inputs.fit, dataclasses.replace(cb, iterations=quick.nominal_iterations))
-        for hidden in (0, 1):
+        for hidden, final_horizon in variants:
             t0 = time.perf_counter()
-            ref, c_ref = fit_and_check(inputs.spec, sim.nominal, [], inputs, cb, "reference", hidden=hidden)
+            vb = dataclasses.replace(cb, final_horizon=final_horizon)
+            ref, c_ref = fit_and_check(inputs.spec, sim.nominal, [], inputs, vb, "reference", hidden=hidden)
             term = make_term("internal_damping", ref.n, ref.node_arclength(arclength_of(inputs.fit)), {})
             _, c = fit_and_check(
-                inputs.spec, sim.nominal, [term], inputs, cb, "internal_damping", new_term=term, hidden=hidden
+                inputs.spec, sim.nominal, [term], inputs, vb, "internal_damping", new_term=term, hidden=hidden
             )
             sc = score(c_ref.window, c.window, term.n_params)
             out.append(
@@ -941,6 +944,7 @@ def hidden_damping_study(kind: str, seed: int, args) -> list[dict]:
                     "effect": effect or "none",
                     "seed": seed,
                     "hidden_nodes": hidden,
+                    "final_horizon": final_horizon,
                     "reference_window_cm": float(c_ref.window.mean() * 100),
                     "internal_damping_window_cm": float(c.window.mean() * 100),
                     "improvement": sc.improvement,
@@ -1026,6 +1030,15 @@ def main() -> None:
         "planted internal damping and its control (JSON rows), e.g. light:0 stiff:0",
     )
     p.add_argument(
+        "--growing-windows",
+        nargs="*",
+        default=None,
+        metavar="KIND:SEED",
+        help="only compare the internal_damping candidate (and its reference) fitted on fixed and on "
+        "growing windows (FitBudget.final_horizon) on PyElastica's planted internal damping and its "
+        "control (JSON rows), e.g. stiff:0 light:1",
+    )
+    p.add_argument(
         "--fits-version",
         type=int,
         default=None,
@@ -1055,11 +1068,14 @@ def main() -> None:
         sys.path.insert(0, str(ROOT))
         print(json.dumps(calibrate_damping(args)))
         return
-    if args.hidden_damping is not None:
+    if args.hidden_damping is not None or args.growing_windows is not None:
         torch.set_num_threads(1)
-        for item in args.hidden_damping:
+        for item in args.hidden_damping or []:
             kind, seed = item.split(":")
-            hidden_damping_study(kind, int(seed), args)
+            damping_study(kind, int(seed), args)
+        for item in args.growing_windows or []:
+            kind, seed = item.split(":")
+            damping_study(kind, int(seed), args, variants=((0, None), (0, CHECK_HORIZON)))
         return
     if args.hidden_nodes is not None:
         torch.set_num_threads(1)

@@ -1,7 +1,9 @@
 """Fitting through the simulator: Adam on open-loop multi-step L1 windows of the fit recordings.
 
 Windows are short (tens of steps) and batched so that one candidate costs seconds; every candidate
-sees the same window sequence (same seed) so that their fits are comparable.
+sees the same window sequence (same seed) so that their fits are comparable. Optionally
+(``FitBudget.final_horizon``) they grow during a descent to the one-second windows the check error
+is scored on.
 """
 
 from __future__ import annotations
@@ -31,6 +33,15 @@ class FitBudget:
     seed: int = 0
     progress: bool = True
     transported: bool = True  # windows start with the reference frames a full rollout carries (make_windows)
+    # None: every window `horizon` steps (the tool's fits). A number (e.g. 100, the one-second
+    # windows the check error is scored on): the descent's windows grow from `horizon` to it over the
+    # first `grow` share of iterations, fewer per batch (rod-steps per iteration kept, at least
+    # `min_batch`), and starts are ranked and chosen on windows of that length. A study option
+    # (diagnose_planted.py --growing-windows): as the default for every term it lost a stiff stretch
+    # and tied a table with a mass scale on PyElastica (results/diagnose.growing_windows.runs.jsonl)
+    final_horizon: int | None = None
+    grow: float = 0.6
+    min_batch: int = 4
     anneal: bool = (
         True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
     )
@@ -139,7 +150,7 @@ def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBu
     windows = make_windows(
         recordings,
         budget.batch,
-        budget.horizon,
+        longest_horizon(budget, recordings),
         budget.margin,
         random.Random(budget.seed + 1),
         budget.transported,
@@ -174,9 +185,8 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
 @torch.no_grad()
 def _forward_loss(sim: Simulator, windows, budget: FitBudget) -> float:
     """Window loss without gradients; a diverged rollout scores infinity."""
-    return float(
-        torch.nan_to_num(window_loss(sim, windows, budget.horizon, budget.margin, False), nan=math.inf)
-    )
+    horizon = windows[0].shape[1] - 2 - 2 * budget.margin  # the windows' own length
+    return float(torch.nan_to_num(window_loss(sim, windows, horizon, budget.margin, False), nan=math.inf))
 
 
 def _snapshot(sim: Simulator) -> list[torch.Tensor]:
@@ -228,7 +238,7 @@ def fit(
     held_out = make_windows(
         recordings,
         max(budget.batch, 16),
-        budget.horizon,
+        longest_horizon(budget, recordings),
         budget.margin,
         random.Random(budget.seed + 2),
         budget.transported,
@@ -245,6 +255,31 @@ def fit(
             best = (loss, _snapshot(sim), out)
     _restore(sim, best[1])
     return {**best[2], "starts": starts}
+
+
+def longest_horizon(budget: FitBudget, recordings: list[Recording]) -> int:
+    """The window length starts are ranked and chosen on: ``final_horizon`` (else ``horizon``),
+    shortened to what the shortest recording holds."""
+    want = budget.final_horizon or budget.horizon
+    room = min(r.n_frames for r in recordings) - 2 - 2 * budget.margin
+    return max(1, min(want, room))
+
+
+def window_schedule(budget: FitBudget, recordings: list[Recording], iteration: int) -> tuple[int, int]:
+    """(horizon, batch) of a descent's ``iteration``: the horizon grows linearly from
+    ``budget.horizon`` to :func:`longest_horizon` over the first ``grow`` share of the iterations,
+    the batch shrinks so that rod-steps per iteration stay those of the first.
+
+    Why: the decision scores one-second predictions, and a fit on 25-step windows may not tell slow
+    dissipation from stiffness or from the nominal damping's share. Short windows first keep the
+    early, far-from-optimal steps out of long chaotic rollouts."""
+    if budget.final_horizon is None:
+        return budget.horizon, budget.batch
+    h0 = min(budget.horizon, longest_horizon(budget, recordings))
+    h1 = longest_horizon(budget, recordings)
+    ramp = max(1.0, budget.grow * budget.iterations)
+    h = round(h0 + (h1 - h0) * min(1.0, iteration / ramp))
+    return h, max(budget.min_batch, round(budget.batch * h0 / h))
 
 
 def _descend(
@@ -268,13 +303,12 @@ def _descend(
     )
     history, skipped = [], 0
     bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
-    for _ in bar:
-        windows = make_windows(
-            recordings, budget.batch, budget.horizon, budget.margin, rng, budget.transported
-        )
+    for i in bar:
+        horizon, batch = window_schedule(budget, recordings, i)
+        windows = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
         opt.zero_grad(set_to_none=True)
         exprs = sim.sync()
-        loss = window_loss(sim, windows, budget.horizon, budget.margin, create_graph=True)
+        loss = window_loss(sim, windows, horizon, budget.margin, create_graph=True)
         params = sim.parameters()
         if torch.isfinite(loss):
             sim.backward(loss, exprs)
@@ -356,14 +390,13 @@ def laplace_uncertainty(
         Physical parameter name -> standard deviation.
     """
     rng = random.Random(budget.seed + 777)
-    windows = make_windows(
-        recordings, max(budget.batch, 16), budget.horizon, budget.margin, rng, budget.transported
-    )
+    horizon = longest_horizon(budget, recordings)
+    windows = make_windows(recordings, max(budget.batch, 16), horizon, budget.margin, rng, budget.transported)
 
     def loss() -> float:
         sim.sync()
         with torch.no_grad():
-            return float(window_loss(sim, windows, budget.horizon, budget.margin, False))
+            return float(window_loss(sim, windows, horizon, budget.margin, False))
 
     base = loss()
     n_eff = windows[0].shape[0]
