@@ -62,6 +62,11 @@ def budget(quick) -> DiagnoseBudget:
     return DiagnoseBudget(progress=False)
 
 
+def tool_budget(args) -> DiagnoseBudget:
+    """The budget of the tool's runs: ``--quick`` and the opt-in ``--grow-slow-terms``."""
+    return dataclasses.replace(budget(args.quick), grow_slow_terms=getattr(args, "grow_slow_terms", False))
+
+
 def param_error(found: dict, truth: dict, edge_m: float) -> dict:
     """Relative error of each planted parameter the term reports. Rest curvature: the tool reports a
     turning per vertex (curvature x marker spacing ``edge_m``) in a material frame whose orientation
@@ -108,6 +113,8 @@ def _config(args) -> dict:
     }
     if getattr(args, "simulator", "own") != "own":
         cfg["simulator"] = args.simulator
+    if getattr(args, "grow_slow_terms", False):
+        cfg["grow_slow_terms"] = True
     return cfg
 
 
@@ -234,7 +241,7 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
             pair, _ = generate_elastica(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
             controls[(kind, seed)] = pair
         inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
-        rep = diagnose(inputs, budget(args.quick)).report
+        rep = diagnose(inputs, tool_budget(args)).report
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
         row = {
             "key": key,
@@ -429,7 +436,7 @@ def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
         t0 = time.perf_counter()
         recs, truth = generate_planted(effect, src, spec, n_frames=args.frames, seed=seed)
         inputs = Inputs(spec=spec, fit=recs[: args.fit], check=recs[args.fit :])
-        rep = diagnose(inputs, budget(args.quick)).report
+        rep = diagnose(inputs, tool_budget(args)).report
         t_diag = time.perf_counter() - t0
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
         fitted = {k: v for k, v in rep["nominal"]["final_params"].items() if k == effect}
@@ -489,7 +496,7 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
         held = load_recordings(data / rod / "eval")[: args.check] if (data / rod / "eval").is_dir() else []
         inputs = as_user_inputs(spec, recs[: args.fit], held or recs[args.fit : args.fit + args.check])
         t0 = time.perf_counter()
-        rep = diagnose(inputs, budget(args.quick)).report
+        rep = diagnose(inputs, tool_budget(args)).report
         row = {
             "key": key,
             "config": _config(args),
@@ -1028,6 +1035,12 @@ def main() -> None:
         metavar="KIND:SEED",
         help="only compare the internal_damping candidate at 0 and 1 hidden node on PyElastica's "
         "planted internal damping and its control (JSON rows), e.g. light:0 stiff:0",
+    )
+    p.add_argument(
+        "--grow-slow-terms",
+        action="store_true",
+        help="fit slow terms (internal damping) and their own reference on windows growing to the "
+        "one-second scoring windows (DiagnoseBudget.grow_slow_terms; rows kept apart by their config)",
     )
     p.add_argument(
         "--growing-windows",

@@ -19,6 +19,7 @@ from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_unce
 from deform.diagnose.localize import localize, short_rollout_residuals
 from deform.diagnose.scoring import bootstrap_ci, score
 from deform.diagnose.simulator import (
+    CHECK_HORIZON,
     MATERIAL_DAMPING_MAX,
     Nominal,
     Simulator,
@@ -39,6 +40,9 @@ class DiagnoseBudget:
     localization_recordings: int = 6
     candidates: tuple[str, ...] = tuple(LIBRARY)
     progress: bool = True
+    # slow terms (Term.slow) and their own reference fitted on windows growing to the one-second
+    # scoring windows (FitBudget.final_horizon); off: every fit on the candidate budget's windows
+    grow_slow_terms: bool = False
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
@@ -166,6 +170,27 @@ def fit_noise(
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
 
+def refit_reference(
+    spec, nominal, selected, inputs: Inputs, budget: FitBudget, current: CheckErrors, desc: str
+) -> CheckErrors:
+    """The current model (``nominal`` and the ``selected`` terms) refitted with a candidate's budget,
+    so that a candidate is credited only for what its physics adds, not for the extra optimisation;
+    ``current`` (the model's own check errors) when the refit came out worse, which must not make
+    candidates look good.
+
+    Args:
+        spec: the rod.
+        nominal: the nominal parameters (copied).
+        selected: terms selected in earlier rounds (copied).
+        inputs: fit and check recordings.
+        budget: the candidate's fit budget.
+        current: check errors of the model as it stands.
+        desc: progress label.
+    """
+    _, c = fit_and_check(spec, nominal, [copy.deepcopy(t) for t in selected], inputs, budget, desc)
+    return current if c.window.mean() > current.window.mean() else c
+
+
 def fit_and_check(
     spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None, hidden: int = 0
 ):
@@ -238,36 +263,32 @@ def diagnose(
     base_nominal, base_err, base_sim = nominal, c_nom, sim
     remaining = list(budget.candidates)
     candidates_out: list[dict] = []
+    slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON)
     for rnd in range(budget.max_rounds):
         if not remaining:
             break
-        _ref_sim, c_ref = fit_and_check(
-            spec,
-            base_nominal,
-            [copy.deepcopy(t) for t in selected],
-            inputs,
-            cb,
-            f"round {rnd + 1}: reference",
-        )
-        if (
-            c_ref.window.mean() > base_err.window.mean()
-        ):  # a refit that got worse must not make candidates look good
-            c_ref = base_err
-        e_ref = c_ref.window
+        references: dict[int | None, CheckErrors] = {}  # per fit-window kind, fitted once per round
         results = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context)
+            tb = slow_cb if budget.grow_slow_terms and term.slow else cb
+            if tb.final_horizon not in references:
+                references[tb.final_horizon] = refit_reference(
+                    spec, base_nominal, selected, inputs, tb, base_err, f"round {rnd + 1}: reference"
+                )
+            c_ref = references[tb.final_horizon]
+            e_ref = c_ref.window
             csim, checked = fit_and_check(
                 spec,
                 base_nominal,
                 [copy.deepcopy(t) for t in selected] + [term],
                 inputs,
-                cb,
+                tb,
                 f"round {rnd + 1}: {name}",
                 new_term=term,
             )
             sc = score(e_ref, checked.window, term.n_params)
-            results.append((name, term, csim, checked, sc))
+            results.append((name, term, csim, checked, sc, e_ref, tb))
             candidates_out.append(
                 {
                     "name": name,
@@ -284,17 +305,18 @@ def diagnose(
                     "threshold": sc.threshold,
                     "reference_check_l1_m": float(c_ref.rollout.mean()),
                     "reference_check_window_l1_m": float(e_ref.mean()),
+                    "growing_windows": tb.final_horizon is not None,
                 }
             )
         sig = [r for r in results if r[4].significant]
         if not sig:
             break
-        name, term, csim, checked, sc = max(sig, key=lambda r: r[4].improvement)
+        name, term, csim, checked, sc, e_ref, tb = max(sig, key=lambda r: r[4].improvement)
         cls = equivalence_class(
             name, checked.window, e_ref, [(r[0], r[3].window) for r in sig if r[0] != name]
         )
         cls["fit_noise"] = fit_noise(
-            spec, base_nominal, selected, name, s, context, inputs, cb, sc.improvement
+            spec, base_nominal, selected, name, s, context, inputs, tb, sc.improvement
         )
         for c in candidates_out:
             if c["name"] == name and c["round"] == rnd + 1:

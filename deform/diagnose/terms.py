@@ -63,6 +63,11 @@ class Term(nn.Module):
     # what marker motion cannot tell this term apart from, and why (None: nothing known); the report
     # names these classes instead of pretending to a choice
     cannot_tell_from: str | None = None
+    # True: the effect builds up over many steps (a dissipation of deformation rates), so a fit on
+    # short windows cannot tell it from the nominal damping's share; with
+    # ``DiagnoseBudget.grow_slow_terms`` such a term and its reference are fitted on windows growing
+    # to the one-second scoring windows
+    slow = False
 
     def __init__(self, n: int, arclength: np.ndarray):
         super().__init__()
@@ -160,6 +165,7 @@ class InternalDamping(Term):
     the spacing (``nu / l^4`` on a uniform grid of spacing ``l``)."""
 
     name = "internal_damping"
+    slow = True
     description = "damping of the bending rate (Kelvin-Voigt internal friction of the rod's curvature)"
     cannot_tell_from = (
         "the nominal linear damping, where the motion is mostly one slow bending mode: "

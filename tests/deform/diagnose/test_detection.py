@@ -81,3 +81,34 @@ def test_report_files_name_what_cannot_be_told_apart(wind, sources, tmp_path):
     assert "fitted again on other windows" in md  # the selected term's own fit noise
     chosen = next(c for c in diag.report["candidates"] if c["name"] == "external_force")
     assert chosen["equivalence_class"][0] == "external_force" and "noise" in chosen["fit_noise"]
+
+
+def test_slow_terms_grow_their_windows_against_their_own_reference(sources):
+    """With ``grow_slow_terms`` the internal damping (a slow term) and a reference of its own are
+    fitted on windows growing to the scoring windows; the other candidates keep the budget's
+    windows and the common reference. A smoke-sized budget: the wiring, not the statistics."""
+    import dataclasses
+
+    from deform.diagnose.fitting import FitBudget
+    from deform.diagnose.selection import DiagnoseBudget
+
+    inputs, _ = _inputs(None, sources)
+    b = DiagnoseBudget(
+        nominal_iterations=3,
+        candidate=FitBudget(iterations=3, batch=4, horizon=10, starts=1),
+        max_rounds=1,
+        candidates=("internal_damping", "external_force", "point_mass"),
+        localization_recordings=3,
+        progress=False,
+    )
+    out = {}
+    for grow in (False, True):
+        rep = diagnose(inputs, dataclasses.replace(b, grow_slow_terms=grow)).report
+        out[grow] = {c["name"]: c for c in rep["candidates"]}
+    assert not any(c["growing_windows"] for c in out[False].values())
+    assert [n for n, c in out[True].items() if c["growing_windows"]] == ["internal_damping"]
+    for name in ("external_force", "point_mass"):  # untouched by the option
+        assert out[True][name]["improvement"] == out[False][name]["improvement"]
+    ref = {n: c["reference_check_window_l1_m"] for n, c in out[True].items()}
+    assert ref["external_force"] == ref["point_mass"]  # one common reference
+    assert out[True]["internal_damping"]["improvement"] != out[False]["internal_damping"]["improvement"]
