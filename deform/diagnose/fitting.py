@@ -275,8 +275,8 @@ def window_schedule(budget: FitBudget, recordings: list[Recording], iteration: i
     early, far-from-optimal steps out of long chaotic rollouts."""
     if budget.final_horizon is None:
         return budget.horizon, budget.batch
-    h0 = min(budget.horizon, longest_horizon(budget, recordings))
     h1 = longest_horizon(budget, recordings)
+    h0 = min(budget.horizon, h1)
     ramp = max(1.0, budget.grow * budget.iterations)
     h = round(h0 + (h1 - h0) * min(1.0, iteration / ramp))
     return h, max(budget.min_batch, round(budget.batch * h0 / h))

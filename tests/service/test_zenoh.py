@@ -2,7 +2,8 @@
 second namespace, the live loop with bad input, client-mode reconnection, MCAP record and replay.
 
 Waits for samples are events set by the subscriber callbacks (``Received``, Zenoh matching
-listeners), with generous timeouts: no fixed sleep assumes the machine is fast."""
+listeners, or the publishers' matching status polled), with generous timeouts: no fixed sleep
+assumes the machine is fast."""
 
 import json
 import subprocess
@@ -63,20 +64,11 @@ class CountingSession:
 
 
 def wait_matched(session, keys, timeout=20.0) -> bool:
-    """True once ``session`` knows a subscriber for every key (Zenoh matching listeners): what it
+    """True once ``session`` knows a subscriber for every key (``bag.wait_for_subscribers``): what it
     then publishes on them reaches that subscriber."""
-    pubs, events = [], []
-    for key in keys:
-        ev = threading.Event()
-        pub = session.declare_publisher(key)
-        pub.declare_matching_listener(lambda status, ev=ev: status.matching and ev.set())
-        if pub.matching_status.matching:
-            ev.set()
-        pubs.append(pub)
-        events.append(ev)
-    end = time.monotonic() + timeout
+    pubs = [session.declare_publisher(key) for key in keys]
     try:
-        return all(ev.wait(max(0.0, end - time.monotonic())) for ev in events)
+        return bag.wait_for_subscribers(pubs, timeout) == []
     finally:
         for pub in pubs:
             pub.undeclare()
