@@ -17,7 +17,7 @@ import numpy as np
 
 from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.scoring import bootstrap_ci, score
+from deform.diagnose.scoring import Score, bootstrap_ci, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
     MATERIAL_DAMPING_MAX,
@@ -28,7 +28,7 @@ from deform.diagnose.simulator import (
     per_recording_window_l1,
 )
 from deform.diagnose.spec import Inputs
-from deform.diagnose.terms import LIBRARY, make_term
+from deform.diagnose.terms import LIBRARY, Term, make_term
 
 
 @dataclass
@@ -71,6 +71,21 @@ class CheckErrors:
         return cls(
             per_recording_l1(sim.predict(recordings), recordings), per_recording_window_l1(sim, recordings)
         )
+
+
+@dataclass
+class FittedCandidate:
+    """One candidate of a selection round: the term fitted on top of the current model, the fitted
+    simulator, its check errors, its score against ``reference`` (the current model refitted with
+    the same ``budget``, one-second window errors per check recording)."""
+
+    name: str
+    term: Term
+    sim: Simulator
+    checked: CheckErrors
+    score: Score
+    reference: np.ndarray
+    budget: FitBudget
 
 
 @dataclass
@@ -288,7 +303,7 @@ def diagnose(
                 new_term=term,
             )
             sc = score(e_ref, checked.window, term.n_params)
-            results.append((name, term, csim, checked, sc, e_ref, tb))
+            results.append(FittedCandidate(name, term, csim, checked, sc, e_ref, tb))
             candidates_out.append(
                 {
                     "name": name,
@@ -308,24 +323,28 @@ def diagnose(
                     "growing_windows": tb.final_horizon is not None,
                 }
             )
-        sig = [r for r in results if r[4].significant]
+        sig = [r for r in results if r.score.significant]
         if not sig:
             break
-        name, term, csim, checked, sc, e_ref, tb = max(sig, key=lambda r: r[4].improvement)
+        best = max(sig, key=lambda r: r.score.improvement)
+        name = best.name
         cls = equivalence_class(
-            name, checked.window, e_ref, [(r[0], r[3].window) for r in sig if r[0] != name]
+            name,
+            best.checked.window,
+            best.reference,
+            [(r.name, r.checked.window) for r in sig if r.name != name],
         )
         cls["fit_noise"] = fit_noise(
-            spec, base_nominal, selected, name, s, context, inputs, tb, sc.improvement
+            spec, base_nominal, selected, name, s, context, inputs, best.budget, best.score.improvement
         )
         for c in candidates_out:
             if c["name"] == name and c["round"] == rnd + 1:
                 c.update(cls)
-        selected.append(term)
+        selected.append(best.term)
         selected_names.append(name)
-        base_nominal, base_err, base_sim = csim.nominal, checked, csim
-        order = sorted((r for r in results if r[0] != name), key=lambda r: -r[4].improvement)
-        remaining = [r[0] for r in order if r[4].improvement > 0][: budget.later_round_candidates]
+        base_nominal, base_err, base_sim = best.sim.nominal, best.checked, best.sim
+        order = sorted((r for r in results if r.name != name), key=lambda r: -r.score.improvement)
+        remaining = [r.name for r in order if r.score.improvement > 0][: budget.later_round_candidates]
     for t in selected:
         std = laplace_uncertainty(base_sim, inputs.fit, cb, t)
         for c in candidates_out:
