@@ -34,8 +34,9 @@ from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 log = logging.getLogger("deform.aot")
 
 _PACKAGE_SOURCE = Path(__file__).resolve().parent
-# torch.compile's options for the same graph; its C++ wrapper is what AOTInductor always generates
-AOT_OPTIONS = {k: v for k, v in COMPILE_OPTIONS.items() if k != "cpp_wrapper"}
+# torch.compile's options for the same graph, except: its C++ wrapper is what AOTInductor always
+# generates, and memory planning does not handle the solvers' while loops (deform.rod.convergence)
+AOT_OPTIONS = {k: v for k, v in COMPILE_OPTIONS.items() if k not in ("cpp_wrapper", "memory_planning")}
 
 
 def cache_dir() -> Path:

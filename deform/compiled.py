@@ -32,10 +32,10 @@ BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 # projection sweeps traced without host synchronisation. A plain step needs 2 and 1 (measured on the
 # recordings); harder steps (the material frame of a curved rod turning by radians, 0.5 rad per
 # Newton step; a rope pulled nearly taut) need more. Converged rods are masked but the iterations
-# still run and enlarge the compiled code, so the rare harder steps are redone eagerly instead.
-# Why (6, 3): its package builds in 48 s on a free core against 84 s for (12, 6) (the cold start's
-# last step), runs as fast (210 vs 202 us), and no step of DLO1's eval recordings needs more; in the
-# service benchmark neither redid a step in 3000 ticks. (4, 2) redid 123 and put tick p99 at 5.8 ms.
+# still run under torch.compile (the ahead-of-time step exits its loops once every rod converged,
+# see deform.rod.convergence.masked_loop), so the rare harder steps are redone eagerly instead.
+# Why (6, 3): no step of DLO1's eval recordings needs more; in the service benchmark neither it nor
+# (12, 6) redid a step in 3000 ticks. (4, 2) redid 123 and put tick p99 at 5.8 ms.
 LOOP_BRANCH_FREE = (6, 3)
 PREDICT_BRANCH_FREE = (2, 2)  # the predict rollout's fast graph (see RolloutStep)
 

@@ -23,7 +23,7 @@ import enum
 import torch
 from torch import Tensor
 
-from deform.rod.convergence import ConvergenceReport
+from deform.rod.convergence import ConvergenceReport, masked_loop
 from deform.rod.geometry import dot
 from deform.rod.tridiagonal import solve_tridiagonal
 
@@ -135,12 +135,16 @@ def enforce_inextensibility(
     """
     sweep = SWEEPS[method]  # a PBDMethod or its string: str enums hash and compare as their values
     if branch_free:
-        err = max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod=True)
-        for _ in range(branch_free):
-            active = err >= tol
+
+        def iteration(carry, active):
+            x, err = carry
             swept, swept_err = _sweep_and_measure(sweep, x, inv_mass, rest, per_rod=True)
             x = torch.where(active[..., None, None], swept, x)
             err = torch.where(active, swept_err, err)
+            return (x, err), err >= tol
+
+        err = max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod=True)
+        (x, err), _ = masked_loop(iteration, (x, err), err >= tol, branch_free)
         if report is not None:
             report.length_error = err
         if torch.compiler.is_compiling():  # no data-dependent branch: the caller checks (deform.compiled)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from deform.rod.convergence import ConvergenceReport
+from deform.rod.convergence import ConvergenceReport, masked_loop
 from deform.rod.energy import left_right, material_curvature, twist_of
 from deform.rod.tridiagonal import solve_tridiagonal, solve_tridiagonal_pd
 
@@ -144,13 +144,17 @@ def newton_theta(
         else:
             free = theta_init.detach()[..., 1:-1].clone()
         if branch_free:
-            active = torch.ones(free.shape[:-1], dtype=torch.bool, device=free.device)
-            for _ in range(branch_free):
+
+            def iteration(carry, active):
+                (free,) = carry
                 new, size, exact = _newton_update(
                     free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step, per_rod=True
                 )
                 free = torch.where(active.unsqueeze(-1), new, free)
-                active = active & ~((size < tol) | (exact & (size * size < tol)))
+                return (free,), active & ~((size < tol) | (exact & (size * size < tol)))
+
+            active = torch.ones(free.shape[:-1], dtype=torch.bool, device=free.device)
+            (free,), active = masked_loop(iteration, (free,), active, branch_free)
             # compiled code cannot branch on data: it returns here and its caller checks convergence
             # afterwards (deform.compiled); eager code goes on while a rod is unconverged
             if report is not None:

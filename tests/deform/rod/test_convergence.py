@@ -1,0 +1,55 @@
+"""masked_loop: per-rod stopping, the same values eager and exported (a while loop), and an exported
+step whose size does not grow with the iteration counts (what keeps the ahead-of-time build short)."""
+
+import pytest
+import torch
+
+from deform import load_model
+from deform.aot import _BranchFreeStep
+from deform.rod.convergence import masked_loop
+from deform.step_graph import rod_at_rest
+
+
+class _Halving(torch.nn.Module):
+    """Halve each rod's values until its largest is below 1e-3, at most ``count`` times."""
+
+    def __init__(self, count: int):
+        super().__init__()
+        self.count = count
+
+    def forward(self, y):
+        def body(carry, active):
+            (y,) = carry
+            y = torch.where(active[:, None], 0.5 * y, y)
+            return (y,), y.abs().amax(-1) >= 1e-3
+
+        (y,), active = masked_loop(body, (y,), y.abs().amax(-1) >= 1e-3, self.count)
+        return y, active
+
+
+def test_each_rod_stops_by_its_own_rule_and_export_agrees_with_eager():
+    y = torch.tensor([[1.0, -0.5], [1e-4, 0.0], [0.01, 0.002]], dtype=torch.float64)
+    eager, active = _Halving(20)(y)
+    # rod 0 needs 10 halvings, rod 1 none, rod 2 four; none of them is halved once more
+    assert torch.equal(eager[0], y[0] / 2**10) and torch.equal(eager[1], y[1])
+    assert torch.equal(eager[2], y[2] / 2**4) and not active.any()
+    short, still = _Halving(3)(y)
+    assert torch.equal(short[0], y[0] / 8) and still.tolist() == [True, False, True]
+    for count in (3, 20):
+        exported = torch.export.export(_Halving(count), (y,), strict=False).module()
+        out, act = exported(y)
+        ref, ref_act = _Halving(count)(y)
+        assert torch.equal(out, ref) and torch.equal(act, ref_act)
+
+
+@pytest.mark.slow
+def test_exported_step_does_not_grow_with_the_iteration_counts():
+    model = load_model("DLO1")
+    state, grip = rod_at_rest(model, 1, torch.float64)
+    args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
+    sizes = []
+    with torch.no_grad():
+        for branch_free in ((2, 1), (8, 4)):
+            ep = torch.export.export(_BranchFreeStep(model, branch_free), args, strict=False)
+            sizes.append(sum(len(m.graph.nodes) for m in ep.graph_module.modules() if hasattr(m, "graph")))
+    assert sizes[0] == sizes[1]
