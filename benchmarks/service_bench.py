@@ -232,6 +232,10 @@ def main() -> int:
     svc = Service(cfg).start()
     client = ShapeClient(connect=[ep], timeout_s=5.0)
     out: dict = {
+        "command": "python benchmarks/service_bench.py " + " ".join(sys.argv[1:]),
+        "commit": subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+        ).stdout.strip(),
         "machine": {
             "cpus": os.cpu_count(),
             "platform": platform.platform(),

@@ -34,7 +34,7 @@ KNOWN = {
         "python benchmarks/perception_tracking.py",
     ),
     "service.json": (
-        "Service: loop, predict, 60 s soak",
+        "Service: loop, predict, memory soak",
         "python benchmarks/service_bench.py --json benchmarks/results/service.json",
     ),
     "service_soak.json": (
