@@ -63,8 +63,11 @@ def budget(quick) -> DiagnoseBudget:
 
 
 def tool_budget(args) -> DiagnoseBudget:
-    """The budget of the tool's runs: ``--quick`` and the opt-in ``--grow-slow-terms``."""
-    return dataclasses.replace(budget(args.quick), grow_slow_terms=getattr(args, "grow_slow_terms", False))
+    """The budget of the tool's runs: ``--quick``, and ``--fits-version 6`` for the fits of tool v6
+    (slow terms on the candidates' fixed windows)."""
+    return dataclasses.replace(
+        budget(args.quick), grow_slow_terms=(getattr(args, "fits_version", None) or TOOL_VERSION) >= 7
+    )
 
 
 def param_error(found: dict, truth: dict, edge_m: float) -> dict:
@@ -92,8 +95,11 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # scored on the windowed check error (one-second predictions along each check recording), the full
 # rollout's improvement kept beside it as "improvement_rollout"; two descents from a new term's grid
 # (the better end on held-out fit windows kept); contact friction that never reverses the sliding in
-# a step; the contact grid also with the nominal stiffness halved; damping shares 1, 1/2, 1/5.
-TOOL_VERSION = 6
+# a step; the contact grid also with the nominal stiffness halved; damping shares 1, 1/2, 1/5. v7: slow
+# terms (internal damping) and a reference of their own fitted on windows growing to the one-second
+# scoring windows (DiagnoseBudget.grow_slow_terms, on by default); rows of v6 run with
+# --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such.
+TOOL_VERSION = 7
 RULE = "v6: the mean windowed improvement above the threshold"
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 
@@ -113,8 +119,6 @@ def _config(args) -> dict:
     }
     if getattr(args, "simulator", "own") != "own":
         cfg["simulator"] = args.simulator
-    if getattr(args, "grow_slow_terms", False):
-        cfg["grow_slow_terms"] = True
     return cfg
 
 
@@ -1035,12 +1039,6 @@ def main() -> None:
         metavar="KIND:SEED",
         help="only compare the internal_damping candidate at 0 and 1 hidden node on PyElastica's "
         "planted internal damping and its control (JSON rows), e.g. light:0 stiff:0",
-    )
-    p.add_argument(
-        "--grow-slow-terms",
-        action="store_true",
-        help="fit slow terms (internal damping) and their own reference on windows growing to the "
-        "one-second scoring windows (DiagnoseBudget.grow_slow_terms; rows kept apart by their config)",
     )
     p.add_argument(
         "--growing-windows",
