@@ -7,7 +7,8 @@ rods that did not converge without evaluating anything twice (:meth:`DeformModel
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -29,12 +30,29 @@ class ConvergenceReport:
     twist_unconverged: Tensor | None = None
 
 
+_LOOPS_WHEN_EXPORTED = [True]
+
+
+@contextmanager
+def loops_when_exported(enabled: bool) -> Iterator[None]:
+    """Within: :func:`masked_loop` exports a ``while_loop`` (``enabled``) or unrolled iterations.
+
+    Why both: a loop compiles once and exits early, which wins where a step is overhead-bound (one
+    rod, tens of rods); unrolled, inductor can plan the memory of the whole step, which wins for a
+    thousand rods (:func:`deform.aot.exports_loops`)."""
+    _LOOPS_WHEN_EXPORTED.append(enabled)
+    try:
+        yield
+    finally:
+        _LOOPS_WHEN_EXPORTED.pop()
+
+
 def masked_loop(body: Callable, carry: tuple[Tensor, ...], active: Tensor, count: int):
     """Up to ``count`` iterations of ``body(carry, active) -> (carry, active)``, where ``body`` masks
     its updates to the rods still ``active`` (a bool tensor per rod), so iterating a converged rod
     changes nothing. Eager and under ``torch.compile``: a plain loop of ``count``. While exporting
-    (the ahead-of-time step, :mod:`deform.aot`): one ``while_loop`` that stops when no rod is active
-    or after ``count``.
+    (the ahead-of-time step, :mod:`deform.aot`; unless :func:`loops_when_exported` says otherwise):
+    one ``while_loop`` that stops when no rod is active or after ``count``.
 
     Why: unrolled, each iteration is a copy of the body in the compiled graph, and the graph's size
     sets the compile time (the loop step's package took 48 s with 6 twist iterations and 3 sweeps,
@@ -44,7 +62,7 @@ def masked_loop(body: Callable, carry: tuple[Tensor, ...], active: Tensor, count
     Returns:
         ``(carry, active)`` after the iterations.
     """
-    if not torch.compiler.is_exporting():
+    if not (torch.compiler.is_exporting() and _LOOPS_WHEN_EXPORTED[-1]):
         for _ in range(count):
             carry, active = body(carry, active)
         return carry, active

@@ -1,12 +1,13 @@
 """masked_loop: per-rod stopping, the same values eager and exported (a while loop), and an exported
-step whose size does not grow with the iteration counts (what keeps the ahead-of-time build short)."""
+step whose size does not grow with the iteration counts (what keeps the ahead-of-time build short)
+unless the iterations are asked unrolled."""
 
 import pytest
 import torch
 
 from deform import load_model
 from deform.aot import _BranchFreeStep
-from deform.rod.convergence import masked_loop
+from deform.rod.convergence import loops_when_exported, masked_loop
 from deform.step_graph import rod_at_rest
 
 
@@ -47,9 +48,11 @@ def test_exported_step_does_not_grow_with_the_iteration_counts():
     model = load_model("DLO1")
     state, grip = rod_at_rest(model, 1, torch.float64)
     args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
-    sizes = []
-    with torch.no_grad():
-        for branch_free in ((2, 1), (8, 4)):
+
+    def size(branch_free, loops):
+        with torch.no_grad(), loops_when_exported(loops):
             ep = torch.export.export(_BranchFreeStep(model, branch_free), args, strict=False)
-            sizes.append(sum(len(m.graph.nodes) for m in ep.graph_module.modules() if hasattr(m, "graph")))
-    assert sizes[0] == sizes[1]
+        return sum(len(m.graph.nodes) for m in ep.graph_module.modules() if hasattr(m, "graph"))
+
+    assert size((2, 1), True) == size((8, 4), True)
+    assert size((2, 1), False) < size((8, 4), False)  # unrolled (large batches, deform.aot.exports_loops)
