@@ -7,6 +7,7 @@ rods that did not converge without evaluating anything twice (:meth:`DeformModel
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -30,7 +31,11 @@ class ConvergenceReport:
     twist_unconverged: Tensor | None = None
 
 
-_LOOPS_WHEN_EXPORTED = [True]
+class _ExportSettings(threading.local):
+    loops = True  # per thread: two threads may export steps of different batch sizes at once
+
+
+_EXPORT = _ExportSettings()
 
 
 @contextmanager
@@ -40,11 +45,11 @@ def loops_when_exported(enabled: bool) -> Iterator[None]:
     Why both: a loop compiles once and exits early, which wins where a step is overhead-bound (one
     rod, tens of rods); unrolled, inductor can plan the memory of the whole step, which wins for a
     thousand rods (:func:`deform.aot.exports_loops`)."""
-    _LOOPS_WHEN_EXPORTED.append(enabled)
+    before, _EXPORT.loops = _EXPORT.loops, enabled
     try:
         yield
     finally:
-        _LOOPS_WHEN_EXPORTED.pop()
+        _EXPORT.loops = before
 
 
 def masked_loop(body: Callable, carry: tuple[Tensor, ...], active: Tensor, count: int):
@@ -62,7 +67,7 @@ def masked_loop(body: Callable, carry: tuple[Tensor, ...], active: Tensor, count
     Returns:
         ``(carry, active)`` after the iterations.
     """
-    if not (torch.compiler.is_exporting() and _LOOPS_WHEN_EXPORTED[-1]):
+    if not (torch.compiler.is_exporting() and _EXPORT.loops):
         for _ in range(count):
             carry, active = body(carry, active)
         return carry, active
