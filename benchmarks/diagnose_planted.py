@@ -63,11 +63,11 @@ def budget(quick) -> DiagnoseBudget:
 
 
 def tool_budget(args) -> DiagnoseBudget:
-    """The budget of the tool's runs: ``--quick``, and ``--fits-version 6`` for the fits of tool v6
-    (slow terms on the candidates' fixed windows)."""
-    return dataclasses.replace(
-        budget(args.quick), grow_slow_terms=(getattr(args, "fits_version", None) or TOOL_VERSION) >= 7
-    )
+    """The budget of the tool's runs: ``--quick``, and ``--fits-version N`` for the fits of an
+    older tool (6: slow terms on the candidates' fixed windows; 7: rest curvature in the "up"
+    convention's roll, not read from each recording)."""
+    version = getattr(args, "fits_version", None) or TOOL_VERSION
+    return dataclasses.replace(budget(args.quick), grow_slow_terms=version >= 7, read_roll=version >= 8)
 
 
 def param_error(found: dict, truth: dict, edge_m: float) -> dict:
@@ -99,7 +99,7 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # terms (internal damping) and a reference of their own fitted on windows growing to the one-second
 # scoring windows (DiagnoseBudget.grow_slow_terms, on by default); rows of v6 run with
 # --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such.
-TOOL_VERSION = 7
+TOOL_VERSION = 8
 RULE = "v6: the mean windowed improvement above the threshold"
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deform.diagnose.simulator import Nominal, Simulator
+from deform.diagnose.simulator import ROLL_FRAMES, Nominal, Simulator
 from deform.io.recordings import Recording
 
 
@@ -55,10 +55,12 @@ def make_windows(
     margin: int,
     rng: random.Random,
     transported: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings, and the reference
-    directors (B, m, 3) a full rollout would carry at each window's start frame (``margin + 1``), or
-    None when not ``transported`` (fresh frames, the behaviour before they were carried).
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings, the reference
+    directors (B, m, 3) a full rollout would carry at each window's start frame (``margin + 1``),
+    and the first frames (B, 2 + ROLL_FRAMES, n, 3) of each window's recording (where a
+    material-frame roll is read: :meth:`Simulator.initial_roll`); both None when not ``transported`` (fresh frames, the
+    behaviour before they were carried).
 
     Args:
         recordings: each ``positions`` (T, n, 3).
@@ -71,16 +73,24 @@ def make_windows(
     Returns:
         ``(windows, d1)``.
     """
-    out, frames = [], []
+    out, frames, origins = [], [], []
     length = horizon + 2 + 2 * margin
+    first = min(2 + ROLL_FRAMES, min(r.n_frames for r in recordings))
     for _ in range(batch):
         r = rng.choice(recordings)
         s = rng.randrange(0, r.n_frames - length + 1)
         out.append(r.positions[s : s + length])
+        origins.append(r.positions[:first])
         if transported:
             frames.append(r.reference_frames[s + margin + 1])
     X = torch.tensor(np.stack(out), dtype=torch.float64)
-    return X, (torch.tensor(np.stack(frames), dtype=torch.float64) if transported else None)
+    if not transported:
+        return X, None, None
+    return (
+        X,
+        torch.tensor(np.stack(frames), dtype=torch.float64),
+        torch.tensor(np.stack(origins), dtype=torch.float64),
+    )
 
 
 def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph: bool) -> torch.Tensor:
@@ -88,7 +98,7 @@ def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph
 
     Args:
         sim: the simulator.
-        windows: ``(X, d1)`` from :func:`make_windows`.
+        windows: ``(X, d1, origin)`` from :func:`make_windows`.
         horizon: steps scored.
         margin: frames before the start.
         create_graph: differentiable (fitting) or not (scoring).
@@ -96,8 +106,8 @@ def window_loss(sim: Simulator, windows, horizon: int, margin: int, create_graph
     Returns:
         A scalar [m].
     """
-    X, d1 = windows
-    pred = sim.rollout(X, horizon, margin, create_graph=create_graph, d1=d1)
+    X, d1, origin = windows
+    pred = sim.rollout(X, horizon, margin, create_graph=create_graph, d1=d1, origin=origin)
     return (pred - X[:, margin + 2 : margin + 2 + horizon]).abs().mean()
 
 

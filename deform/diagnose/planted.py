@@ -86,7 +86,8 @@ def _truth_terms(effect, truth, n_sim, s_sim, marker_ids, refine, mean_marker_ed
         return []
     if effect == "mass_scale":
         return [MarkerMass(n_sim, marker_ids, truth["marker_mass_kg"])]
-    term = make_term(effect, n_sim, s_sim)
+    # planted in the "up" convention's roll (the truth has no roll to read)
+    term = make_term(effect, n_sim, s_sim, read_roll=False)
     with torch.no_grad():
         if effect == "aerodynamic_drag":
             term.log_lin.fill_(math.log(max(truth["linear_1_per_s"], 1e-7)))

@@ -45,6 +45,10 @@ class DiagnoseBudget:
     # (tool v6). On by default from tool v7: PyElastica 42/48 named first against 41/48, gap closed
     # 76 % against 72 %; own simulator 22/27 and controls unchanged (docs/diagnose.md)
     grow_slow_terms: bool = True
+    # terms that live in the material frame (rest curvature) read each recording's roll about the
+    # grippers from its first 0.2 s (Simulator.initial_roll); off: the "up" convention's roll in
+    # every recording (tool v7). On from tool v8 (docs/diagnose.md)
+    read_roll: bool = True
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
@@ -153,7 +157,16 @@ def equivalence_class(
 
 
 def fit_noise(
-    spec, nominal, selected, name, s, context, inputs: Inputs, budget: FitBudget, improvement: float
+    spec,
+    nominal,
+    selected,
+    name,
+    s,
+    context,
+    inputs: Inputs,
+    budget: FitBudget,
+    improvement: float,
+    read_roll: bool = True,
 ) -> dict:
     """The chosen candidate and its reference fitted again on other windows of fit/ (another seed):
     how much of the improvement is the fit's own noise. -> {"improvement_refit", "noise"}
@@ -168,12 +181,13 @@ def fit_noise(
         inputs: fit and check recordings.
         budget: the candidate fit's budget.
         improvement: the improvement measured first.
+        read_roll: see :attr:`DiagnoseBudget.read_roll`.
     """
     other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
     _, c_ref = fit_and_check(
         spec, nominal, [copy.deepcopy(t) for t in selected], inputs, other, "refit: reference"
     )
-    term = make_term(name, spec.n_vertices, s, context)
+    term = make_term(name, spec.n_vertices, s, context, read_roll=read_roll)
     _, c = fit_and_check(
         spec,
         nominal,
@@ -287,7 +301,7 @@ def diagnose(
         references: dict[int | None, CheckErrors] = {}  # per fit-window kind, fitted once per round
         results = []
         for name in remaining:
-            term = make_term(name, spec.n_vertices, s, context)
+            term = make_term(name, spec.n_vertices, s, context, read_roll=budget.read_roll)
             tb = slow_cb if budget.grow_slow_terms and term.slow else cb
             if tb.final_horizon not in references:
                 references[tb.final_horizon] = refit_reference(

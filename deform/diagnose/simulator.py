@@ -19,6 +19,7 @@ from deform.diagnose.spec import RodSpec
 from deform.diagnose.terms import MATERIAL_DAMPING_LEVEL, Term
 from deform.evaluate import batches_by_horizon, paper_l1
 from deform.model import DeformModel, ModelOptions, gripped_indices
+from deform.rod import geometry as G
 
 NEGLIGIBLE_MASS_RAW = -12.0  # softplus(-12) g: no marker mass in the plain model
 NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
@@ -162,6 +163,18 @@ def between_markers(values: np.ndarray, hidden: int) -> np.ndarray:
     return np.stack(out)
 
 
+ROLL_ANGLES = 16  # rolls tried by Simulator.initial_roll (22.5 degrees apart, then refined)
+ROLL_FRAMES = 20  # frames after the first two that a recording's roll is read from (0.2 s at 100 Hz)
+
+
+def roll_directors(d1: Tensor, t: Tensor, roll: Tensor) -> Tensor:
+    """Directors ``d1`` (B, m, 3) turned by ``roll`` (B,) [rad] about their unit tangents ``t``:
+    the whole material frame rolled, twist unchanged (rotation about the tangent commutes with
+    parallel transport)."""
+    c, s = roll.cos()[:, None, None], roll.sin()[:, None, None]
+    return c * d1 + s * torch.linalg.cross(t, d1, dim=-1)
+
+
 class Simulator:
     """A DeformModel driven by a :class:`Nominal` and a list of :class:`Term`.
 
@@ -269,6 +282,7 @@ class Simulator:
         margin: int = 0,
         create_graph: bool = False,
         d1: Tensor | None = None,
+        origin: Tensor | None = None,
     ) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
         frames, grippers from the recorded frames (shifted by a delay term if any; linearly
@@ -276,6 +290,10 @@ class Simulator:
         directors of the marker edges at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`;
         default: a fresh space-parallel frame, right for a rollout from a recording's first frame).
         The gripped markers of the output are the recorded inputs, also under a delay term.
+        ``origin`` (B, k, n, 3): the first frames of each window's recording (default, without
+        ``d1``: the window's own first frames). With a term that needs the material frame's roll
+        (``rolls_material_frame``), each window's directors are rolled by its recording's
+        :meth:`initial_roll`.
         -> (B, steps, n_markers, 3)."""
         idx = gripped_indices(self.n_markers)
         grips = frames[:, :, idx]
@@ -299,9 +317,15 @@ class Simulator:
         state = self.model.initial_state(
             refine_markers(x0, self.hidden), refine_markers(x1, self.hidden), dt=self.model.dt * self.substeps
         )
+        if d1 is None and origin is None:
+            origin = frames[:, margin : margin + 2 + ROLL_FRAMES]
+        rolls = any(getattr(t, "rolls_material_frame", False) for t in self.terms)
+        if origin is not None and origin.shape[1] > 2 and rolls:
+            t_rec = G.normalize(G.edges(frames[:, margin + 1]))
+            if d1 is None:
+                d1 = G.space_parallel_frame(t_rec)
+            d1 = roll_directors(d1.to(t_rec.dtype), t_rec, self.initial_roll(origin))
         if d1 is not None:
-            from deform.rod import geometry as G
-
             emap = self._edge_of_node_edge
             t_rec = G.normalize(G.edges(frames[:, margin + 1]))[:, emap]
             d1 = G.time_transport(
@@ -321,6 +345,50 @@ class Simulator:
                 x[:, idx] = grips[:, margin + 2 + k].to(x.dtype)
             out.append(x)
         return torch.stack(out, 1)
+
+    @torch.no_grad()
+    def initial_roll(self, origin: Tensor, n_angles: int = ROLL_ANGLES) -> Tensor:
+        """Roll of the material frame about the tangents (from the space-parallel "up" frame, about
+        every edge) that best predicts each recording's first frames: the open-loop L1 of the free
+        markers over ``origin``'s frames after the first two, for ``n_angles`` rolls, refined by a
+        parabola through the best three.
+
+        Why: a gripper's roll about the rope is part of its pose, yet not in marker data, so the
+        frame a rest curvature lives in is known only by convention; near a vertical end edge the
+        "up" convention turns with the slightest tilt, and the same curvature points elsewhere in
+        every recording. The recording's first 0.2 s say which roll holds it. From the first two
+        frames alone (the roll that puts the first state closest to rest) the choice was
+        noise-limited: 0.3 mm of marker noise is as large as one step of the roll's effect; over
+        0.1 s it still missed on a light rope (PyElastica, docs/diagnose.md).
+
+        Args:
+            origin: (B, k, n, 3) the first frames of each window's recording (k >= 3).
+            n_angles: rolls tried.
+
+        Returns:
+            (B,) roll [rad].
+        """
+        B, k, n, _ = origin.shape
+        uniq, inverse = torch.unique(origin.reshape(B, -1), dim=0, return_inverse=True)
+        U = uniq.reshape(-1, k, n, 3).to(torch.float64)
+        step = 2 * math.pi / n_angles
+        angles = torch.arange(n_angles, dtype=torch.float64) * step
+        frames = U.repeat_interleave(n_angles, 0)
+        t1 = G.normalize(G.edges(frames[:, 1]))
+        d1 = roll_directors(G.space_parallel_frame(t1), t1, angles.repeat(len(U)))
+        pred = self.rollout(frames, k - 2, 0, d1=d1)  # directors given, no origin: not rolled again
+        free = [j for j in range(n) if j not in set(gripped_indices(n))]
+        err = (pred[:, :, free] - frames[:, 2:, free]).abs().mean((1, 2, 3)).reshape(len(U), n_angles)
+        err = torch.nan_to_num(err, nan=math.inf)
+        best = err.argmin(1)
+        rows = torch.arange(len(U))
+        lo, mid, hi = err[rows, (best - 1) % n_angles], err[rows, best], err[rows, (best + 1) % n_angles]
+        curv = lo - 2 * mid + hi
+        ok = torch.isfinite(curv) & (curv > 0)
+        shift = torch.where(
+            ok, 0.5 * (lo - hi) / torch.where(ok, curv, torch.ones_like(curv)), torch.zeros_like(curv)
+        )
+        return ((best.to(torch.float64) + shift.clamp(-0.5, 0.5)) * step)[inverse]
 
     def predict(self, recordings, steps: int | None = None) -> list[np.ndarray]:
         """Full open-loop predictions (paper's protocol) of recordings, batched by length."""
@@ -390,6 +458,9 @@ def per_recording_window_l1(
             X = torch.tensor(np.stack([r.positions[s : s + length] for s in starts]), dtype=torch.float64)
             frames = r.reference_frames
             d1 = torch.tensor(np.stack([frames[s + margin + 1] for s in starts]), dtype=torch.float64)
-            err = (sim.rollout(X, h, margin, d1=d1) - X[:, margin + 2 : margin + 2 + h]).abs().mean()
+            origin = torch.tensor(r.positions[: 2 + ROLL_FRAMES], dtype=torch.float64)
+            origin = origin.expand(len(starts), -1, -1, -1)
+            pred = sim.rollout(X, h, margin, d1=d1, origin=origin)
+            err = (pred - X[:, margin + 2 : margin + 2 + h]).abs().mean()
             out.append(float(torch.nan_to_num(err, nan=1.0)))
     return np.array(out)

@@ -478,6 +478,9 @@ class ActuationDelay(Term):
 class RestCurvature(Term):
     name = "rest_curvature"
     description = "a natural (rest) curvature of the rod in its material frame"
+    # the material frame's roll about the grippers is not in marker data: each recording's is read
+    # from its first 0.2 s (Simulator.initial_roll), so a curvature means the same in every recording
+    rolls_material_frame = True
 
     def __init__(self, n, arclength):
         super().__init__(n, arclength)
@@ -522,7 +525,9 @@ LIBRARY: dict[str, type[Term]] = {
 }
 
 
-def make_term(name: str, n: int, arclength: np.ndarray, context: dict | None = None) -> Term:
+def make_term(
+    name: str, n: int, arclength: np.ndarray, context: dict | None = None, read_roll: bool = True
+) -> Term:
     """A fresh term of the library, started from the data (``context``).
 
     Args:
@@ -530,11 +535,15 @@ def make_term(name: str, n: int, arclength: np.ndarray, context: dict | None = N
         n: markers (vertices of the simulated rod).
         arclength: (n,) normalised arc length of each.
         context: data-driven starts (``lowest_z``, ``peak_s``, ...).
+        read_roll: a term in the material frame reads each recording's roll from its first frames
+            (False: the "up" convention's roll, tool v7).
 
     Returns:
         The :class:`Term`.
     """
     term = LIBRARY[name](n, arclength)
+    if getattr(term, "rolls_material_frame", False):
+        term.rolls_material_frame = read_roll
     with torch.no_grad():
         term.init_from_data(context or {})
     return term
