@@ -59,8 +59,8 @@ def make_windows(
     """(B, horizon + 2 + 2 margin, n, 3) windows cut at random from the recordings, the reference
     directors (B, m, 3) a full rollout would carry at each window's start frame (``margin + 1``),
     and the first frames (B, 2 + ROLL_FRAMES, n, 3) of each window's recording (where a
-    material-frame roll is read: :meth:`Simulator.initial_roll`); both None when not ``transported`` (fresh frames, the
-    behaviour before they were carried).
+    material-frame roll is read: :meth:`Simulator.initial_roll`); both None when not
+    ``transported`` (fresh frames, the behaviour before they were carried).
 
     Args:
         recordings: each ``positions`` (T, n, 3).
@@ -71,7 +71,7 @@ def make_windows(
         transported: start in the directors a full rollout carries.
 
     Returns:
-        ``(windows, d1)``.
+        ``(windows, d1, origin)``.
     """
     out, frames, origins = [], [], []
     length = horizon + 2 + 2 * margin

@@ -351,7 +351,16 @@ def diagnose(
             [(r.name, r.checked.window) for r in sig if r.name != name],
         )
         cls["fit_noise"] = fit_noise(
-            spec, base_nominal, selected, name, s, context, inputs, best.budget, best.score.improvement
+            spec,
+            base_nominal,
+            selected,
+            name,
+            s,
+            context,
+            inputs,
+            best.budget,
+            best.score.improvement,
+            read_roll=budget.read_roll,
         )
         for c in candidates_out:
             if c["name"] == name and c["round"] == rnd + 1:
