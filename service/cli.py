@@ -131,23 +131,29 @@ def prebuild(cfg) -> int:
     from deform import load_model
     from deform.aot import cache_dir, ensure_package
     from deform.compiled import LOOP_BRANCH_FREE, PREDICT_BRANCH_FREE
+    from service.config import predict_threads
 
     model = load_model(cfg.rod)
-    jobs = []
+    jobs = []  # the thread count is part of a package's key: each is built as its user runs it
     if cfg.compile_step and cfg.step_ahead_of_time:
-        jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64))
+        jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64, cfg.torch_threads))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
-        dtype = getattr(torch, cfg.workers.predict_dtype)
+        dtype, threads = getattr(torch, cfg.workers.predict_dtype), predict_threads(cfg.workers)
         jobs += [
-            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype) for b in cfg.workers.predict_warmup
+            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, threads)
+            for b in cfg.workers.predict_warmup
         ]
-    for label, branch_free, batch, dtype in jobs:
+    before = torch.get_num_threads()
+    for label, branch_free, batch, dtype, threads in jobs:
         t0 = time.perf_counter()
+        torch.set_num_threads(threads)
         try:
             path, _ = ensure_package(model, branch_free, batch, dtype)
         except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
             print(f"{label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
             return 1
+        finally:
+            torch.set_num_threads(before)
         print(f"{label}: {path.name} ({time.perf_counter() - t0:.0f} s)")
     print(f"cache: {cache_dir()}")
     return 0

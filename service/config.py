@@ -7,6 +7,7 @@ equal to the defaults)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -81,6 +82,10 @@ class Workers(_Strict):
     # scores the paper's metric within 0.003 mm of the eager float64 step on DLO1-DLO3
     # (benchmarks/predict_planning.py, benchmarks/float32_accuracy.py); replies are float32 anyway
     predict_dtype: Literal["float32", "float64"] = "float32"
+    # threads of the predict worker's rollouts (null: every core). The loop thread runs at a
+    # real-time priority (realtime_priority) and preempts them; fusion waits for predict anyway
+    # (fusion_yields_to_predict_s)
+    predict_threads: int | None = Field(default=None, ge=1)
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)
     predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile
@@ -91,6 +96,11 @@ class Workers(_Strict):
     # while a predict runs, the next cloud fusion waits up to this long (0: never): on a small
     # machine predict then has the cores; the estimate runs open-loop meanwhile (latest-only clouds)
     fusion_yields_to_predict_s: float = Field(default=0.5, ge=0)
+
+
+def predict_threads(workers: Workers) -> int:
+    """The predict worker's thread count: ``workers.predict_threads``, or every core."""
+    return workers.predict_threads or os.cpu_count() or 1
 
 
 class ZenohSettings(_Strict):

@@ -162,17 +162,26 @@ def job_ping(ctx: JobContext, delay_s: float = 0.0) -> bool:
     return True
 
 
+def job_threads(ctx: JobContext) -> int:
+    """The worker's torch threads (what its compiled packages are built for)."""
+    import torch
+
+    return torch.get_num_threads()
+
+
 JOBS = {
     "fuse": job_fuse,
     "predict": job_predict,
     "warmup": job_warmup,
     "build_step": job_build_step,
     "ping": job_ping,
+    "threads": job_threads,
 }
 
 
-def _serve(conn, cfg, nice: int = 0) -> None:
-    """Child process main: lower its priority by ``nice``, import what the jobs need, then wait
+def _serve(conn, cfg, nice: int = 0, threads: int | None = None) -> None:
+    """Child process main: lower its priority by ``nice``, set its torch threads (``threads``,
+    default ``cfg.torch_threads``), import what the jobs need, then wait
     for the model (a ``("model", path)`` message: the child may be started before the parent has
     loaded it, so that both import at once), load it, say ready and answer jobs in order until the
     pipe closes."""
@@ -180,7 +189,7 @@ def _serve(conn, cfg, nice: int = 0) -> None:
         os.nice(nice)
     import torch
 
-    torch.set_num_threads(cfg.torch_threads)
+    torch.set_num_threads(threads or cfg.torch_threads)
     import deform.compiled  # noqa: F401  (the predict step's code)
     import service.predict  # the predict job's code
     import service.tracking  # noqa: F401  (perception, for fuse: imported once here, not in a timed job)
@@ -219,11 +228,12 @@ def _serve(conn, cfg, nice: int = 0) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m service.workers FD CONFIG_JSON [NICE]``: a worker on an inherited socket."""
+    """``python -m service.workers FD CONFIG_JSON [NICE [THREADS]]``: a worker on an inherited socket."""
     from service.config import ServiceConfig
 
     fd, cfg_json, *rest = argv or sys.argv[1:]
-    _serve(Connection(int(fd)), ServiceConfig.model_validate_json(cfg_json), int(rest[0]) if rest else 0)
+    nice, threads = (int(a) for a in (rest + ["0", "0"])[:2])
+    _serve(Connection(int(fd)), ServiceConfig.model_validate_json(cfg_json), nice, threads or None)
 
 
 class InlineWorker:
@@ -255,8 +265,16 @@ class WorkerProcess:
     ready (importing torch and perception and loading the model take seconds, tens of seconds for
     a niced child on a busy machine, which a 5 s fusion timeout must not be charged with)."""
 
-    def __init__(self, model, cfg, name: str, nice: int = 0, start_timeout_s: float = 300.0):
-        self.cfg, self.name, self.nice = cfg, name, nice
+    def __init__(
+        self,
+        model,
+        cfg,
+        name: str,
+        nice: int = 0,
+        threads: int | None = None,
+        start_timeout_s: float = 300.0,
+    ):
+        self.cfg, self.name, self.nice, self.threads = cfg, name, nice, threads
         self.start_timeout_s = start_timeout_s
         self._dir = tempfile.TemporaryDirectory(prefix="deform-worker-")
         self._model_path: str | None = None
@@ -294,6 +312,7 @@ class WorkerProcess:
                 str(theirs.fileno()),
                 self.cfg.model_dump_json(),
                 str(self.nice),
+                str(self.threads or 0),
             ],
             pass_fds=[theirs.fileno()],
             cwd=_PROJECT_ROOT,
@@ -362,17 +381,22 @@ class WorkerProcess:
         self._dir.cleanup()
 
 
-def fusion_worker_spec(cfg) -> tuple[str, int] | None:
-    """(name, nice) of the service's fusion worker; None on the message clock (it fuses in the loop)."""
-    return None if cfg.clock == "message" else (f"fusion[{cfg.namespace}]", cfg.workers.fusion_nice)
+def fusion_worker_spec(cfg) -> tuple[str, int, int] | None:
+    """(name, nice, threads) of the service's fusion worker; None on the message clock (it fuses
+    in the loop)."""
+    if cfg.clock == "message":
+        return None
+    return f"fusion[{cfg.namespace}]", cfg.workers.fusion_nice, cfg.torch_threads
 
 
-def predict_worker_spec(cfg) -> tuple[str, int]:
-    """(name, nice) of the service's predict worker."""
-    return f"predict[{cfg.namespace}]", 0
+def predict_worker_spec(cfg) -> tuple[str, int, int]:
+    """(name, nice, threads) of the service's predict worker."""
+    from service.config import predict_threads
+
+    return f"predict[{cfg.namespace}]", 0, predict_threads(cfg.workers)
 
 
-_PRESTARTED: dict[tuple[str, int, str], WorkerProcess] = {}
+_PRESTARTED: dict[tuple[str, int, int, str], WorkerProcess] = {}
 
 
 def prestart(cfg) -> None:
@@ -385,10 +409,10 @@ def prestart(cfg) -> None:
     """
     if not cfg.workers.processes:
         return
-    for name, nice in filter(None, (fusion_worker_spec(cfg), predict_worker_spec(cfg))):
-        key = (name, nice, cfg.model_dump_json())
+    for name, nice, threads in filter(None, (fusion_worker_spec(cfg), predict_worker_spec(cfg))):
+        key = (name, nice, threads, cfg.model_dump_json())
         if key not in _PRESTARTED:
-            worker = WorkerProcess(None, cfg, name, nice)
+            worker = WorkerProcess(None, cfg, name, nice, threads)
             _PRESTARTED[key] = worker
             atexit.register(_close_unused, key)
 
@@ -399,15 +423,16 @@ def _close_unused(key) -> None:
         worker.close()
 
 
-def make_worker(model, cfg, name: str, nice: int = 0):
-    """A worker process (``nice``: its CPU priority below the service's), or inline when
-    ``workers.processes`` is off. A worker :func:`prestart` started for the same name, nice and
-    config is used when there is one."""
+def make_worker(model, cfg, name: str, nice: int = 0, threads: int | None = None):
+    """A worker process (``nice``: its CPU priority below the service's; ``threads``: its torch
+    threads, default ``cfg.torch_threads``), or inline when ``workers.processes`` is off (in the
+    caller's thread, with its threads). A worker :func:`prestart` started for the same name, nice,
+    threads and config is used when there is one."""
     if not cfg.workers.processes:
         return InlineWorker(model, cfg)
-    worker = _PRESTARTED.pop((name, nice, cfg.model_dump_json()), None)
+    worker = _PRESTARTED.pop((name, nice, threads, cfg.model_dump_json()), None)
     if worker is None:
-        return WorkerProcess(model, cfg, name, nice)
+        return WorkerProcess(model, cfg, name, nice, threads)
     worker.set_model(model)
     return worker
 

@@ -90,6 +90,20 @@ def test_changed_parameters_are_never_run_with_the_old_package(start, built, mon
     assert loads == [model]
 
 
+def test_the_thread_count_is_part_of_the_package(model):
+    """Inductor writes the thread count into the kernels: a package built on one thread would run
+    on one thread in a process that has two."""
+    before = torch.get_num_threads()
+    try:
+        keys = set()
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            keys.add(aot.package_key(model, BRANCH_FREE, 4, torch.float64))
+    finally:
+        torch.set_num_threads(before)
+    assert len(keys) == 2
+
+
 @pytest.mark.parametrize(
     "broken_part, warning",
     [

@@ -1,5 +1,7 @@
 """`deform-service` options: accepted before and after the command, bad input is one line and exit 2."""
 
+import os
+
 import pytest
 
 from service import cli
@@ -38,15 +40,23 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
     built = []
 
     def recorder(m, branch_free, batch, dtype):
-        built.append((tuple(branch_free), batch, dtype, aot.package_key(m, branch_free, batch, dtype)))
-        return tmp_path / f"step-{built[-1][3]}.pt2", True
+        key = aot.package_key(m, branch_free, batch, dtype)
+        built.append((tuple(branch_free), batch, dtype, key, torch.get_num_threads()))
+        return tmp_path / f"step-{key}.pt2", True
 
     monkeypatch.setattr(aot, "ensure_package", recorder)
     assert cli.main(["prebuild", "--rod", "DLO1"]) == 0
     # the loop's state is float64; predict rolls out in workers.predict_dtype (float32 by default)
     assert [b[:3] for b in built] == [(LOOP_BRANCH_FREE, 1, torch.float64), ((2, 2), 64, torch.float32)]
+    # each built on the threads its user runs it with: the loop's (torch_threads), predict's (every core)
+    assert [b[4] for b in built] == [1, os.cpu_count()]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
     worker_copy = DeformModel.load(tmp_path / "worker.pt")
-    for branch_free, batch, dtype, key in built:
-        assert aot.package_key(worker_copy, branch_free, batch, dtype) == key
+    before = torch.get_num_threads()
+    try:
+        for branch_free, batch, dtype, key, threads in built:
+            torch.set_num_threads(threads)
+            assert aot.package_key(worker_copy, branch_free, batch, dtype) == key
+    finally:
+        torch.set_num_threads(before)
     assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float32) != built[1][3]

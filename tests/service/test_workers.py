@@ -176,8 +176,12 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
         assert not _PRESTARTED  # handed out once
         assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
         assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) > os.getpriority(os.PRIO_PROCESS, 0)
+        # predict rolls out on every core (workers.predict_threads unset), fusion on torch_threads
+        assert svc.predict_worker.call("threads") == os.cpu_count()
+        assert svc.fusion_worker.call("threads") == cfg.torch_threads
         svc.predict_worker.restart()
         assert svc.predict_worker.pid not in early.values() and svc.predict_worker.call("ping")
+        assert svc.predict_worker.call("threads") == os.cpu_count()  # a restart keeps its threads
     finally:
         svc.fusion_worker.close()
         svc.predict_worker.close()
