@@ -17,10 +17,16 @@ Phases, by the function running when the operation is dispatched: ``theta`` (the
 curvatures), ``residual`` (the graph network), ``projection`` (inextensibility), ``other``
 (integration, drag, bookkeeping).
 
-Peaks, measured in the same run: a float64 matrix product of 2048 x 2048 on 2 threads (what BLAS
-reaches: the attainable compute peak) and a large float64 copy (the attainable bandwidth). The
-step's own rate comes from a timed eager step here and from ``benchmarks/results/speed.json`` for
-the compiled step (``throughput_compiled_rod_steps_per_s_2_threads``; run benchmarks/speed.py).
+Peaks, measured in the same run: a float64 and a float32 matrix product of 2048 x 2048 on 2 threads
+(what BLAS reaches: the attainable compute peak) and a large float64 copy (the attainable
+bandwidth). The step's own rate comes from a timed eager step here, from
+``benchmarks/results/speed.json`` for the convergence-checked compiled step
+(``throughput_compiled_rod_steps_per_s_2_threads``; benchmarks/speed.py), and from
+``benchmarks/results/batched_throughput.json`` for predict's float32 step (benchmarks/batched_throughput.py).
+
+Where the time goes: predict's one-graph float32 step under torch.compile with inductor's kernel
+profiling on (the same graph as its ahead-of-time package), ``--profile-steps`` steps of the batch
+profiled, self time per kernel and per library call.
 """
 
 from __future__ import annotations
@@ -159,15 +165,18 @@ def count_step(model, batch: int) -> tuple[dict, dict, dict]:
 def measured_peaks(threads: int) -> dict:
     """What this machine reaches: float64 GEMM (compute) and a large copy (bandwidth), best of 5."""
     torch.set_num_threads(threads)
-    a, b = torch.randn(2048, 2048, dtype=torch.float64), torch.randn(2048, 2048, dtype=torch.float64)
-    a @ b
-    best = min(_timed(lambda: a @ b) for _ in range(5))
+    gemm = {}
+    for dtype in (torch.float64, torch.float32):
+        a, b = torch.randn(2048, 2048, dtype=dtype), torch.randn(2048, 2048, dtype=dtype)
+        a @ b
+        gemm[dtype] = min(_timed(lambda a=a, b=b: a @ b) for _ in range(5))
     src = torch.randn(64 * 2**20 // 8, dtype=torch.float64)
     dst = torch.empty_like(src)
     dst.copy_(src)
     copy = min(_timed(lambda: dst.copy_(src)) for _ in range(5))
     return {
-        "gemm_gflops": round(2 * 2048**3 / best / 1e9, 1),
+        "gemm_gflops": round(2 * 2048**3 / gemm[torch.float64] / 1e9, 1),
+        "gemm_gflops_float32": round(2 * 2048**3 / gemm[torch.float32] / 1e9, 1),
         "copy_gb_per_s": round(2 * src.numel() * 8 / copy / 1e9, 1),  # read + write
     }
 
@@ -176,6 +185,59 @@ def _timed(fn) -> float:
     t = time.perf_counter()
     fn()
     return time.perf_counter() - t
+
+
+def kernel_profile(model, batch: int, steps: int) -> dict:
+    """Milliseconds per step by compiled kernel and library call, predict's one-graph float32 step."""
+    import torch._inductor.config as inductor_config
+
+    from deform.compiled import PREDICT_BRANCH_FREE
+    from deform.step_graph import branch_free_step, rod_at_rest
+
+    inductor_config.cpp.enable_kernel_profile = True  # each generated kernel a profiler record
+    state, grip = rod_at_rest(model, batch, torch.float32)
+    grip = grip.clone()
+    grip[:, 2:, 2] += 0.002  # moving grippers: a real step, not a rod at rest
+    fn = torch.compile(lambda s, g: branch_free_step(model, s, g, PREDICT_BRANCH_FREE), dynamic=False)
+    with torch.no_grad():
+        for _ in range(3):
+            state = fn(state, grip)[0]
+        t = time.perf_counter()
+        for _ in range(steps):
+            state = fn(state, grip)[0]
+        rate = batch * steps / (time.perf_counter() - t)
+        with torch.profiler.profile() as prof:
+            for _ in range(steps):
+                state = fn(state, grip)[0]
+    inductor_config.cpp.enable_kernel_profile = False
+    rows = {}
+    for e in prof.key_averages():
+        name = e.key
+        if "cpp_fused" in name:
+            kind = "compiled kernel"
+        elif name in ("aten::mm", "aten::addmm", "aten::bmm"):
+            kind = "matrix product (library)"
+        else:
+            continue
+        rows[name] = {
+            "kind": kind,
+            "ms_per_step": e.self_cpu_time_total / 1e3 / steps,
+            "calls": e.count // steps,
+        }
+    total = sum(r["ms_per_step"] for r in rows.values())
+    top = sorted(rows.items(), key=lambda kv: -kv[1]["ms_per_step"])
+    by_kind = defaultdict(float)
+    for r in rows.values():
+        by_kind[r["kind"]] += r["ms_per_step"]
+    return {
+        "rod_steps_per_s_torch_compile": round(rate),
+        "ms_per_step_in_kernels_and_products": round(total, 3),
+        "by_kind_ms": {k: round(v, 3) for k, v in by_kind.items()},
+        "top": [
+            {"name": name[:90], **{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}}
+            for name, r in top[:8]
+        ],
+    }
 
 
 def eager_rate(model, batch: int, steps: int = 10) -> float:
@@ -197,6 +259,7 @@ def main() -> int:
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--rod", default="DLO1")
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/roofline.json"))
+    ap.add_argument("--profile-steps", type=int, default=20)
     args = ap.parse_args()
     from deform import load_model
 
@@ -211,6 +274,11 @@ def main() -> int:
     eager = eager_rate(model, B)
     speed = json.loads((ROOT / "benchmarks/results/speed.json").read_text())
     compiled = float(speed["throughput_compiled_rod_steps_per_s_2_threads"].get(str(B), "nan"))
+    batched = json.loads((ROOT / "benchmarks/results/batched_throughput.json").read_text())
+    predict32 = float("nan")
+    if batched.get("batch") == B:
+        predict32 = float(batched["rod_steps_per_s"]["predict_aot_2_2_float32"]["median"])
+    profile = kernel_profile(model, B, args.profile_steps)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     result = {
         "command": "python benchmarks/roofline.py " + " ".join(sys.argv[1:]),
@@ -233,15 +301,21 @@ def main() -> int:
         "rates_rod_steps_per_s": {
             "eager_here": round(eager),
             "compiled_speed_json": None if compiled != compiled else round(compiled),
+            "predict_float32_batched_throughput_json": None if predict32 != predict32 else round(predict32),
         },
+        "profile_predict_float32": profile,
     }
-    for label, rate in (("eager", eager), ("compiled", compiled)):
-        if rate != rate:  # no compiled rate stored for this batch size
+    for label, rate, peak in (
+        ("eager", eager, peaks["gemm_gflops"]),
+        ("compiled", compiled, peaks["gemm_gflops"]),
+        ("predict_float32", predict32, peaks["gemm_gflops_float32"]),
+    ):
+        if rate != rate:  # no rate stored for this batch size
             continue
         gops = total_ops * rate / 1e9
         result[f"achieved_{label}"] = {
             "gops": round(gops, 2),
-            "fraction_of_gemm_peak": round(gops / peaks["gemm_gflops"], 4),
+            "fraction_of_gemm_peak": round(gops / peak, 4),
             "gb_per_s_if_eager_traffic": round(total_bytes * rate / 1e9, 2),
         }
     ridge = peaks["gemm_gflops"] / peaks["copy_gb_per_s"]

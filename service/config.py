@@ -82,10 +82,12 @@ class Workers(_Strict):
     # scores the paper's metric within 0.003 mm of the eager float64 step on DLO1-DLO3
     # (benchmarks/predict_planning.py, benchmarks/float32_accuracy.py); replies are float32 anyway
     predict_dtype: Literal["float32", "float64"] = "float32"
-    # threads of the predict worker's rollouts (null: every core). The loop thread runs at a
-    # real-time priority (realtime_priority) and preempts them; fusion waits for predict anyway
-    # (fusion_yields_to_predict_s)
-    predict_threads: int | None = Field(default=None, ge=1)
+    # threads of the predict worker's rollouts (null: every core). One by default: the compiled
+    # step's parallel loops wait at ~120 barriers per step for their slowest thread, so on 2 cores
+    # shared with the loop, fusion and a camera, two threads were slower (a 1024-rod step with one
+    # busy process beside it: 53-122k rod-steps/s on two threads, 201-209k on one; 384k against
+    # 209k on a quiet machine; benchmarks/predict_planning.py --compare predict_threads=2)
+    predict_threads: int | None = Field(default=1, ge=1)
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)
     predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile

@@ -25,6 +25,15 @@ def quat_to_matrix(q) -> np.ndarray:
     return R
 
 
+def quat_x_axis(q) -> np.ndarray:
+    """(..., 4) unit quaternions x y z w -> (..., 3) the rotated +x axis: the first column of
+    :func:`quat_to_matrix`, without the other six entries (a third of the work for a planner's
+    1024 x 100 x 2 poses)."""
+    q = np.asarray(q, dtype=float)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + z * w), 2 * (x * z - y * w)], axis=-1)
+
+
 def quat_from_x_axis(u) -> np.ndarray:
     """(..., 3) directions -> (..., 4) the shortest rotation taking +x onto each direction."""
     u = np.asarray(u, dtype=float)
@@ -50,7 +59,7 @@ def pose_matrix(pose) -> np.ndarray:
 def grips_from_poses(poses: np.ndarray, offsets: Grippers) -> np.ndarray:
     """(..., 2, 7) gripper poses -> (..., 4, 3) positions of vertices 0, 1, n-2, n-1."""
     poses = np.asarray(poses, dtype=float)
-    ex = quat_to_matrix(poses[..., 3:7])[..., :, 0]  # (..., 2, 3) the +x axes
+    ex = quat_x_axis(poses[..., 3:7])  # (..., 2, 3) the +x axes
     p = poses[..., :3]
     a, b = offsets.first, offsets.last
     return np.stack(

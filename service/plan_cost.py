@@ -75,8 +75,12 @@ def plan_costs(vertices: np.ndarray, rest: np.ndarray, spec: CostSpec) -> dict:
     terms = {k: np.zeros(P) for k in TERMS}
     if spec.goal is not None:
         terms["goal"] = np.linalg.norm(vertices[:, -1] - spec.goal[None], axis=-1).mean(-1)
-    lengths = np.linalg.norm(np.diff(vertices, axis=2), axis=-1)  # (P, S, n-1)
-    terms["stretch"] = np.clip(lengths / np.asarray(rest).reshape(1, 1, -1) - 1.0, 0.0, None).max(axis=(1, 2))
+    # the largest squared stretch ratio over steps and edges, one square root per plan (not per edge)
+    edges = np.diff(vertices, axis=2)  # (P, S, n-1, 3)
+    ratio2 = np.einsum("psei,psei->pse", edges, edges) / np.square(np.asarray(rest, dtype=float)).reshape(
+        1, 1, -1
+    )
+    terms["stretch"] = np.clip(np.sqrt(ratio2.max(axis=(1, 2))) - 1.0, 0.0, None)
     if spec.plane_z is not None:
         terms["plane"] = np.clip(spec.plane_z - vertices[..., 2], 0.0, None).max(-1).mean(-1)
     costs = sum(spec.weights[k] * terms[k] for k in TERMS)

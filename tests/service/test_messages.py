@@ -5,7 +5,14 @@ import pytest
 
 from service import messages as M
 from service.config import Grippers
-from service.geometry import grips_from_poses, matrix_to_pose, pose_matrix, poses_from_vertices
+from service.geometry import (
+    grips_from_poses,
+    matrix_to_pose,
+    pose_matrix,
+    poses_from_vertices,
+    quat_to_matrix,
+    quat_x_axis,
+)
 
 
 def test_pose_array_round_trip():
@@ -87,3 +94,11 @@ def test_gripper_geometry_round_trip():
     np.testing.assert_allclose(grips_from_poses(poses_from_vertices(x, g), g), x[[0, 1, 11, 12]], atol=1e-12)
     pose = np.array([0.1, -1.0, 0.5, -0.5, 0.5, -0.5, 0.5])
     np.testing.assert_allclose(pose_matrix(matrix_to_pose(pose_matrix(pose))), pose_matrix(pose), atol=1e-12)
+
+
+def test_gripper_axis_is_the_rotations_first_column():
+    """grips_from_poses reads only the +x axis of each pose: the same as the full rotation's first
+    column, for any roll about it (poses_from_vertices above only makes zero-roll quaternions)."""
+    q = np.random.default_rng(3).normal(size=(50, 2, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    np.testing.assert_allclose(quat_x_axis(q), quat_to_matrix(q)[..., :, 0], atol=1e-12)

@@ -238,3 +238,17 @@ def test_cost_mode_scores_plans_in_the_worker(est):
     assert np.all(terms["stretch"] >= 0) and np.all(terms["stretch"] < 0.01)
     expected = terms["goal"] + 2.0 * terms["plane"] + 1.0 * terms["stretch"]
     assert np.allclose(out["costs"], expected)
+
+
+def test_plan_cost_stretch_is_the_largest_edge_stretch_over_steps():
+    """One plan stretches one edge by 5 % at one step, the other is compressed: 0.05 and 0."""
+    from service.plan_cost import parse_cost, plan_costs
+
+    rest = np.full(3, 0.1)
+    line = np.stack([np.arange(4) * 0.1, np.zeros(4), np.zeros(4)], axis=-1)  # 4 vertices at rest
+    verts = np.repeat(line[None, None], 2, axis=0).repeat(3, axis=1).astype(np.float32)  # (2, 3, 4, 3)
+    verts[0, 1, 3:, 0] += 0.005  # plan 0, step 1: the last edge 5 % long
+    verts[1, :, 3:, 0] -= 0.02  # plan 1: the last edge 20 % short at every step
+    out = plan_costs(verts, rest, parse_cost({"weights": {"stretch": 1.0}}, 4))
+    np.testing.assert_allclose(out["cost_terms"]["stretch"], [0.05, 0.0], atol=1e-6)
+    np.testing.assert_allclose(out["costs"], [0.05, 0.0], atol=1e-6)

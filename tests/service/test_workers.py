@@ -167,7 +167,7 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
     from service.node import Service
     from service.workers import _PRESTARTED, prestart
 
-    cfg = make_config(workers={"processes": True, "compile_predict": False})
+    cfg = make_config(workers={"processes": True, "compile_predict": False, "predict_threads": 2})
     prestart(cfg)
     early = {w.name: w.pid for w in _PRESTARTED.values()}
     svc = Service(cfg, model=model)
@@ -176,12 +176,12 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
         assert not _PRESTARTED  # handed out once
         assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
         assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) > os.getpriority(os.PRIO_PROCESS, 0)
-        # predict rolls out on every core (workers.predict_threads unset), fusion on torch_threads
-        assert svc.predict_worker.call("threads") == os.cpu_count()
+        # each worker on its own thread count (what its compiled packages are built for)
+        assert svc.predict_worker.call("threads") == cfg.workers.predict_threads
         assert svc.fusion_worker.call("threads") == cfg.torch_threads
         svc.predict_worker.restart()
         assert svc.predict_worker.pid not in early.values() and svc.predict_worker.call("ping")
-        assert svc.predict_worker.call("threads") == os.cpu_count()  # a restart keeps its threads
+        assert svc.predict_worker.call("threads") == cfg.workers.predict_threads  # kept on a restart
     finally:
         svc.fusion_worker.close()
         svc.predict_worker.close()
