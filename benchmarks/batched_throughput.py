@@ -7,8 +7,9 @@ grippers, slightly perturbed), for: the eager step; the convergence-checked step
 torch.compile (``speed.json``'s "compiled"); and predict's step, the one-graph step with 2 twist
 iterations and 2 projection sweeps as an AOTInductor package, unconverged rods redone eagerly
 (``CompiledStep(branch_free=(2, 2), ahead_of_time=True)``), and the same one-graph step under
-torch.compile; and predict's step with a float32 state (``predict_aot_2_2_float32``). Ratios are to
-the checked compiled step.
+torch.compile; and predict's step with a float32 state (``predict_aot_2_2_float32``), also on one
+thread (``..._1_thread``: what the service's predict worker runs, ``workers.predict_threads``).
+Ratios are to the checked compiled step.
 """
 
 from __future__ import annotations
@@ -44,12 +45,14 @@ def main() -> int:
     positions = _trajectory(model)
     predict_step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True)
     f64, f32 = torch.float64, torch.float32
-    variants = {  # name: (step, state dtype)
-        "eager": (model.step, f64),
-        "compiled_checked": (CompiledStep(model), f64),
-        "predict_aot_2_2": (predict_step, f64),
-        "predict_aot_2_2_float32": (predict_step, f32),
-        "one_graph_2_2_torch_compile": (CompiledStep(model, branch_free=PREDICT_BRANCH_FREE), f64),
+    one_thread_step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True)
+    variants = {  # name: (step, state dtype, threads)
+        "eager": (model.step, f64, 2),
+        "compiled_checked": (CompiledStep(model), f64, 2),
+        "predict_aot_2_2": (predict_step, f64, 2),
+        "predict_aot_2_2_float32": (predict_step, f32, 2),
+        "predict_aot_2_2_float32_1_thread": (one_thread_step, f32, 1),
+        "one_graph_2_2_torch_compile": (CompiledStep(model, branch_free=PREDICT_BRANCH_FREE), f64, 2),
     }
     out = {
         "command": "python benchmarks/batched_throughput.py " + " ".join(sys.argv[1:]),
@@ -61,13 +64,15 @@ def main() -> int:
         "steps": args.steps,
         "rod_steps_per_s": {},
     }
-    for name, (fn, dtype) in variants.items():  # compile / build / load first
+    for name, (fn, dtype, threads) in variants.items():  # compile / build / load first
+        torch.set_num_threads(threads)  # a package is built for, and keyed on, its thread count
         t0 = time.perf_counter()
         throughput(model, positions, args.batch, 2, fn, dtype)
         out.setdefault("warmup_s", {})[name] = round(time.perf_counter() - t0, 1)
     rates = {name: [] for name in variants}
     for _ in range(args.repeats):  # interleaved: the VM's speed drifts by tens of percent in minutes
-        for name, (fn, dtype) in variants.items():
+        for name, (fn, dtype, threads) in variants.items():
+            torch.set_num_threads(threads)
             rates[name].append(throughput(model, positions, args.batch, args.steps, fn, dtype))
     for name, r in rates.items():
         out["rod_steps_per_s"][name] = {"median": round(sorted(r)[len(r) // 2]), "all": [round(x) for x in r]}
