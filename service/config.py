@@ -88,6 +88,11 @@ class Workers(_Strict):
     # busy process beside it: 53-122k rod-steps/s on two threads, 201-209k on one; 384k against
     # 209k on a quiet machine; benchmarks/predict_planning.py --compare predict_threads=2)
     predict_threads: int | None = Field(default=1, ge=1)
+    # predict worker processes: a binary request of at least predict_split_min_plans plans is split
+    # across them in consecutive blocks (service.workers.PredictPool: processes do not wait for each
+    # other as threads do)
+    predict_processes: int = Field(default=2, ge=1)
+    predict_split_min_plans: int = Field(default=128, ge=2)
     predict_warmup: list[int] = Field(default=[64])  # plan counts compiled at start-up (others on first use)
     fusion_timeout_s: float = Field(default=5.0, gt=0)
     predict_timeout_s: float = Field(default=120.0, gt=0)  # includes a first-use compile

@@ -26,7 +26,7 @@ from service.estimator import Estimator
 from service.fusion import FusionWorker
 from service.ordering import SequenceBuffer, decode_order
 from service.stats import Stats
-from service.workers import fusion_worker_spec, make_worker, predict_worker_spec
+from service.workers import fusion_worker_spec, make_predict_pool, make_worker
 
 log = logging.getLogger("deform.service")
 INPUT_TYPES = {
@@ -115,7 +115,7 @@ class Service:
                 max_yield_s=cfg.workers.fusion_yields_to_predict_s,
             )
         )
-        self.predict_worker = make_worker(model, cfg, *predict_worker_spec(cfg))
+        self.predict_worker = make_predict_pool(model, cfg)
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
         self.latest_payload: bytes | None = None

@@ -135,39 +135,113 @@ def rollout(step, base: tuple, grips: np.ndarray, dtype: torch.dtype = torch.flo
     return batched_rollout(step, state, torch.from_numpy(grips).to(dtype)).numpy()
 
 
-def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, str | None, str | None]:
-    """Validate, roll out, encode: -> (ok, reply JSON, error reason, detail). Pure of service state,
+@dataclass
+class Part:
+    """One predict process's share of a request: the reply's fields for plans ``[lo, hi)``, or the
+    request's error (every share parses the whole request, so all report the same error).
+
+    ``vertices``: the returned steps of those plans as little-endian float32 bytes (binary replies)
+    or as the JSON text of their list (JSON replies), ready to be joined with the other shares."""
+
+    ok: bool
+    error: bytes = b""
+    reason: str | None = None
+    detail: str | None = None
+    header: dict | None = None  # id, stamp and (when not every step) steps: the same in every share
+    shape: tuple = ()  # (hi - lo, K, n, 3)
+    overstretched: list | None = None
+    costs: dict | None = None  # plan_cost.plan_costs of these plans
+    binary: bool = False
+    vertices: bytes = b""
+
+
+def share(plans: int, shard: int, shards: int) -> tuple[int, int]:
+    """Plans ``[lo, hi)`` of ``shards`` consecutive, near-equal blocks that process ``shard`` rolls out.
+
+    Args:
+        plans: plans in the request.
+        shard: this process, 0-based.
+        shards: processes the request is split across.
+
+    Returns:
+        ``(lo, hi)``.
+    """
+    return shard * plans // shards, (shard + 1) * plans // shards
+
+
+def answer_part(ctx, body: bytes, base: tuple, stamp_ns: int, shard: int = 0, shards: int = 1) -> Part:
+    """Validate, roll out and encode one share of a request (:func:`share`). Pure of service state,
     so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg``, ``step`` and ``dtype``."""
     try:
         req = parse_request(body, ctx.cfg.limits, ctx.model.dt)
         cost = None if req.cost is None else plan_cost.parse_cost(req.cost, ctx.model.n)
     except InputError as exc:
-        return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode(), exc.reason, str(exc)
-    grips = grips_from_poses(req.plans, ctx.cfg.grippers)
-    verts = rollout(ctx.step, base, grips, ctx.dtype)
+        error = json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
+        return Part(False, error, exc.reason, str(exc))
+    lo, hi = share(req.plans.shape[0], shard, shards)
+    grips = grips_from_poses(req.plans[lo:hi], ctx.cfg.grippers)
+    if hi > lo:
+        verts = rollout(ctx.step, base, grips, ctx.dtype)
+    else:
+        verts = np.zeros((0, req.plans.shape[1], ctx.model.n, 3), dtype=np.float32)
     # plans that at some step hold the rod farther apart than it is long: no real rope follows them
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
-    header = {"id": req.id, "stamp": stamp_ns / NS, "overstretched": taut}
-    if cost is not None:
-        header.update(plan_cost.plan_costs(verts, base[4][0], cost))
+    costs = None if cost is None else plan_cost.plan_costs(verts, base[4][0], cost)
+    header = {"id": req.id, "stamp": stamp_ns / NS}
     verts = verts[:, req.steps]
     if len(req.steps) != req.plans.shape[1]:
         header["steps"] = (req.steps + 1).tolist()  # 1-based step numbers returned
     if req.binary:
-        return True, predict_codec.encode(verts, header), None, None
-    # 0.01 mm resolution: the estimate is not better than that, and the reply is a third shorter
-    return (
+        data = np.ascontiguousarray(verts, dtype="<f4").tobytes()
+    else:  # 0.01 mm resolution: the estimate is not better than that, and the reply is a third shorter
+        data = orjson.dumps(np.round(verts, 5), option=orjson.OPT_SERIALIZE_NUMPY)
+    return Part(
         True,
-        orjson.dumps({**header, "vertices": np.round(verts, 5)}, option=orjson.OPT_SERIALIZE_NUMPY),
-        None,
-        None,
+        header=header,
+        shape=verts.shape,
+        overstretched=taut,
+        costs=costs,
+        binary=req.binary,
+        vertices=data,
     )
+
+
+def assemble(parts: list[Part]) -> tuple[bool, bytes, str | None, str | None]:
+    """The reply to a request from its shares, in plan order: -> (ok, reply, error reason, detail).
+    The same bytes as one process answering the whole request."""
+    first = parts[0]
+    if not first.ok:
+        return False, first.error, first.reason, first.detail
+    header = {
+        "id": first.header["id"],
+        "stamp": first.header["stamp"],
+        "overstretched": [t for p in parts for t in p.overstretched],
+    }
+    if first.costs is not None:
+        header["costs"] = [c for p in parts for c in p.costs["costs"]]
+        header["cost_terms"] = {
+            k: [c for p in parts for c in p.costs["cost_terms"][k]] for k in first.costs["cost_terms"]
+        }
+    if "steps" in first.header:
+        header["steps"] = first.header["steps"]
+    shape = [sum(p.shape[0] for p in parts), *first.shape[1:]]
+    if first.binary:
+        return True, predict_codec.encode_parts(shape, header, [p.vertices for p in parts]), None, None
+    plans = b",".join(p.vertices[1:-1] for p in parts if p.shape[0])  # each share's list, brackets off
+    return True, orjson.dumps(header)[:-1] + b',"vertices":[' + plans + b"]}", None, None
+
+
+def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, str | None, str | None]:
+    """Validate, roll out, encode the whole request in this process: -> (ok, reply, error reason,
+    detail). ``ctx`` has ``model``, ``cfg``, ``step`` and ``dtype``."""
+    return assemble([answer_part(ctx, body, base, stamp_ns)])
 
 
 def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
     """-> (ok, JSON reply). Errors are counted under ``predict:<reason>``. The rollout runs in
-    ``worker`` (:mod:`service.workers`: a child process, or ``InlineWorker`` for this thread)."""
+    ``worker`` (:mod:`service.workers`: a :class:`PredictPool` of processes, one child process, or
+    an ``InlineWorker`` for this thread)."""
     try:
         if len(body) > est.cfg.limits.max_request_bytes:  # before copying it anywhere
             raise InputError("too_large", f"{len(body)} bytes > {est.cfg.limits.max_request_bytes}")
@@ -176,8 +250,11 @@ def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
         est.stats.reject("predict", exc.reason, str(exc))
         return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
     t0 = time.perf_counter()
-    ok, reply, reason, detail, compute_s, redone = worker.call(
-        "predict", body, base, stamp, timeout=est.cfg.workers.predict_timeout_s
+    from service.workers import PredictPool
+
+    pool = worker if isinstance(worker, PredictPool) else PredictPool([worker])
+    ok, reply, reason, detail, compute_s, redone = pool.predict(
+        body, base, stamp, timeout=est.cfg.workers.predict_timeout_s
     )
     if ok:
         est.stats.count("predictions")

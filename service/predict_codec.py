@@ -42,8 +42,23 @@ def encode(vertices: np.ndarray, header: dict) -> bytes:
     """Vertices (P, K, n, 3) and the header fields (``id``, ``stamp``, ``steps``,
     ``overstretched``) -> the binary reply."""
     data = np.ascontiguousarray(vertices, dtype="<f4")
-    head = json.dumps({**header, "shape": list(data.shape), "dtype": "<f4"}).encode()
-    return _FIXED.pack(MAGIC, VERSION, 0, len(head)) + head + data.tobytes()
+    return encode_parts(list(data.shape), header, [data.tobytes()])
+
+
+def encode_parts(shape: list[int], header: dict, parts: list[bytes]) -> bytes:
+    """The binary reply from its vertices in consecutive blocks of plans, each already as
+    little-endian float32 bytes (the predict processes' shares of one request, joined in order).
+
+    Args:
+        shape: [P, K, n, 3] of all the parts together.
+        header: the other header fields.
+        parts: the blocks' bytes, in plan order.
+
+    Returns:
+        The reply, the same bytes as :func:`encode` of the whole array.
+    """
+    head = json.dumps({**header, "shape": list(shape), "dtype": "<f4"}).encode()
+    return b"".join([_FIXED.pack(MAGIC, VERSION, 0, len(head)), head, *parts])
 
 
 def is_binary(payload: bytes) -> bool:
@@ -61,6 +76,18 @@ def encode_request(plans: np.ndarray, fields: dict, dtype: str = "<f8") -> bytes
 
 def is_binary_request(payload: bytes) -> bool:
     return payload[:4] == REQUEST_MAGIC
+
+
+def request_plans(payload: bytes) -> int | None:
+    """The plan count a binary request's header states (its data unread), or None (JSON, or a
+    header that does not parse: the full parse then reports the error)."""
+    if not is_binary_request(payload) or len(payload) < _FIXED.size:
+        return None
+    _, _, _, size = _FIXED.unpack_from(payload)
+    try:
+        return int(json.loads(payload[_FIXED.size : _FIXED.size + size])["shape"][0])
+    except (ValueError, KeyError, TypeError, IndexError):
+        return None
 
 
 def decode_request(payload: bytes) -> tuple[dict, np.ndarray]:

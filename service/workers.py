@@ -125,16 +125,16 @@ def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]
     return pack_tracker(tracker, ctx.model), time.perf_counter() - t0
 
 
-def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
-    """-> ``predict.answer``'s (ok, reply, reason, detail), the seconds it took in here, and the
-    rollout steps its one-graph step left unconverged (redone with the checked step; they double a
-    step's cost, so status counts them)."""
+def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int, shard: int = 0, shards: int = 1):
+    """-> this process's share of the answer (``predict.answer_part``), the seconds it took in here,
+    and the rollout steps its one-graph step left unconverged (redone with the checked step; they
+    double a step's cost, so status counts them)."""
     from service import predict
 
     t0 = time.perf_counter()
     redone0 = getattr(ctx.step, "redone", 0)
-    out = predict.answer(ctx, body, base, stamp_ns)
-    return (*out, time.perf_counter() - t0, getattr(ctx.step, "redone", 0) - redone0)
+    part = predict.answer_part(ctx, body, base, stamp_ns, shard, shards)
+    return part, time.perf_counter() - t0, getattr(ctx.step, "redone", 0) - redone0
 
 
 def job_warmup(ctx: JobContext, batch_sizes) -> bool:
@@ -255,6 +255,97 @@ class InlineWorker:
 
     def close(self) -> None:
         pass
+
+
+class PredictPool:
+    """The predict worker processes: a large request is split across them in consecutive blocks of
+    plans, each rolled out on one thread, and the shares are joined in order into one reply.
+
+    Why processes rather than threads: the compiled step's parallel loops meet at about 120
+    barriers per step, so two threads wait for each other whenever the loop, fusion or a camera
+    takes a core (a 1024-rod step beside one busy process: 53-122k rod-steps/s on two threads,
+    201-209k on one); processes do not wait for each other, and Python threads cannot share the
+    work (the ahead-of-time step holds the interpreter lock). Only binary requests of at least
+    ``split_min_plans`` plans are split (their plan count is in the header; a JSON request would
+    have to be parsed here, in the loop's process).
+    """
+
+    def __init__(self, workers: list, split_min_plans: int = 128):
+        self.workers, self.split_min_plans = list(workers), split_min_plans
+
+    @property
+    def pid(self) -> int:
+        return self.workers[0].pid
+
+    def call(self, op: str, *args, timeout: float | None = None):
+        """A job on the first process (``warmup``: on every process, for the share sizes a split
+        request gives it, the first process before the others so that they load its packages)."""
+        if op == "warmup":
+            return self._warmup(args[0], timeout)
+        return self.workers[0].call(op, *args, timeout=timeout)
+
+    def _warmup(self, sizes, timeout) -> bool:
+        k = len(self.workers)
+        per = [
+            sorted({hi - lo for s in sizes for lo, hi in [self._share(s, i, k)] if hi > lo}) for i in range(k)
+        ]
+        active = self.workers[0].call("warmup", per[0], timeout=timeout)
+        rest = self._each([(w, ("warmup", p)) for w, p in zip(self.workers[1:], per[1:])], timeout)
+        return bool(active) and all(rest)
+
+    def _share(self, plans: int, shard: int, shards: int) -> tuple[int, int]:
+        from service.predict import share
+
+        if plans < self.split_min_plans:
+            return (0, plans) if shard == 0 else (0, 0)
+        return share(plans, shard, shards)
+
+    @staticmethod
+    def _each(calls, timeout) -> list:
+        """``worker.call(*args)`` for each ``(worker, args)`` at once (each waits on its own socket)."""
+        out: list = [None] * len(calls)
+        errors: list = []
+
+        def run(i, worker, args):
+            try:
+                out[i] = worker.call(*args, timeout=timeout)
+            except Exception as exc:
+                errors.append(exc)
+
+        threads = [threading.Thread(target=run, args=(i, w, a)) for i, (w, a) in enumerate(calls)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if errors:
+            raise errors[0]
+        return out
+
+    def predict(self, body: bytes, base, stamp_ns: int, timeout: float | None = None):
+        """-> (ok, reply, reason, detail, compute seconds (the slowest share), steps redone)."""
+        from service import predict, predict_codec
+
+        plans = predict_codec.request_plans(body) if len(self.workers) > 1 else None
+        if plans is None or plans < self.split_min_plans:
+            calls = [(self.workers[0], ("predict", body, base, stamp_ns))]
+        else:
+            k = len(self.workers)
+            calls = [(w, ("predict", body, base, stamp_ns, i, k)) for i, w in enumerate(self.workers)]
+        results = (
+            self._each(calls, timeout)
+            if len(calls) > 1
+            else [calls[0][0].call(*calls[0][1], timeout=timeout)]
+        )
+        reply = predict.assemble([part for part, _, _ in results])
+        return (*reply, max(r[1] for r in results), sum(r[2] for r in results))
+
+    def restart(self) -> None:
+        for w in self.workers:
+            w.restart()
+
+    def close(self) -> None:
+        for w in self.workers:
+            w.close()
 
 
 class WorkerProcess:
@@ -389,11 +480,21 @@ def fusion_worker_spec(cfg) -> tuple[str, int, int] | None:
     return f"fusion[{cfg.namespace}]", cfg.workers.fusion_nice, cfg.torch_threads
 
 
-def predict_worker_spec(cfg) -> tuple[str, int, int]:
-    """(name, nice, threads) of the service's predict worker."""
+def predict_worker_specs(cfg) -> list[tuple[str, int, int]]:
+    """(name, nice, threads) of each of the service's predict worker processes."""
     from service.config import predict_threads
 
-    return f"predict[{cfg.namespace}]", 0, predict_threads(cfg.workers)
+    threads = predict_threads(cfg.workers)
+    return [
+        (f"predict[{cfg.namespace}]" + (f"#{i}" if i else ""), 0, threads)
+        for i in range(cfg.workers.predict_processes)
+    ]
+
+
+def make_predict_pool(model, cfg) -> PredictPool:
+    """The service's :class:`PredictPool` (one inline worker when ``workers.processes`` is off)."""
+    specs = predict_worker_specs(cfg) if cfg.workers.processes else predict_worker_specs(cfg)[:1]
+    return PredictPool([make_worker(model, cfg, *s) for s in specs], cfg.workers.predict_split_min_plans)
 
 
 _PRESTARTED: dict[tuple[str, int, int, str], WorkerProcess] = {}
@@ -409,7 +510,7 @@ def prestart(cfg) -> None:
     """
     if not cfg.workers.processes:
         return
-    for name, nice, threads in filter(None, (fusion_worker_spec(cfg), predict_worker_spec(cfg))):
+    for name, nice, threads in filter(None, (fusion_worker_spec(cfg), *predict_worker_specs(cfg))):
         key = (name, nice, threads, cfg.model_dump_json())
         if key not in _PRESTARTED:
             worker = WorkerProcess(None, cfg, name, nice, threads)

@@ -252,3 +252,88 @@ def test_plan_cost_stretch_is_the_largest_edge_stretch_over_steps():
     out = plan_costs(verts, rest, parse_cost({"weights": {"stretch": 1.0}}, 4))
     np.testing.assert_allclose(out["cost_terms"]["stretch"], [0.05, 0.0], atol=1e-6)
     np.testing.assert_allclose(out["costs"], [0.05, 0.0], atol=1e-6)
+
+
+def _five_plans():
+    plans = np.tile(GOOD, (5, 20, 1, 1))
+    plans[:, :, :, 2] -= np.linspace(0, 0.05, 20)[None, :, None] * np.arange(5)[:, None, None]
+    return plans
+
+
+def _same_reply(a: bytes, b: bytes) -> None:
+    """Two replies with the same fields, vertices within the solvers' tolerances and the same costs.
+    Why not equal: a block of plans rolls out in another batch, and a step the one-graph step leaves
+    unconverged for one rod is redone with the checked step for its whole batch (pbd_tol 1e-3 of a
+    9 cm edge is 0.09 mm); the plans differ by centimetres, so a wrong order still fails."""
+    from service import predict_codec
+
+    if predict_codec.is_binary(a):
+        (ha, va), (hb, vb) = predict_codec.decode(a), predict_codec.decode(b)
+    else:
+        ha, hb = json.loads(a), json.loads(b)
+        va, vb = np.array(ha.pop("vertices")), np.array(hb.pop("vertices"))
+    assert va.shape == vb.shape and list(ha) == list(hb)
+    np.testing.assert_allclose(va, vb, atol=2e-4)
+    np.testing.assert_allclose(ha.get("costs", []), hb.get("costs", []), atol=2e-4)
+    assert {k: v for k, v in ha.items() if k not in ("costs", "cost_terms")} == {
+        k: v for k, v in hb.items() if k not in ("costs", "cost_terms")
+    }
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("ret", ["all", "every:6", "none"])
+def test_a_request_answered_in_shares_is_the_whole_answer(est, binary, ret):
+    """Shares of 3 (1 + 2 + 2 plans) and of 8 (some empty), joined, give the one-process reply."""
+    from service import predict_codec
+    from service.workers import InlineWorker
+
+    ctx = InlineWorker(est.model, est.cfg).ctx
+    plans = _five_plans()
+    fields = {"id": "x", "return": ret, "cost": {"goal": np.zeros((est.model.n, 3)).tolist()}}
+    raw = (
+        predict_codec.encode_request(plans, {**fields, "encoding": "binary"})
+        if binary
+        else body(plans, **fields)
+    )
+    base, stamp = predict.snapshot(est)
+    whole = predict.answer(ctx, raw, base, stamp)
+    assert whole[0]
+    for shards in (3, 8):
+        parts = [predict.answer_part(ctx, raw, base, stamp, i, shards) for i in range(shards)]
+        assert sum(p.shape[0] for p in parts) == 5
+        joined = predict.assemble(parts)
+        assert joined[0]
+        _same_reply(joined[1], whole[1])
+
+
+def test_the_pool_splits_large_binary_requests_only(est):
+    """Binary requests of at least ``split_min_plans`` plans go to every process, a share each; a
+    smaller one or a JSON one goes to the first process alone."""
+    from service import predict_codec
+    from service.workers import InlineWorker, PredictPool
+
+    class Counting(InlineWorker):
+        def __init__(self, *a):
+            super().__init__(*a)
+            self.jobs = []
+
+        def call(self, op, *args, timeout=None):
+            self.jobs.append((op, args[3:]))
+            return super().call(op, *args, timeout=timeout)
+
+    workers = [Counting(est.model, est.cfg) for _ in range(2)]
+    pool = PredictPool(workers, split_min_plans=4)
+    base, stamp = predict.snapshot(est)
+    plans = _five_plans()
+    large = predict_codec.encode_request(plans, {"id": 1})
+    ok, reply, *_ = pool.predict(large, base, stamp)
+    assert ok and [w.jobs for w in workers] == [[("predict", (0, 2))], [("predict", (1, 2))]]
+    _same_reply(reply, predict.answer(InlineWorker(est.model, est.cfg).ctx, large, base, stamp)[1])
+    for w in workers:
+        w.jobs.clear()
+    for raw in (predict_codec.encode_request(plans[:3], {}), body(plans)):
+        pool.predict(raw, base, stamp)
+    assert [len(w.jobs) for w in workers] == [2, 0]
+    # a bad request of many plans: every share finds the same error, the reply states it once
+    ok, reply, reason, *_ = pool.predict(predict_codec.encode_request(plans[..., :5], {}), base, stamp)
+    assert not ok and reason == "bad_shape"

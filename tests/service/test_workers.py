@@ -151,7 +151,9 @@ def test_the_service_lowers_its_fusion_worker_not_predict(model):
             == base + svc.cfg.workers.fusion_nice
             > base
         )
-        assert os.getpriority(os.PRIO_PROCESS, svc.predict_worker.pid) == base
+        for w in svc.predict_worker.workers:  # every predict process (workers.predict_processes)
+            assert os.getpriority(os.PRIO_PROCESS, w.pid) == base
+        assert len(svc.predict_worker.workers) == svc.cfg.workers.predict_processes == 2
     finally:
         svc.fusion_worker.close()
         svc.predict_worker.close()
@@ -172,7 +174,8 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
     early = {w.name: w.pid for w in _PRESTARTED.values()}
     svc = Service(cfg, model=model)
     try:
-        assert {svc.fusion_worker.pid, svc.predict_worker.pid} == set(early.values())
+        pids = {svc.fusion_worker.pid, *(w.pid for w in svc.predict_worker.workers)}
+        assert pids == set(early.values()) and len(pids) == 1 + cfg.workers.predict_processes
         assert not _PRESTARTED  # handed out once
         assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
         assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) > os.getpriority(os.PRIO_PROCESS, 0)
@@ -180,7 +183,8 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
         assert svc.predict_worker.call("threads") == cfg.workers.predict_threads
         assert svc.fusion_worker.call("threads") == cfg.torch_threads
         svc.predict_worker.restart()
-        assert svc.predict_worker.pid not in early.values() and svc.predict_worker.call("ping")
+        assert not {w.pid for w in svc.predict_worker.workers} & set(early.values())
+        assert svc.predict_worker.call("ping")
         assert svc.predict_worker.call("threads") == cfg.workers.predict_threads  # kept on a restart
     finally:
         svc.fusion_worker.close()
