@@ -57,6 +57,14 @@ KNOWN = {
     "service_startup.json": ("Service start-up, cold and warm", "python benchmarks/service_startup.py"),
     "roofline.json": ("Roofline of the batched model step", "python benchmarks/roofline.py"),
     "float32_accuracy.json": ("float32 rollout against float64", "python benchmarks/float32_accuracy.py"),
+    "batched_throughput.json": (
+        "Batched step throughput at 1024 rods",
+        "python benchmarks/batched_throughput.py",
+    ),
+    "predict_planning.json": (
+        "Planning-scale predict in the service",
+        "python benchmarks/predict_planning.py --n 20 --rounds 2 --compare predict_processes=1",
+    ),
 }
 
 
@@ -564,14 +572,66 @@ def render_roofline(d: dict) -> list[str]:
         [[p, v, f"{100 * v / total:.1f} %"] for p, v in phases.items()],
     )
     rows = []
-    for label in ("eager", "compiled"):
+    rates = {
+        "eager": ("eager_here", "float64"),
+        "compiled": ("compiled_speed_json", "float64"),
+        "predict_float32": ("predict_float32_batched_throughput_json", "float32"),
+    }
+    for label, (key, dtype) in rates.items():
         a = d.get(f"achieved_{label}")
         if a:
-            rate = get(
-                d, "rates_rod_steps_per_s", "eager_here" if label == "eager" else "compiled_speed_json"
-            )
-            rows.append([label, rate, a.get("gops"), f"{100 * a.get('fraction_of_gemm_peak', 0):.1f} %"])
-    return out + [""] + table(["step", "rod-steps/s", "achieved Gop/s", "of the GEMM peak"], rows)
+            rate = get(d, "rates_rod_steps_per_s", key)
+            frac = f"{100 * a.get('fraction_of_gemm_peak', 0):.1f} %"
+            rows.append([label, rate, a.get("gops"), f"{frac} ({dtype})"])
+    out += [""] + table(["step", "rod-steps/s", "achieved Gop/s", "of the GEMM peak"], rows)
+    prof = d.get("profile_predict_float32")
+    if prof:
+        out += [
+            "",
+            f"Where predict's float32 step spends its time (torch.compile, inductor kernel profiling;"
+            f" {prof.get('rod_steps_per_s_torch_compile')} rod-steps/s while profiled,"
+            f" {prof.get('ms_per_step_in_kernels_and_products')} ms per step in kernels and library calls):",
+            "",
+        ]
+        out += table(
+            ["kernel or call", "kind", "ms per step", "calls per step"],
+            [[f"`{t['name']}`", t["kind"], t["ms_per_step"], t["calls"]] for t in prof.get("top", [])],
+        )
+    return out
+
+
+def render_batched_throughput(d: dict) -> list[str]:
+    rates, ratios = d.get("rod_steps_per_s", {}), d.get("ratio_to_compiled_checked", {})
+    rows = [
+        [name, r.get("median"), ratios.get(name), min(r.get("all", [0])), max(r.get("all", [0]))]
+        for name, r in rates.items()
+    ]
+    return [
+        f"B = {d.get('batch')} rods, {d.get('steps')} steps per timing, repeats interleaved; medians.",
+        "",
+    ] + table(["step", "rod-steps/s", "ratio to compiled_checked", "min", "max"], rows)
+
+
+def render_predict_planning(d: dict) -> list[str]:
+    targets = d.get("targets_p50_ms", {})
+    compared = d.get("compared", {})
+    header = ["request", "p50 [ms]", "p90 [ms]", "max [ms]", "target p50 [ms]"]
+    header += [f"p50 with {name} [ms] (ratio)" for name in compared]
+    rows = []
+    for label, r in d.get("requests", {}).items():
+        row = [label, r.get("p50_ms"), r.get("p90_ms"), r.get("max_ms"), targets.get(label)]
+        for c in compared.values():
+            other = c.get("requests", {}).get(label, {})
+            row.append(f"{other.get('p50_ms')} ({c.get('p50_ratio_to_headline', {}).get(label)})")
+        rows.append(row)
+    loop = d.get("loop", {})
+    out = [
+        f"Default configuration ({d.get('rounds')} services, interleaved with each variant);"
+        f" loop meanwhile: {loop.get('miss_pct')} % of {loop.get('ticks')} ticks missed,"
+        f" tick-to-publish p99 {get(d, 'loop', 'tick_to_publish_ms', 'p99')} ms.",
+        "",
+    ]
+    return out + table(header, rows)
 
 
 def render_float32(d: dict) -> list[str]:
@@ -601,6 +661,8 @@ RENDER = {
     "service_startup.json": render_startup,
     "roofline.json": render_roofline,
     "float32_accuracy.json": render_float32,
+    "batched_throughput.json": render_batched_throughput,
+    "predict_planning.json": render_predict_planning,
     "accuracy.json": render_accuracy,
     "speed.json": render_speed,
     "perception.json": render_perception,
