@@ -57,8 +57,9 @@ def make_config(endpoint=None, connect=None, **over):
         "listen": [endpoint] if endpoint else [],
         "connect": [connect] if connect else [],
     }
-    # compiling the predict rollout costs ~30 s per batch size: tests/deform/test_compiled.py covers it
-    over.setdefault("workers", {"compile_predict": False})
+    # compiling the predict rollout costs ~30 s per batch size: tests/deform/test_compiled.py covers it;
+    # one predict process (the split across two: test_predict.py inline, test_workers.py processes)
+    over.setdefault("workers", {"compile_predict": False, "predict_processes": 1})
     over.setdefault("compile_step", False)
     return load_config(zenoh=z, **over)
 
