@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import orjson
 from rosbags.typesys import get_types_from_msg
 
 from service import messages as M
@@ -92,22 +91,20 @@ def register_service(typename: str, request: str, response: str, typestore=None)
 
 
 def request_body(cdr: bytes) -> bytes:
-    """A ``PredictShapes`` request -> the JSON predict request (binary reply) that
-    :func:`service.predict.handle` takes. Raises :class:`service.messages.InputError`."""
+    """A ``PredictShapes`` request -> the binary predict request (binary reply) that
+    :func:`service.predict.handle` takes: no text to write or parse, and a large request is split
+    across the predict processes (their pool reads the plan count from the header). Raises
+    :class:`service.messages.InputError`."""
     msg = M.decode(cdr, f"{PREDICT_SRV}_Request")
     poses = np.asarray(msg.poses, dtype=float)
     if msg.plans == 0 or msg.steps == 0 or poses.size != msg.plans * msg.steps * 14:
         raise M.InputError(
             "bad_shape", f"{poses.size} pose values for {msg.plans} plans x {msg.steps} steps x 2 x 7"
         )
-    request = {
-        "plans": poses.reshape(msg.plans, msg.steps, 2, 7),
-        "return": msg.return_steps or "all",
-        "encoding": "binary",
-    }
+    fields = {"return": msg.return_steps or "all", "encoding": "binary"}
     if msg.dt > 0:
-        request["dt"] = float(msg.dt)
-    return orjson.dumps(request, option=orjson.OPT_SERIALIZE_NUMPY)
+        fields["dt"] = float(msg.dt)
+    return predict_codec.encode_request(poses.reshape(msg.plans, msg.steps, 2, 7), fields)
 
 
 def response(ok: bool, reply: bytes) -> bytes:

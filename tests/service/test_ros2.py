@@ -294,3 +294,22 @@ def test_a_ros2_node_drives_the_service_and_receives_vertices(model, endpoint, r
     pts = np.array([[p.x, p.y, p.z] for p in line.points])
     assert line.type == 4 and line.header.frame_id == "world" and pts.shape == (13, 3)
     assert np.allclose(pts[0], GOOD[0, :3], atol=1e-3)
+
+
+def test_a_ros2_predict_request_becomes_a_binary_request_the_pool_can_split():
+    """The typed predict's request reaches predict as the binary format (plans as float64 behind a
+    header), so its plan count is readable without parsing and a large one is split."""
+    from service import messages as M
+    from service import predict_codec
+    from service.ros2_predict import PREDICT_SRV, request_body
+
+    plans = np.random.default_rng(4).normal(size=(200, 3, 2, 7))
+    Req = M.T[f"{PREDICT_SRV}_Request"]
+    cdr = M.encode(
+        Req(plans=200, steps=3, poses=plans.ravel(), dt=0.01, return_steps="final"), f"{PREDICT_SRV}_Request"
+    )
+    raw = request_body(cdr)
+    assert predict_codec.is_binary_request(raw) and predict_codec.request_plans(raw) == 200
+    fields, decoded = predict_codec.decode_request(raw)
+    assert fields == {"return": "final", "encoding": "binary", "dt": 0.01}
+    np.testing.assert_array_equal(decoded, plans)
