@@ -18,7 +18,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -54,11 +53,11 @@ def main() -> int:
         "predict_aot_2_2_float32_1_thread": (one_thread_step, f32, 1),
         "one_graph_2_2_torch_compile": (CompiledStep(model, branch_free=PREDICT_BRANCH_FREE), f64, 2),
     }
+    from deform.bench import source_commit
+
     out = {
         "command": "python benchmarks/batched_throughput.py " + " ".join(sys.argv[1:]),
-        "commit": subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip(),
+        "commit": source_commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
         "batch": args.batch,
         "steps": args.steps,

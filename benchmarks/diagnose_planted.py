@@ -296,11 +296,10 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
 def provenance() -> dict:
     """The commit and machine a result comes from (stored with it)."""
     import platform
-    import subprocess
 
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT
-    ).stdout.strip()
+    from deform.bench import source_commit
+
+    commit = source_commit()
     return {
         "commit": commit,
         "machine": f"{platform.node()}: {os.cpu_count()} CPU cores (shared with other jobs), torch 1 thread",

@@ -15,7 +15,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -39,10 +38,11 @@ def main() -> int:
     from deform.io.recordings import find_data_root, load_recordings
 
     torch.set_num_threads(1)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    from deform.bench import source_commit
+
     out = {
         "command": "python benchmarks/float32_accuracy.py " + " ".join(sys.argv[1:]),
-        "commit": commit.stdout.strip(),
+        "commit": source_commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
         "rods": {},
     }

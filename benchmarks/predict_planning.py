@@ -159,11 +159,11 @@ def main() -> int:
         }
 
     head = summary(runs["default"])
+    from deform.bench import source_commit
+
     out = {
         "command": "python benchmarks/predict_planning.py " + " ".join(sys.argv[1:]),
-        "commit": subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip(),
+        "commit": source_commit(),
         "machine": {
             "cpus": os.cpu_count(),
             "platform": platform.platform(),

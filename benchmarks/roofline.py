@@ -35,7 +35,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from collections import defaultdict
@@ -279,10 +278,11 @@ def main() -> int:
     if batched.get("batch") == B:
         predict32 = float(batched["rod_steps_per_s"]["predict_aot_2_2_float32"]["median"])
     profile = kernel_profile(model, B, args.profile_steps)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    from deform.bench import source_commit
+
     result = {
         "command": "python benchmarks/roofline.py " + " ".join(sys.argv[1:]),
-        "commit": commit.stdout.strip(),
+        "commit": source_commit(),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
         "rod": args.rod,
         "n_vertices": model.n,

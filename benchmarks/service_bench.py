@@ -232,11 +232,11 @@ def main() -> int:
     cfg = load_config(args.config, zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
     svc = Service(cfg).start()
     client = ShapeClient(connect=[ep], timeout_s=5.0)
+    from deform.bench import source_commit
+
     out: dict = {
         "command": "python benchmarks/service_bench.py " + " ".join(sys.argv[1:]),
-        "commit": subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-        ).stdout.strip(),
+        "commit": source_commit(),
         "machine": {
             "cpus": os.cpu_count(),
             "platform": platform.platform(),

@@ -144,10 +144,11 @@ def main() -> int:
     ap.add_argument("--timeout-s", type=float, default=400.0)
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/service_startup.json"))
     args = ap.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    from deform.bench import source_commit
+
     result = {
         "command": "python benchmarks/service_startup.py " + " ".join(sys.argv[1:]),
-        "commit": commit.stdout.strip(),
+        "commit": source_commit(),
         "machine": {
             "cpus": os.cpu_count(),
             "platform": platform.platform(),

@@ -2,7 +2,6 @@
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -13,10 +12,11 @@ if __name__ == "__main__":
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     root = Path(__file__).resolve().parent.parent
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
+    from deform.bench import source_commit
+
     result = {
         "command": "python benchmarks/speed.py " + " ".join(sys.argv[1:]),
-        "commit": commit.stdout.strip(),
+        "commit": source_commit(),
         **run_benchmarks(quick=args.quick),
     }
     out = Path(__file__).parent / "results" / "speed.json"

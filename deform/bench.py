@@ -9,7 +9,9 @@ from __future__ import annotations
 import os
 import platform
 import random
+import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -18,6 +20,25 @@ from deform.config import load_rod_config
 from deform.io.recordings import find_data_root, load_recordings
 from deform.model import DeformModel, ThetaSolver, gripped_indices, load_model
 from deform.synthetic import generate_recording
+
+
+def source_commit() -> str:
+    """Short hash of the checkout's HEAD, which a stored result names ("" outside a git checkout).
+
+    Returns:
+        The hash, or "".
+    """
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=Path(__file__).resolve().parent.parent,
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return out.stdout.strip()
 
 
 def _trajectory(model: DeformModel, frames: int = 500) -> np.ndarray:
