@@ -138,11 +138,15 @@ def prebuild(cfg) -> int:
     if cfg.compile_step and cfg.step_ahead_of_time:
         jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64, cfg.torch_threads))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
+        from deform.compiled import bucket_size
+        from service.workers import share_sizes
+
         dtype, threads = getattr(torch, cfg.workers.predict_dtype), predict_threads(cfg.workers)
-        jobs += [
-            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, threads)
-            for b in cfg.workers.predict_warmup
-        ]
+        # the sizes each predict process rolls out for those plan counts (a large request is split)
+        w = cfg.workers
+        sizes = share_sizes(w.predict_warmup, w.predict_processes, w.predict_split_min_plans)
+        buckets = sorted({bucket_size(b) for per in sizes for b in per})
+        jobs += [(f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, threads) for b in buckets]
     before = torch.get_num_threads()
     for label, branch_free, batch, dtype, threads in jobs:
         t0 = time.perf_counter()

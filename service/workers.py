@@ -257,6 +257,32 @@ class InlineWorker:
         pass
 
 
+def share_sizes(plan_counts, processes: int, split_min_plans: int) -> list[list[int]]:
+    """The batch sizes each predict process rolls out for requests of these plan counts: what it
+    compiles at warm-up, and what ``deform-service prebuild`` builds.
+
+    Args:
+        plan_counts: plans per request (``workers.predict_warmup``).
+        processes: predict processes.
+        split_min_plans: smaller requests go to the first process whole.
+
+    Returns:
+        Per process, the sorted distinct sizes (empty for a process no such request reaches).
+    """
+    from service.predict import share
+
+    out: list[set] = [set() for _ in range(processes)]
+    for plans in plan_counts:
+        if plans < split_min_plans or processes == 1:
+            out[0].add(plans)
+            continue
+        for i in range(processes):
+            lo, hi = share(plans, i, processes)
+            if hi > lo:
+                out[i].add(hi - lo)
+    return [sorted(s) for s in out]
+
+
 class PredictPool:
     """The predict worker processes: a large request is split across them in consecutive blocks of
     plans, each rolled out on one thread, and the shares are joined in order into one reply.
@@ -285,20 +311,10 @@ class PredictPool:
         return self.workers[0].call(op, *args, timeout=timeout)
 
     def _warmup(self, sizes, timeout) -> bool:
-        k = len(self.workers)
-        per = [
-            sorted({hi - lo for s in sizes for lo, hi in [self._share(s, i, k)] if hi > lo}) for i in range(k)
-        ]
+        per = share_sizes(sizes, len(self.workers), self.split_min_plans)
         active = self.workers[0].call("warmup", per[0], timeout=timeout)
         rest = self._each([(w, ("warmup", p)) for w, p in zip(self.workers[1:], per[1:])], timeout)
         return bool(active) and all(rest)
-
-    def _share(self, plans: int, shard: int, shards: int) -> tuple[int, int]:
-        from service.predict import share
-
-        if plans < self.split_min_plans:
-            return (0, plans) if shard == 0 else (0, 0)
-        return share(plans, shard, shards)
 
     @staticmethod
     def _each(calls, timeout) -> list:

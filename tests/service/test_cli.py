@@ -44,14 +44,19 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
 
     monkeypatch.setattr(aot, "ensure_package", recorder)
     config = tmp_path / "service.yaml"
-    config.write_text("workers:\n  predict_threads: 2\n")
+    config.write_text("workers:\n  predict_threads: 2\n  predict_warmup: [64, 1000]\n")
     threads_before = torch.get_num_threads()
     assert cli.main(["prebuild", "--rod", "DLO1", "--config", str(config)]) == 0
     assert torch.get_num_threads() == threads_before  # prebuild leaves the process as it found it
     # the loop's state is float64; predict rolls out in workers.predict_dtype (float32 by default)
-    assert [b[:3] for b in built] == [(LOOP_BRANCH_FREE, 1, torch.float64), ((2, 2), 64, torch.float32)]
+    # 1000 plans are split across the two predict processes: 500 each, padded to the 512 bucket
+    assert [b[:3] for b in built] == [
+        (LOOP_BRANCH_FREE, 1, torch.float64),
+        ((2, 2), 64, torch.float32),
+        ((2, 2), 512, torch.float32),
+    ]
     # each built on the threads its user runs it with: the loop's (torch_threads), predict's
-    assert [b[4] for b in built] == [1, 2]
+    assert [b[4] for b in built] == [1, 2, 2]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
     worker_copy = DeformModel.load(tmp_path / "worker.pt")
     before = torch.get_num_threads()

@@ -189,3 +189,12 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
     finally:
         svc.fusion_worker.close()
         svc.predict_worker.close()
+
+
+def test_share_sizes_are_what_each_predict_process_rolls_out():
+    """Small requests go whole to the first process; a split one gives each its block."""
+    from service.workers import share_sizes
+
+    assert share_sizes([64, 256, 1001], 2, 128) == [[64, 128, 500], [128, 501]]
+    assert share_sizes([64, 256], 1, 128) == [[64, 256]]
+    assert share_sizes([], 2, 128) == [[], []]
