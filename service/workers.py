@@ -294,10 +294,16 @@ class PredictPool:
     work (the ahead-of-time step holds the interpreter lock). Only binary requests of at least
     ``split_min_plans`` plans are split (their plan count is in the header; a JSON request would
     have to be parsed here, in the loop's process).
+
+    ``more``: makers of the other processes, started by the first ``warmup`` once the first process
+    is warm, so that their imports do not slow the service's start-up (a third process importing
+    torch beside the service and two workers delayed its first vertices by seconds), and they load
+    the packages the first one built. Until then, every request goes to the first process.
     """
 
-    def __init__(self, workers: list, split_min_plans: int = 128):
+    def __init__(self, workers: list, split_min_plans: int = 128, more=()):
         self.workers, self.split_min_plans = list(workers), split_min_plans
+        self._more = list(more)
 
     @property
     def pid(self) -> int:
@@ -311,9 +317,12 @@ class PredictPool:
         return self.workers[0].call(op, *args, timeout=timeout)
 
     def _warmup(self, sizes, timeout) -> bool:
-        per = share_sizes(sizes, len(self.workers), self.split_min_plans)
+        per = share_sizes(sizes, len(self.workers) + len(self._more), self.split_min_plans)
         active = self.workers[0].call("warmup", per[0], timeout=timeout)
-        rest = self._each([(w, ("warmup", p)) for w, p in zip(self.workers[1:], per[1:])], timeout)
+        new, self._more = [make() for make in self._more], []
+        others = [*self.workers[1:], *new]
+        rest = self._each([(w, ("warmup", p)) for w, p in zip(others, per[1:])], timeout)
+        self.workers = [self.workers[0], *others]  # split requests from here on
         return bool(active) and all(rest)
 
     @staticmethod
@@ -508,9 +517,11 @@ def predict_worker_specs(cfg) -> list[tuple[str, int, int]]:
 
 
 def make_predict_pool(model, cfg) -> PredictPool:
-    """The service's :class:`PredictPool` (one inline worker when ``workers.processes`` is off)."""
+    """The service's :class:`PredictPool`: its first process now, the others at its warm-up (one
+    inline worker when ``workers.processes`` is off)."""
     specs = predict_worker_specs(cfg) if cfg.workers.processes else predict_worker_specs(cfg)[:1]
-    return PredictPool([make_worker(model, cfg, *s) for s in specs], cfg.workers.predict_split_min_plans)
+    more = [lambda s=s: make_worker(model, cfg, *s) for s in specs[1:]]
+    return PredictPool([make_worker(model, cfg, *specs[0])], cfg.workers.predict_split_min_plans, more)
 
 
 _PRESTARTED: dict[tuple[str, int, int, str], WorkerProcess] = {}
@@ -526,7 +537,8 @@ def prestart(cfg) -> None:
     """
     if not cfg.workers.processes:
         return
-    for name, nice, threads in filter(None, (fusion_worker_spec(cfg), *predict_worker_specs(cfg))):
+    # the first predict process only: the others start at predict's warm-up (see PredictPool)
+    for name, nice, threads in filter(None, (fusion_worker_spec(cfg), predict_worker_specs(cfg)[0])):
         key = (name, nice, threads, cfg.model_dump_json())
         if key not in _PRESTARTED:
             worker = WorkerProcess(None, cfg, name, nice, threads)

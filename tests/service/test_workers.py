@@ -151,9 +151,12 @@ def test_the_service_lowers_its_fusion_worker_not_predict(model):
             == base + svc.cfg.workers.fusion_nice
             > base
         )
-        for w in svc.predict_worker.workers:  # every predict process (workers.predict_processes)
-            assert os.getpriority(os.PRIO_PROCESS, w.pid) == base
+        # the other predict processes start at predict's warm-up (after the service's start-up)
+        assert len(svc.predict_worker.workers) == 1
+        svc.predict_worker.call("warmup", [])  # not compiled here: says False
         assert len(svc.predict_worker.workers) == svc.cfg.workers.predict_processes == 2
+        for w in svc.predict_worker.workers:
+            assert os.getpriority(os.PRIO_PROCESS, w.pid) == base
     finally:
         svc.fusion_worker.close()
         svc.predict_worker.close()
@@ -174,13 +177,16 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
     early = {w.name: w.pid for w in _PRESTARTED.values()}
     svc = Service(cfg, model=model)
     try:
+        # fusion and the first predict process were started early; the second starts at warm-up
         pids = {svc.fusion_worker.pid, *(w.pid for w in svc.predict_worker.workers)}
-        assert pids == set(early.values()) and len(pids) == 1 + cfg.workers.predict_processes
+        assert pids == set(early.values()) and len(pids) == 2
+        svc.predict_worker.call("warmup", [])
+        assert len(svc.predict_worker.workers) == 2
         assert not _PRESTARTED  # handed out once
         assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
         assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) > os.getpriority(os.PRIO_PROCESS, 0)
         # each worker on its own thread count (what its compiled packages are built for)
-        assert svc.predict_worker.call("threads") == cfg.workers.predict_threads
+        assert [w.call("threads") for w in svc.predict_worker.workers] == [cfg.workers.predict_threads] * 2
         assert svc.fusion_worker.call("threads") == cfg.torch_threads
         svc.predict_worker.restart()
         assert not {w.pid for w in svc.predict_worker.workers} & set(early.values())
