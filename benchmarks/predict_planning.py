@@ -94,7 +94,13 @@ def main() -> int:
         svc = Service(cfg).start()
         rope = ShapeClient(connect=[ep], timeout_s=5.0)
         t0 = time.perf_counter()
-        while not all((status(rope) or {}).get(k) for k in ("predict_ready", "step_ready")):
+
+        def ready() -> bool:  # every predict process too (the others start after the first is ready)
+            s = status(rope) or {}
+            up = s.get("predict_processes", 1) >= cfg.workers.predict_processes
+            return bool(s.get("predict_ready") and s.get("step_ready") and up)
+
+        while not ready():
             time.sleep(0.5)
         warmup = time.perf_counter() - t0
         feed = start_feeder(ep, 3600, 30.0)

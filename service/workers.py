@@ -295,15 +295,21 @@ class PredictPool:
     ``split_min_plans`` plans are split (their plan count is in the header; a JSON request would
     have to be parsed here, in the loop's process).
 
-    ``more``: makers of the other processes, started by the first ``warmup`` once the first process
-    is warm, so that their imports do not slow the service's start-up (a third process importing
-    torch beside the service and two workers delayed its first vertices by seconds), and they load
-    the packages the first one built. Until then, every request goes to the first process.
+    ``more``: makers of the other processes, started in the background by the first ``warmup`` once
+    the first process is warm (predict is ready then), so that their imports do not slow the
+    service's start-up (a third process importing torch beside the service and two workers put
+    warm start-up at 11 s instead of 6.5), and they load the packages the first one built. Until
+    they are warm, every request goes to the first process (``started`` tells when they are).
     """
 
     def __init__(self, workers: list, split_min_plans: int = 128, more=()):
         self.workers, self.split_min_plans = list(workers), split_min_plans
         self._more = list(more)
+        self._lock = threading.Lock()  # the pool's membership against close()
+        self._closed = False
+        self.started = threading.Event()  # every process is warm and takes its share
+        if not self._more:
+            self.started.set()
 
     @property
     def pid(self) -> int:
@@ -317,13 +323,33 @@ class PredictPool:
         return self.workers[0].call(op, *args, timeout=timeout)
 
     def _warmup(self, sizes, timeout) -> bool:
+        """The first process now (-> whether its step is compiled), the others in the background."""
         per = share_sizes(sizes, len(self.workers) + len(self._more), self.split_min_plans)
         active = self.workers[0].call("warmup", per[0], timeout=timeout)
-        new, self._more = [make() for make in self._more], []
-        others = [*self.workers[1:], *new]
-        rest = self._each([(w, ("warmup", p)) for w, p in zip(others, per[1:])], timeout)
-        self.workers = [self.workers[0], *others]  # split requests from here on
-        return bool(active) and all(rest)
+        more, self._more = self._more, []
+        if more:
+            threading.Thread(target=self._start_more, args=(more, per[1:], timeout), daemon=True).start()
+        return bool(active)
+
+    def _start_more(self, makers, sizes, timeout) -> None:
+        new = []
+        try:
+            for make in makers:
+                with self._lock:
+                    if self._closed:
+                        return
+                    new.append(make())
+            self._each([(w, ("warmup", p)) for w, p in zip(new, sizes)], timeout)
+            with self._lock:
+                if not self._closed:
+                    self.workers = [*self.workers, *new]  # split requests from here on
+                    new = []
+                    self.started.set()
+        except Exception as exc:  # predict goes on with the first process alone
+            log.warning("predict: the other predict processes did not start (%s); one process serves", exc)
+        finally:
+            for w in new:  # not taken into the pool (closed meanwhile, or failed)
+                w.close()
 
     @staticmethod
     def _each(calls, timeout) -> list:
@@ -369,7 +395,10 @@ class PredictPool:
             w.restart()
 
     def close(self) -> None:
-        for w in self.workers:
+        with self._lock:
+            self._closed = True
+            workers = list(self.workers)
+        for w in workers:
             w.close()
 
 

@@ -154,6 +154,7 @@ def test_the_service_lowers_its_fusion_worker_not_predict(model):
         # the other predict processes start at predict's warm-up (after the service's start-up)
         assert len(svc.predict_worker.workers) == 1
         svc.predict_worker.call("warmup", [])  # not compiled here: says False
+        assert svc.predict_worker.started.wait(60)  # the second process, in the background
         assert len(svc.predict_worker.workers) == svc.cfg.workers.predict_processes == 2
         for w in svc.predict_worker.workers:
             assert os.getpriority(os.PRIO_PROCESS, w.pid) == base
@@ -181,7 +182,7 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
         pids = {svc.fusion_worker.pid, *(w.pid for w in svc.predict_worker.workers)}
         assert pids == set(early.values()) and len(pids) == 2
         svc.predict_worker.call("warmup", [])
-        assert len(svc.predict_worker.workers) == 2
+        assert svc.predict_worker.started.wait(60) and len(svc.predict_worker.workers) == 2
         assert not _PRESTARTED  # handed out once
         assert svc.fusion_worker.call("ping") and svc.predict_worker.call("ping")
         assert os.getpriority(os.PRIO_PROCESS, svc.fusion_worker.pid) > os.getpriority(os.PRIO_PROCESS, 0)
