@@ -97,8 +97,7 @@ def _rss_kb(pid) -> int:
 
 def rss_mb(svc) -> float:
     """Resident memory of the service: this process plus its worker processes (fusion, predict)."""
-    workers = [svc.fusion_worker, *getattr(svc.predict_worker, "workers", [svc.predict_worker])]
-    pids = [w.pid for w in workers if hasattr(w, "pid")]
+    pids = [w.pid for w in (svc.fusion_worker, *svc.predict_worker.workers) if hasattr(w, "pid")]
     return (_rss_kb("self") + sum(_rss_kb(p) for p in pids)) / 1024
 
 

@@ -5,15 +5,12 @@ import json
 import sys
 from pathlib import Path
 
-from deform.bench import run_benchmarks
+from deform.bench import run_benchmarks, source_commit
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    root = Path(__file__).resolve().parent.parent
-    from deform.bench import source_commit
-
     result = {
         "command": "python benchmarks/speed.py " + " ".join(sys.argv[1:]),
         "commit": source_commit(),

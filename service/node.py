@@ -465,7 +465,7 @@ class Service:
         status = self.est.status()
         status["predict_ready"] = self.predict_ready
         # processes taking a share of a large request (the others start after predict is ready)
-        status["predict_processes"] = len(getattr(self.predict_worker, "workers", [self.predict_worker]))
+        status["predict_processes"] = len(self.predict_worker.workers)
         status["step_ready"] = self.step_ready
         status["not_ready"] = [
             k for k, ok in (("predict", self.predict_ready), ("step", self.step_ready)) if not ok

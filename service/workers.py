@@ -353,7 +353,11 @@ class PredictPool:
 
     @staticmethod
     def _each(calls, timeout) -> list:
-        """``worker.call(*args)`` for each ``(worker, args)`` at once (each waits on its own socket)."""
+        """``worker.call(*args)`` for each ``(worker, args)`` at once (each waits on its own socket);
+        a single call in this thread."""
+        if len(calls) == 1:
+            worker, args = calls[0]
+            return [worker.call(*args, timeout=timeout)]
         out: list = [None] * len(calls)
         errors: list = []
 
@@ -382,11 +386,7 @@ class PredictPool:
         else:
             k = len(self.workers)
             calls = [(w, ("predict", body, base, stamp_ns, i, k)) for i, w in enumerate(self.workers)]
-        results = (
-            self._each(calls, timeout)
-            if len(calls) > 1
-            else [calls[0][0].call(*calls[0][1], timeout=timeout)]
-        )
+        results = self._each(calls, timeout)
         reply = predict.assemble([part for part, _, _ in results])
         return (*reply, max(r[1] for r in results), sum(r[2] for r in results))
 
