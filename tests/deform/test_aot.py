@@ -49,6 +49,8 @@ def test_same_values_as_the_compiled_one_graph_step(model, start, built):
     assert torch.equal(out, compiled)  # the same graph and kernels, only entered differently
     assert (out - eager).abs().max() < 1e-6
     assert step.redone == 0, "the fast graph must have run (else the comparison proves nothing)"
+    (aot_step,) = step.fast._aot.values()
+    assert aot_step._run_flat is not None, "the package is entered through its flat call (deform.aot)"
 
 
 def test_packages_are_kept_in_the_sessions_cache_not_the_users(built):
