@@ -155,7 +155,7 @@ def marker_layout(sources: list[Recording], length_m: float) -> tuple[np.ndarray
     return tail + np.concatenate([[0.0], np.cumsum(spacing)]), tail
 
 
-def _held_nodes(s_nodes: np.ndarray, s_a: float, s_b: float) -> np.ndarray:
+def held_nodes(s_nodes: np.ndarray, s_a: float, s_b: float) -> np.ndarray:
     """Node ids covering the material interval [s_a, s_b] (snapped outwards to the node grid)."""
     dx = s_nodes[1] - s_nodes[0]
     lo = math.floor(s_a / dx + 1e-9)
@@ -167,7 +167,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _transport(d1: np.ndarray, t: np.ndarray) -> np.ndarray:
+def transport(d1: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Parallel transport of normal(s) ``d1`` onto tangent(s) ``t`` (projection, then unit)."""
     return _unit(d1 - np.sum(d1 * t, axis=-1, keepdims=True) * t)
 
@@ -181,7 +181,7 @@ def _curve_length(c: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(c, axis=0), axis=-1).sum())
 
 
-def _initial_curve(
+def initial_curve(
     markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray, held_b: np.ndarray
 ) -> np.ndarray:
     """(N, 3) node positions of the rod at the start of settling, segments all ``dx`` long.
@@ -223,7 +223,7 @@ def _initial_curve(
     return x
 
 
-def _driving_grips(grips: np.ndarray, lead: int = LEAD_FRAMES) -> np.ndarray:
+def driving_grips(grips: np.ndarray, lead: int = LEAD_FRAMES) -> np.ndarray:
     """The gripper trajectory (T, 4, 3) the rod is driven with, from the recorded one: the true
     grippers move smoothly, so single-frame mocap spikes (median of 5) and jitter (Gaussian, 1 frame)
     are filtered out; then ``lead`` frames are prepended in which the grippers accelerate uniformly
@@ -260,7 +260,7 @@ def _grip_tracks(
     d1 = {"a": [d1_a], "b": [d1_b]}
     for k in range(1, T):
         for e in "ab":
-            d1[e].append(_transport(d1[e][-1], tang[e][k]))
+            d1[e].append(transport(d1[e][-1], tang[e][k]))
     Q_a, Q_b = _frames(t_a, np.array(d1["a"])), _frames(-u_b, np.array(d1["b"]))
     omega = {}
     for e, Q in (("a", Q_a), ("b", Q_b)):
@@ -445,11 +445,13 @@ def planted_truth(
     strength: float = 1.0,
     lowest_z: float = 0.0,
     spec: RodSpec | None = None,
+    defaults: dict | None = None,
 ) -> dict:
-    """Planted parameters (``DEFAULTS[rod_kind]`` scaled by ``strength``) in the tool's conventions."""
+    """Planted parameters (``defaults[rod_kind]``, by default this module's ``DEFAULTS``, scaled by
+    ``strength``) in the tool's conventions."""
     if effect is None:
         return {}
-    d = dict(DEFAULTS[rod_kind][effect])
+    d = dict((DEFAULTS if defaults is None else defaults)[rod_kind][effect])
     s = float(strength)
     if effect == "aerodynamic_drag":
         d = {"linear_1_per_s": 0.0, "quadratic_1_per_m": d["quadratic_1_per_m"] * s}
@@ -519,8 +521,8 @@ def generate_elastica(
     s_nodes = np.arange(n_el + 1) * dx
     s_markers, tail = marker_layout(sources, L)
     span = s_markers[-1] - s_markers[0]
-    held_a = _held_nodes(s_nodes, s_markers[0], s_markers[1])
-    held_b = _held_nodes(s_nodes, s_markers[-2], s_markers[-1])
+    held_a = held_nodes(s_nodes, s_markers[0], s_markers[1])
+    held_b = held_nodes(s_nodes, s_markers[-2], s_markers[-1])
 
     starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
     # a table just above the lowest points most recordings reach: the rope touches it in most of them
@@ -540,15 +542,15 @@ def generate_elastica(
     sim = Sim()
     rods = []
     for i, (r, st) in enumerate(zip(sources, starts)):
-        drive = _driving_grips(grips_rec[i])
+        drive = driving_grips(grips_rec[i])
         markers0 = r.positions[st].copy()
         markers0[gripped_indices(n)] = drive[0]  # the grips where settling starts
-        x0 = _initial_curve(markers0, s_markers, s_nodes, held_a, held_b)
+        x0 = initial_curve(markers0, s_markers, s_nodes, held_a, held_b)
         t = _unit(np.diff(x0, axis=0))
         up = np.array([0.0, 0.0, 1.0]) if abs(t[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        d1 = [_transport(up, t[0])]
+        d1 = [transport(up, t[0])]
         for k in range(1, len(t)):
-            d1.append(_transport(d1[-1], t[k]))
+            d1.append(transport(d1[-1], t[k]))
         directors = _frames(t, np.array(d1)).transpose(1, 2, 0).copy()
         rod = ea.CosseratRod.straight_rod(
             n_el,

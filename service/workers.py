@@ -257,6 +257,25 @@ class InlineWorker:
         pass
 
 
+def shares_for(plans: int | None, processes: int, split_min_plans: int) -> int:
+    """How many predict processes a request of ``plans`` plans is split across: every process from
+    ``split_min_plans`` plans on, else the first one alone (also when the plan count is not known
+    without parsing the request). The one rule for serving (:meth:`PredictPool.predict`) and for
+    what warm-up compiles (:func:`share_sizes`).
+
+    Args:
+        plans: plans in the request, or None.
+        processes: predict processes serving.
+        split_min_plans: smaller requests go to the first process whole.
+
+    Returns:
+        The number of shares, 1 or ``processes``.
+    """
+    if plans is None or plans < split_min_plans:
+        return 1
+    return processes
+
+
 def share_sizes(plan_counts, processes: int, split_min_plans: int) -> list[list[int]]:
     """The batch sizes each predict process rolls out for requests of these plan counts: what it
     compiles at warm-up, and what ``deform-service prebuild`` builds.
@@ -273,11 +292,9 @@ def share_sizes(plan_counts, processes: int, split_min_plans: int) -> list[list[
 
     out: list[set] = [set() for _ in range(processes)]
     for plans in plan_counts:
-        if plans < split_min_plans or processes == 1:
-            out[0].add(plans)
-            continue
-        for i in range(processes):
-            lo, hi = share(plans, i, processes)
+        k = shares_for(plans, processes, split_min_plans)
+        for i in range(k):
+            lo, hi = share(plans, i, k)
             if hi > lo:
                 out[i].add(hi - lo)
     return [sorted(s) for s in out]
@@ -380,12 +397,10 @@ class PredictPool:
         """-> (ok, reply, reason, detail, compute seconds (the slowest share), steps redone)."""
         from service import predict, predict_codec
 
-        plans = predict_codec.request_plans(body) if len(self.workers) > 1 else None
-        if plans is None or plans < self.split_min_plans:
-            calls = [(self.workers[0], ("predict", body, base, stamp_ns))]
-        else:
-            k = len(self.workers)
-            calls = [(w, ("predict", body, base, stamp_ns, i, k)) for i, w in enumerate(self.workers)]
+        workers = list(self.workers)  # the second process may join meanwhile
+        plans = predict_codec.request_plans(body) if len(workers) > 1 else None
+        k = shares_for(plans, len(workers), self.split_min_plans)
+        calls = [(w, ("predict", body, base, stamp_ns, i, k)) for i, w in enumerate(workers[:k])]
         results = self._each(calls, timeout)
         reply = predict.assemble([part for part, _, _ in results])
         return (*reply, max(r[1] for r in results), sum(r[2] for r in results))
