@@ -320,16 +320,17 @@ class Simulator:
         if d1 is None and origin is None:
             origin = frames[:, margin : margin + 2 + ROLL_FRAMES]
         rolls = any(getattr(t, "rolls_material_frame", False) for t in self.terms)
+        t_rec = G.normalize(G.edges(frames[:, margin + 1]))  # the recorded tangents at the start
         if origin is not None and origin.shape[1] > 2 and rolls:
-            t_rec = G.normalize(G.edges(frames[:, margin + 1]))
             if d1 is None:
                 d1 = G.space_parallel_frame(t_rec)
             d1 = roll_directors(d1.to(t_rec.dtype), t_rec, self.initial_roll(origin))
         if d1 is not None:
             emap = self._edge_of_node_edge
-            t_rec = G.normalize(G.edges(frames[:, margin + 1]))[:, emap]
             d1 = G.time_transport(
-                d1[:, emap].to(state.d1.dtype), t_rec.to(state.d1.dtype), G.normalize(G.edges(state.x))
+                d1[:, emap].to(state.d1.dtype),
+                t_rec[:, emap].to(state.d1.dtype),
+                G.normalize(G.edges(state.x)),
             )
             state = type(state)(x=state.x, v=state.v, d1=d1, theta=state.theta, rest=state.rest)
         out = []
