@@ -17,6 +17,7 @@ data-dependent loops that do not export into one graph.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import logging
 import os
@@ -158,7 +159,8 @@ def ensure_package(
     model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype
 ) -> tuple[Path, bool]:
     """The cached package of this step, compiled now if the cache has none (not loaded: another
-    process may build it for one that loads it). Arguments as for :func:`package_path`.
+    process may build it for one that loads it). A process that finds another building the same
+    package waits for it instead of building it again. Arguments as for :func:`package_path`.
 
     Returns:
         ``(path, built)``: built is True when it was compiled by this call.
@@ -166,7 +168,14 @@ def ensure_package(
     path = package_path(model, branch_free, batch, dtype)
     if path.exists():
         return path, False
-    _build(model, branch_free, batch, dtype, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # one builder per package: the service's predict processes meet a new size at the same request,
+    # and two builds at once took both cores for a minute to make one file
+    with open(path.with_suffix(".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if path.exists():  # built while this process waited
+            return path, False
+        _build(model, branch_free, batch, dtype, path)
     return path, True
 
 

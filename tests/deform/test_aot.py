@@ -127,3 +127,34 @@ def test_package_that_cannot_run_falls_back_to_torch_compile(
     assert not step.fast.ahead_of_time and step.active  # still compiled, only without the package
     assert warning in caplog.text
     assert torch.equal(out, built[1])  # the torch.compile one-graph step's values, not the eager ones
+
+
+def test_a_package_is_built_once_when_two_ask_for_it_at_once(model, tmp_path, monkeypatch):
+    """Two predict processes meeting a new batch size together: one builds, the other waits and
+    loads (threads here: each opens the lock file itself, as a process would)."""
+    import threading
+    import time
+
+    monkeypatch.setenv("DEFORM_CACHE", str(tmp_path))
+    builds = []
+
+    def slow_build(model, branch_free, batch, dtype, path):
+        builds.append(batch)
+        time.sleep(0.3)
+        path.write_bytes(b"package")
+
+    monkeypatch.setattr(aot, "_build", slow_build)
+    results = []
+    threads = [
+        threading.Thread(
+            target=lambda: results.append(aot.ensure_package(model, BRANCH_FREE, 8, torch.float32))
+        )
+        for _ in range(2)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert builds == [8]
+    assert sorted(built for _, built in results) == [False, True]
+    assert results[0][0] == results[1][0] and results[0][0].read_bytes() == b"package"
