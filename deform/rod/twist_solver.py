@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from deform.rod.convergence import ConvergenceReport, masked_loop
-from deform.rod.energy import left_right, material_curvature, twist_of
+from deform.rod.energy import twist_of
 from deform.rod.tridiagonal import solve_tridiagonal, solve_tridiagonal_pd
 
 
@@ -51,15 +51,22 @@ def gradient_and_hessian(
     Returns:
         ``(g, diag, off)`` of the energy over the k = m - 2 free angles.
     """
-    w1, w2 = material_curvature(a, b, left_right(theta))
-    scale = (beta / rest_vor).unsqueeze(-1)
-    g_vs = scale * (wbar[..., 1] * w1 - wbar[..., 0] * w2)  # (..., n-2, 2)
-    h_vs = scale * (wbar[..., 0] * w1 + wbar[..., 1] * w2)
+    # each side (the vertex's left and right edge) on its own: compiled, a trailing axis of 2 made
+    # the Newton iteration's loops 16 lanes wide over 2 values (sine and cosine included), and
+    # per side they run over the vertices (0.91x per predict step at 1024 rods, perf + A/B)
+    cos, sin = torch.cos(theta), torch.sin(theta)
+    scale = beta / rest_vor
+    g_side, h_side = [], []
+    for side, edges in ((0, slice(None, -1)), (1, slice(1, None))):
+        c_j, s_j, a_j, b_j = cos[..., edges], sin[..., edges], a[..., side], b[..., side]
+        w1, w2 = -s_j * a_j + c_j * b_j, -(c_j * a_j + s_j * b_j)  # material_curvature of this side
+        g_side.append(scale * (wbar[..., side, 1] * w1 - wbar[..., side, 0] * w2))
+        h_side.append(scale * (wbar[..., side, 0] * w1 + wbar[..., side, 1] * w2))
     c = 2.0 * gamma / rest_vor  # (..., n-2) twist coupling at each interior vertex
     tw = c * twist_of(theta, m_ref)
     # interior vertex k touches edge k (left side) and edge k+1 (right side); free edges are 1..m-2
-    grad = g_vs[..., 1:, 0] + g_vs[..., :-1, 1] + tw[..., :-1] - tw[..., 1:]
-    diag = h_vs[..., 1:, 0] + h_vs[..., :-1, 1] + c[..., :-1] + c[..., 1:]
+    grad = g_side[0][..., 1:] + g_side[1][..., :-1] + tw[..., :-1] - tw[..., 1:]
+    diag = h_side[0][..., 1:] + h_side[1][..., :-1] + c[..., :-1] + c[..., 1:]
     off = -c[..., 1:-1]
     return grad, diag, off
 
