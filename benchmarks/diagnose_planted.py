@@ -207,12 +207,29 @@ def equivalence_of(rep: dict) -> list[str]:
     return first.get("equivalence_class", rep["selected"][:1])
 
 
-def elastica_rod(kind: str, root: Path | None = None) -> tuple[RodSpec, list]:
-    """The PyElastica benchmark's rod of ``kind`` (light, stiff): its spec as a user gives it and
-    the recorded train motions of its source rod that drive it."""
+# the independent simulators: the module that plants the effects and its generator function
+INDEPENDENT = {
+    "elastica": ("elastica_planted", "generate_elastica"),  # PyElastica, Cosserat rods
+    "mujoco": ("mujoco_planted", "generate_mujoco"),  # MuJoCo, a chain of rigid capsules
+}
+
+
+def independent_simulator(simulator: str):
+    """-> (EFFECTS, generate, detectability) of an independent simulator's planted-effect module
+    (benchmarks/<module>.py; needs ``benchmarks/`` on sys.path)."""
+    import importlib
+
+    module, generate = INDEPENDENT[simulator]
+    mod = importlib.import_module(module)
+    return mod.EFFECTS, getattr(mod, generate), mod.detectability
+
+
+def independent_rod(kind: str, root: Path | None = None, simulator: str = "elastica") -> tuple[RodSpec, list]:
+    """The independent-simulator benchmark's rod of ``kind`` (light, stiff): its spec as a user gives
+    it and the recorded train motions of its source rod that drive it."""
     rod = ELASTICA_SOURCES[kind]
     L, M, n = RODS[rod]
-    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-elastica")
+    spec = RodSpec(length_m=L, mass_kg=M, n_vertices=n, name=f"{kind}-{simulator}")
     return spec, load_recordings((root or find_data_root()) / rod / "train")
 
 
@@ -222,27 +239,28 @@ def seeded_sources(sources: list, seed: int, count: int) -> list:
     return [sources[i] for i in pick]
 
 
-def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
-    """Effects planted by PyElastica (benchmarks/elastica_planted.py), a simulator we did not write,
-    on a light and a stiff rod, each driven by real gripper motions; inputs go through the user path."""
-    from elastica_planted import detectability, generate_elastica
+def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "elastica") -> None:
+    """Effects planted by a simulator we did not write (``INDEPENDENT``: PyElastica,
+    benchmarks/elastica_planted.py, or MuJoCo, benchmarks/mujoco_planted.py) on a light and a stiff
+    rod, each driven by real gripper motions; inputs go through the user path."""
+    _, generate, detectability = independent_simulator(simulator)
 
     data = find_data_root()
     controls: dict = {}
     for kind, effect, seed in jobs:
-        key = f"elastica:{kind}:{effect or 'none'}:{seed}"
-        spec, sources = elastica_rod(kind, data)
+        key = f"{simulator}:{kind}:{effect or 'none'}:{seed}"
+        spec, sources = independent_rod(kind, data, simulator)
         src = seeded_sources(sources, seed, args.fit + args.check)
         if finished(key, done, runs_path, args):
             continue
         t0 = time.perf_counter()
-        recs, truth = generate_elastica(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+        recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
         t_sim = time.perf_counter() - t0
         if effect is None:
             controls[(kind, seed)] = recs
         pair = controls.get((kind, seed))
         if pair is None and effect is not None:
-            pair, _ = generate_elastica(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+            pair, _ = generate(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
             controls[(kind, seed)] = pair
         inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
         rep = diagnose(inputs, tool_budget(args)).report
@@ -251,7 +269,7 @@ def run_elastica(jobs, args, runs_path: Path, done: dict) -> None:
             "key": key,
             "config": _config(args),
             "kind": "planted",
-            "simulator": "elastica",
+            "simulator": simulator,
             "rod_kind": kind,
             "effect": effect or "none",
             "seed": seed,
@@ -321,7 +339,7 @@ def calibrate_damping(args) -> dict:
     b = budget(args.quick)
     fitted = []
     for kind in args.rod_kinds:
-        spec, sources = elastica_rod(kind, data)
+        spec, sources = independent_rod(kind, data)
         for seed in range(args.control_seeds):
             pick = np.random.default_rng(seed).choice(len(sources), args.fit + args.check, replace=False)
             recs, _ = generate_elastica(
@@ -369,7 +387,7 @@ def full_size_timing(args) -> dict:
     from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
-    spec, sources = elastica_rod(kind)
+    spec, sources = independent_rod(kind)
     pick = np.random.default_rng(0).choice(len(sources), 12, replace=False)
     recs, _ = generate_elastica(effect, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=500, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
@@ -669,11 +687,10 @@ def _pooled_gap(summ: dict) -> str:
 def write(result: dict, stem: str = "diagnose") -> None:
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
-    title = (
-        "planted-effect benchmark, recordings from PyElastica (an independent simulator)"
-        if result.get("simulator") == "elastica"
-        else "planted-effect benchmark"
-    )
+    title = {
+        "elastica": "planted-effect benchmark, recordings from PyElastica (an independent simulator)",
+        "mujoco": "planted-effect benchmark, recordings from MuJoCo (an independent simulator)",
+    }.get(result.get("simulator"), "planted-effect benchmark")
     lines = [
         f"# deform diagnose: {title}",
         "",
@@ -928,7 +945,7 @@ def damping_study(kind: str, seed: int, args, variants=((0, None), (1, None))) -
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of
     from deform.diagnose.terms import make_term
 
-    spec, sources = elastica_rod(kind)
+    spec, sources = independent_rod(kind)
     src = seeded_sources(sources, seed, args.fit + args.check)
     quick = budget(True)
     cb = dataclasses.replace(quick.candidate, progress=False)
@@ -990,15 +1007,15 @@ def main() -> None:
     )
     p.add_argument(
         "--simulator",
-        choices=("own", "elastica"),
+        choices=("own", *INDEPENDENT),
         default="own",
-        help="who plants the effects: this project's simulator, or PyElastica (pip install '.[bench]')",
+        help="who plants the effects: this project's simulator, PyElastica or MuJoCo (pip install '.[bench]')",
     )
     p.add_argument(
         "--rod-kinds",
         nargs="*",
         default=list(ELASTICA_SOURCES),
-        help="elastica: light (DLO1 motions), stiff (DLO3)",
+        help="elastica, mujoco: light (DLO1 motions), stiff (DLO3)",
     )
     p.add_argument(
         "--runs",
@@ -1056,7 +1073,9 @@ def main() -> None:
         "re-decides stored rows of an older version with today's rule",
     )
     p.add_argument(
-        "--stem", default=None, help="name of the result files (default diagnose, diagnose.elastica)"
+        "--stem",
+        default=None,
+        help="name of the result files (default diagnose, diagnose.elastica, diagnose.mujoco)",
     )
     p.add_argument(
         "--full-size-timing",
@@ -1106,11 +1125,11 @@ def main() -> None:
     runs_path = Path(args.runs or RESULTS / f"{stem}.runs.jsonl")
     runs_path.parent.mkdir(exist_ok=True)
     done = load_runs(runs_path, _config(args))
-    if args.simulator == "elastica":
+    if args.simulator in INDEPENDENT:
         sys.path.insert(0, str(ROOT))
-        from elastica_planted import EFFECTS as ELASTICA_EFFECTS
+        independent_effects, _, _ = independent_simulator(args.simulator)
 
-        effects = [e for e in (args.effects or ELASTICA_EFFECTS) if e != "none"]
+        effects = [e for e in (args.effects or independent_effects) if e != "none"]
         # per rod kind and seed: the control first (it is also the effects' pair), then the effects
         jobs = [
             (k, e, s)
@@ -1119,7 +1138,7 @@ def main() -> None:
             for e in ([None] if s < args.control_seeds else []) + (effects if s < args.seeds else [])
         ]
         if not args.summary_only:
-            run_elastica(jobs, args, runs_path, done)
+            run_independent(jobs, args, runs_path, done, args.simulator)
     else:
         effects = [e for e in (args.effects or EFFECTS) if e != "none"]
         # controls first (they calibrate the rule), then each seed through all effects, then the real rods
