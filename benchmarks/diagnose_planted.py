@@ -100,7 +100,9 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # scoring windows (DiagnoseBudget.grow_slow_terms, on by default); rows of v6 run with
 # --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such.
 TOOL_VERSION = 8
-RULE = "v6: the mean windowed improvement above the threshold"
+# Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
+# (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL).
+RULE = "v7: the mean windowed improvement above the threshold, the term beyond its material level"
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 
 

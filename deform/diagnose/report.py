@@ -13,6 +13,13 @@ from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import Recording
 
 
+def _significance(c: dict) -> str:
+    """The candidate table's verdict: significant, and if so whether beyond the material level."""
+    if not c["significant"]:
+        return "no"
+    return "yes" if c.get("beyond_material_level", True) else "yes, within a rope's material level: not named"
+
+
 def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
     import matplotlib
 
@@ -132,7 +139,7 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
             f"| {c['round']} | {c['name']} | {_fmt(c['params'], c.get('params_std'))} | {c['check_l1_m'] * 100:.3f} | "
             f"{c['improvement'] * 100:+.1f} % | [{c['improvement_ci90'][0] * 100:+.1f}, {c['improvement_ci90'][1] * 100:+.1f}] | "
             f"{c.get('improvement_rollout', float('nan')) * 100:+.1f} % | "
-            f"{c['threshold'] * 100:.1f} % | {'yes' if c['significant'] else 'no'} |"
+            f"{c['threshold'] * 100:.1f} % | {_significance(c)} |"
         )
     lines += [
         "",
@@ -141,7 +148,9 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         "budget; significant when the mean exceeds the parameter-penalised threshold (calibrated on control "
         "datasets); the 90 % bootstrap interval over recordings shows how evenly the recordings share it. "
         "Open loop: the same for whole-recording predictions (reported, not deciding: they drift, and "
-        "spread twice as wide on controls). ± : approximate 1-sigma (Laplace).",
+        "spread twice as wide on controls). ± : approximate 1-sigma (Laplace). A term fitted within a "
+        "rope's own material level (internal damping up to the level every rope's material has) is "
+        "significant but not named.",
         "",
         "![candidates](candidates.png)" if "candidates.png" in files else "",
         "",

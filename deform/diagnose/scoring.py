@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deform.diagnose.terms import beyond_material_level
+
 # min_gain of the windowed check statistic (tool v6), calibrated on control datasets only (quick
 # budget) with calibrate_min_gain(alpha=0.05): the 6 PyElastica controls of the benchmark (light and
 # stiff rod, seeds 0-2; 54 round-1 candidate improvements, penalty removed) gave mean -1.50 % + 2.54 x
@@ -138,6 +140,7 @@ def reselect(
     min_gain: float,
     per_param: float = PER_PARAM,
     require_interval: bool = False,
+    material_levels: bool = True,
 ) -> dict:
     """Re-derive forward selection from a report's stored candidate scores under another threshold.
 
@@ -153,6 +156,8 @@ def reselect(
         min_gain: the threshold's intercept.
         per_param: the parameter penalty.
         require_interval: also require the interval's lower bound above 0 (tools before v4).
+        material_levels: a term fitted within a rope's own material level is not named
+            (:func:`deform.diagnose.terms.beyond_material_level`; rule v7); False: rules before v7.
 
     Returns:
         ``selected``, ``final_check_l1_m`` and ``no_further_round``.
@@ -171,6 +176,7 @@ def reselect(
             for c in rows
             if (c["improvement_ci90"][0] > 0 or not require_interval)
             and c["improvement"] > min_gain + per_param * c["n_params"]
+            and (not material_levels or beyond_material_level(c["name"], c.get("params", {})))
         ]
         if not sig:
             break

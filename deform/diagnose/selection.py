@@ -28,7 +28,7 @@ from deform.diagnose.simulator import (
     per_recording_window_l1,
 )
 from deform.diagnose.spec import Inputs
-from deform.diagnose.terms import LIBRARY, Term, make_term
+from deform.diagnose.terms import LIBRARY, Term, beyond_material_level, make_term
 
 
 @dataclass
@@ -329,6 +329,7 @@ def diagnose(
                     "improvement": sc.improvement,
                     "improvement_rollout": float(((c_ref.rollout - checked.rollout) / c_ref.rollout).mean()),
                     "significant": sc.significant,
+                    "beyond_material_level": beyond_material_level(name, term.params()),
                     "round": rnd + 1,
                     "on_top_of": list(selected_names),
                     "n_params": term.n_params,
@@ -339,7 +340,7 @@ def diagnose(
                     "growing_windows": tb.final_horizon is not None,
                 }
             )
-        sig = [r for r in results if r.score.significant]
+        sig = [r for r in results if r.score.significant and beyond_material_level(r.name, r.term.params())]
         if not sig:
             break
         best = max(sig, key=lambda r: r.score.improvement)

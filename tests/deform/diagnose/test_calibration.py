@@ -50,3 +50,27 @@ def test_reselect_follows_rounds_and_threshold():
     assert v4["selected"] == ["c"] and v4["final_check_l1_m"] == 0.5 and v4["no_further_round"]
     assert reselect(cands, 1.0, min_gain=0.5)["selected"] == []
     assert reselect(cands, 1.0, min_gain=0.5)["final_check_l1_m"] == 1.0
+
+
+def test_a_term_within_a_ropes_material_level_is_not_named():
+    """Internal damping that improves the check but is fitted at a rope's own material damping (as on
+    a stiff MuJoCo control: +4.0 %, nu 4.9e-7 m^4/s) is not named; the same term fitted well beyond
+    the level is, and terms without a level are untouched."""
+    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL, beyond_material_level
+
+    def damping(nu, improvement):
+        row = _cand("internal_damping", 1, [], improvement, 0.01, 0.9)
+        return {**row, "params": {"bending_rate_damping_m4_per_s": nu}}
+
+    assert not beyond_material_level(
+        "internal_damping", {"bending_rate_damping_m4_per_s": INTERNAL_DAMPING_LEVEL}
+    )
+    assert beyond_material_level(
+        "internal_damping", {"bending_rate_damping_m4_per_s": 2 * INTERNAL_DAMPING_LEVEL}
+    )
+    assert beyond_material_level("aerodynamic_drag", {"linear_1_per_s": 0.0, "quadratic_1_per_m": 0.0})
+    weak = [damping(4.9e-7, 0.045), _cand("point_mass", 1, [], 0.044, 0.01, 0.95, k=2)]
+    assert reselect(weak, 1.0, min_gain=0.03)["selected"] == []  # point_mass: 2 params, 5 % threshold
+    assert reselect(weak, 1.0, min_gain=0.03, material_levels=False)["selected"] == ["internal_damping"]
+    strong = [damping(4e-4, 0.045)]
+    assert reselect(strong, 1.0, min_gain=0.03)["selected"] == ["internal_damping"]
