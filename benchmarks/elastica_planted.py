@@ -696,17 +696,27 @@ def detectability(effect_recs: list[Recording], control_recs: list[Recording]) -
     return float(np.concatenate(diffs).mean())
 
 
-def _main() -> None:
+def print_detectability_table(generate, describe_numerics, description: str) -> None:
+    """The command line of a planted-effect generator: per rod kind, a control (its time, what
+    ``describe_numerics(truth)`` says of its numerics, its L1 from the real recordings it replays),
+    then each effect's marker L1 from that control (:func:`detectability`).
+
+    Args:
+        generate: ``generate_elastica`` or another generator with its signature.
+        describe_numerics: ``truth -> str``, the simulator's own checks of a control.
+        description: the command's help text.
+    """
     import argparse
 
     from deform.io.recordings import find_data_root, load_recordings
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--sources", type=int, default=8)
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--kinds", nargs="*", default=list(ROD_KINDS))
     ap.add_argument("--effects", nargs="*", default=list(EFFECTS))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--strength", type=float, default=1.0)
     args = ap.parse_args()
     root = find_data_root()
     rods = {"light": ("DLO1", 1.152, 0.0345, 13), "stiff": ("DLO3", 0.998, 0.0968, 12)}
@@ -715,7 +725,7 @@ def _main() -> None:
         sources = load_recordings(root / name / "train")[: args.sources]
         spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)
         t0 = _time.perf_counter()
-        control, truth = generate_elastica(None, sources, spec, kind, args.frames, args.seed)
+        control, truth = generate(None, sources, spec, kind, args.frames, args.seed)
         tc = _time.perf_counter() - t0
         real = np.mean(
             [
@@ -724,14 +734,12 @@ def _main() -> None:
             ]
         )
         print(
-            f"{kind} ({name}): control {tc:.1f} s, element strain max {truth['numerics']['max_stretch'] * 100:.2f} % "
-            f"p99 {truth['numerics']['p99_stretch'] * 100:.2f} %, "
-            f"L1 vs real {real * 100:.2f} cm",
+            f"{kind} ({name}): control {tc:.1f} s, {describe_numerics(truth)}, L1 vs real {real * 100:.2f} cm",
             flush=True,
         )
         for effect in args.effects:
             t0 = _time.perf_counter()
-            recs, truth = generate_elastica(effect, sources, spec, kind, args.frames, args.seed)
+            recs, _ = generate(effect, sources, spec, kind, args.frames, args.seed, strength=args.strength)
             print(
                 f"  {effect:20s} {detectability(recs, control) * 100:5.2f} cm  "
                 f"({_time.perf_counter() - t0:.1f} s)",
@@ -739,5 +747,10 @@ def _main() -> None:
             )
 
 
+def _element_strain(truth: dict) -> str:
+    n = truth["numerics"]
+    return f"element strain max {n['max_stretch'] * 100:.2f} % p99 {n['p99_stretch'] * 100:.2f} %"
+
+
 if __name__ == "__main__":
-    _main()
+    print_detectability_table(generate_elastica, _element_strain, __doc__.splitlines()[0])

@@ -63,7 +63,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import time as _time
 
 import numpy as np
 
@@ -72,29 +71,13 @@ from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
 if __package__:  # imported as benchmarks.mujoco_planted (tests)
-    from .elastica_planted import (
-        EFFECTS,
-        LEAD_FRAMES,
-        detectability,
-        driving_grips,
-        held_nodes,
-        initial_curve,
-        marker_layout,
-        planted_truth,
-        transport,
-    )
+    from . import elastica_planted as elastica
 else:  # run as a script, or imported with benchmarks/ on sys.path (diagnose_planted.py)
-    from elastica_planted import (
-        EFFECTS,
-        LEAD_FRAMES,
-        detectability,
-        driving_grips,
-        held_nodes,
-        initial_curve,
-        marker_layout,
-        planted_truth,
-        transport,
-    )
+    import elastica_planted as elastica
+
+# the same effects, lead-in, planted parameters and detectability as the PyElastica benchmark
+EFFECTS, LEAD_FRAMES = elastica.EFFECTS, elastica.LEAD_FRAMES
+detectability, planted_truth = elastica.detectability, elastica.planted_truth
 
 __all__ = ["DEFAULTS", "EFFECTS", "ROD_KINDS", "detectability", "generate_mujoco", "planted_truth"]
 
@@ -247,9 +230,9 @@ def _chain_pose(curve: np.ndarray, s_curve: np.ndarray, bounds: np.ndarray, ga: 
     ends = np.stack([np.interp(bounds, s_curve, curve[:, c]) for c in range(3)], axis=1)
     t = _unit(np.diff(ends, axis=0))
     up = np.array([0.0, 0.0, 1.0]) if abs(t[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    d1 = [transport(up, t[0])]
+    d1 = [elastica.transport(up, t[0])]
     for k in range(1, len(t)):
-        d1.append(transport(d1[-1], t[k]))
+        d1.append(elastica.transport(d1[-1], t[k]))
     R = _frame(t, np.array(d1))
     steps = np.diff(bounds)[:, None] * t
     start = np.empty_like(t)
@@ -275,10 +258,10 @@ def _grip_poses(drive: np.ndarray, s_markers: np.ndarray, s_a: float, s_b: float
         ],
         axis=1,
     )
-    d1 = {"a": [transport(d1_a, t_a[0])], "b": [transport(d1_b, t_b[0])]}
+    d1 = {"a": [elastica.transport(d1_a, t_a[0])], "b": [elastica.transport(d1_b, t_b[0])]}
     for k in range(1, len(drive)):
-        d1["a"].append(transport(d1["a"][-1], t_a[k]))
-        d1["b"].append(transport(d1["b"][-1], t_b[k]))
+        d1["a"].append(elastica.transport(d1["a"][-1], t_a[k]))
+        d1["b"].append(elastica.transport(d1["b"][-1], t_b[k]))
     rot = np.stack([_frame(t_a, np.array(d1["a"])), _frame(t_b, np.array(d1["b"]))], axis=1)
     return pos, rot
 
@@ -503,11 +486,11 @@ def generate_mujoco(
     per_frame = round(frame_dt / dt)
     if abs(per_frame * dt - frame_dt) > 1e-9:
         raise ValueError(f"the frame period {frame_dt} s is not a whole number of {dt} s steps")
-    s_markers, tail = marker_layout(sources, L)
+    s_markers, tail = elastica.marker_layout(sources, L)
     bounds, ga, gb = link_bounds(s_markers, L, kind["link_m"])
     s_fine = np.linspace(0.0, L, 8 * (len(bounds) - 1) + 1)  # the initial curve's grid
-    fine_a = held_nodes(s_fine, s_markers[0], s_markers[1])
-    fine_b = held_nodes(s_fine, s_markers[-2], s_markers[-1])
+    fine_a = elastica.held_nodes(s_fine, s_markers[0], s_markers[1])
+    fine_b = elastica.held_nodes(s_fine, s_markers[-2], s_markers[-1])
 
     starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
     # a table just above the lowest points most recordings reach: the rope touches it in most of them
@@ -543,10 +526,10 @@ def generate_mujoco(
     out = np.empty((len(sources), n_frames, n, 3))
     grip_err = []  # per frame and rope: distance of the gripped links' frames from their targets
     for i, (r, st) in enumerate(zip(sources, starts)):
-        drive = driving_grips(grips_rec[i])
+        drive = elastica.driving_grips(grips_rec[i])
         markers0 = r.positions[st].copy()
         markers0[gripped_indices(n)] = drive[0]  # the grips where settling starts
-        curve = initial_curve(markers0, s_markers, s_fine, fine_a, fine_b)
+        curve = elastica.initial_curve(markers0, s_markers, s_fine, fine_a, fine_b)
         R, start = _chain_pose(curve, s_fine, bounds, ga, drive[0, 0])  # link ga starts at marker 0
         gpos, grot = _grip_poses(drive, s_markers, s_origin[ga], s_origin[gb], R[ga][:, 0], R[gb][:, 0])
         mp, mq = _mocap_steps(gpos, grot, tau)
@@ -628,51 +611,13 @@ def _wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
     return _wxyz(Rotation.from_matrix(R))
 
 
-def _main() -> None:
-    import argparse
-
-    from deform.io.recordings import find_data_root, load_recordings
-
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sources", type=int, default=8)
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--kinds", nargs="*", default=list(ROD_KINDS))
-    ap.add_argument("--effects", nargs="*", default=list(EFFECTS))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--strength", type=float, default=1.0)
-    args = ap.parse_args()
-    root = find_data_root()
-    rods = {"light": ("DLO1", 1.152, 0.0345, 13), "stiff": ("DLO3", 0.998, 0.0968, 12)}
-    for kind in args.kinds:
-        name, length, mass, nv = rods[kind]
-        sources = load_recordings(root / name / "train")[: args.sources]
-        spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)
-        t0 = _time.perf_counter()
-        control, truth = generate_mujoco(None, sources, spec, kind, args.frames, args.seed)
-        tc = _time.perf_counter() - t0
-        real = np.mean(
-            [
-                np.abs(c.positions[:, 2:-2] - r.positions[s : s + args.frames, 2:-2]).mean()
-                for c, r, s in zip(control, sources, truth["numerics"]["starts"])
-            ]
-        )
-        print(
-            f"{kind} ({name}): control {tc:.1f} s, {truth['numerics']['n_links']} links, grip error max "
-            f"{truth['numerics']['max_grip_error_m'] * 1e3:.2f} mm p99 "
-            f"{truth['numerics']['p99_grip_error_m'] * 1e3:.2f} mm, L1 vs real {real * 100:.2f} cm",
-            flush=True,
-        )
-        for effect in args.effects:
-            t0 = _time.perf_counter()
-            recs, truth = generate_mujoco(
-                effect, sources, spec, kind, args.frames, args.seed, strength=args.strength
-            )
-            print(
-                f"  {effect:20s} {detectability(recs, control) * 100:5.2f} cm  "
-                f"({_time.perf_counter() - t0:.1f} s)",
-                flush=True,
-            )
+def _grip_error(truth: dict) -> str:
+    n = truth["numerics"]
+    return (
+        f"{n['n_links']} links, grip error max {n['max_grip_error_m'] * 1e3:.2f} mm "
+        f"p99 {n['p99_grip_error_m'] * 1e3:.2f} mm"
+    )
 
 
 if __name__ == "__main__":
-    _main()
+    elastica.print_detectability_table(generate_mujoco, _grip_error, __doc__.splitlines()[0])

@@ -1,43 +1,21 @@
 """The PyElastica planted-effect generator (benchmarks/elastica_planted.py) on small synthetic
 gripper motions: no dataset needed; skipped without PyElastica (the `bench` extra)."""
 
-import math
-
 import numpy as np
 import pytest
 
 pytest.importorskip("elastica")
 
 from benchmarks.elastica_planted import detectability, generate_elastica
-from deform.diagnose.spec import RodSpec
-from deform.io.recordings import Recording
 from deform.model import gripped_indices
+from tests.benchmarks.swaying_rope import SPEC, WINDOW, N, swaying_source
 
 pytestmark = pytest.mark.slow  # numba start-up and rod integration take seconds
-
-N, FRAMES, WINDOW = 10, 60, 40
-SPEC = RodSpec(length_m=1.0, mass_kg=0.05, n_vertices=N, dt=0.01)
-
-
-def _source(phase: float) -> Recording:
-    """A rope hanging in a half circle (radius 0.3 m, lowest point 0.2 m) between two grippers 0.6 m
-    apart that sway sideways by 4 cm at 1 Hz, in opposite phase; 3 cm gripped end edges."""
-    radius, edge = 0.3, 0.03
-    arc = math.pi * radius
-    s = np.concatenate([[0.0, edge], np.linspace(edge, arc - edge, N - 2)[1:-1], [arc - edge, arc]])
-    theta = math.pi + s / radius
-    base = np.stack([radius * np.cos(theta), np.zeros_like(theta), 0.5 + radius * np.sin(theta)], axis=1)
-    t = np.arange(FRAMES) * SPEC.dt
-    pos = np.repeat(base[None], FRAMES, axis=0)
-    sway = 0.04 * np.sin(2 * math.pi * t + phase)
-    pos[:, : N // 2, 1] += sway[:, None]
-    pos[:, N // 2 :, 1] -= sway[:, None]
-    return Recording(name=f"synthetic_{phase}", positions=pos, dt=SPEC.dt)
 
 
 @pytest.fixture(scope="module")
 def sources():
-    return [_source(0.0), _source(1.0)]
+    return [swaying_source(0.0), swaying_source(1.0)]
 
 
 @pytest.fixture(scope="module")
