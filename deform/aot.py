@@ -206,9 +206,9 @@ class AheadOfTimeStep:
         self._runner = torch._inductor.aoti_load_package(str(self.path))
         # the loader's flat call: the package's own __call__ parses its input and output tree specs
         # from JSON and flattens the arguments on every call, 35 us of a 157 us step at one rod
-        # (122 us this way); inputs and outputs here are flat tuples of tensors already
-        loader = getattr(self._runner, "loader", None)
-        self._run_flat = getattr(loader, "boxed_run", None)
+        # (122 us this way); inputs and outputs here are flat tuples of tensors already. A torch
+        # without it fails here, and CompiledStep falls back to torch.compile as for any load error.
+        self._run_flat = self._runner.loader.boxed_run
         # their version counters change on any in-place update (an optimiser step, load_state_dict);
         # kept as a list because walking the modules costs 60 us, a tenth of a step
         self._tensors = [*self.model.parameters(), *self.model.buffers()]
@@ -220,9 +220,7 @@ class AheadOfTimeStep:
     def __call__(self, state: RodState, grip_next: Tensor) -> tuple[RodState, Tensor]:
         if self._current_versions() != self._versions or torch.get_num_threads() != self.threads:
             self.load()  # parameters changed in place, or threads: not this package
-        inputs = [state.x, state.v, state.d1, state.theta, state.rest, grip_next]
-        if self._run_flat is not None:
-            x, v, d1, theta, rest, unconverged = self._run_flat(inputs)
-        else:
-            x, v, d1, theta, rest, unconverged = self._runner(*inputs)
+        x, v, d1, theta, rest, unconverged = self._run_flat(
+            [state.x, state.v, state.d1, state.theta, state.rest, grip_next]
+        )
         return RodState(x, v, d1, theta, rest), unconverged
