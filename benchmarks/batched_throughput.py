@@ -8,7 +8,9 @@ torch.compile (``speed.json``'s "compiled"); and predict's step, the one-graph s
 iterations and 2 projection sweeps as an AOTInductor package, unconverged rods redone eagerly
 (``CompiledStep(branch_free=(2, 2), ahead_of_time=True)``), and the same one-graph step under
 torch.compile; and predict's step with a float32 state (``predict_aot_2_2_float32``), also on one
-thread (``..._1_thread``: what the service's predict worker runs, ``workers.predict_threads``).
+thread (``..._1_thread``: what the service's predict worker runs, ``workers.predict_threads``);
+and those with the residual network in bfloat16 (``..._bf16_network``: ``deform.nn.precision``,
+what the service picks where the CPU has native bfloat16, ``machine.native_bfloat16``).
 Ratios are to the checked compiled step.
 """
 
@@ -38,6 +40,7 @@ def main() -> int:
     from deform import load_model
     from deform.bench import _trajectory, throughput
     from deform.compiled import PREDICT_BRANCH_FREE, CompiledStep
+    from deform.nn.precision import native_bfloat16
 
     torch.set_num_threads(2)
     model = load_model("DLO1")
@@ -45,12 +48,15 @@ def main() -> int:
     predict_step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True)
     f64, f32 = torch.float64, torch.float32
     one_thread_step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True)
+    bf16 = {"branch_free": PREDICT_BRANCH_FREE, "ahead_of_time": True, "network_dtype": torch.bfloat16}
     variants = {  # name: (step, state dtype, threads)
         "eager": (model.step, f64, 2),
         "compiled_checked": (CompiledStep(model), f64, 2),
         "predict_aot_2_2": (predict_step, f64, 2),
         "predict_aot_2_2_float32": (predict_step, f32, 2),
         "predict_aot_2_2_float32_1_thread": (one_thread_step, f32, 1),
+        "predict_aot_2_2_float32_bf16_network": (CompiledStep(model, **bf16), f32, 2),
+        "predict_aot_2_2_float32_bf16_network_1_thread": (CompiledStep(model, **bf16), f32, 1),
         "one_graph_2_2_torch_compile": (CompiledStep(model, branch_free=PREDICT_BRANCH_FREE), f64, 2),
     }
     from deform.bench import source_commit
@@ -58,7 +64,12 @@ def main() -> int:
     out = {
         "command": "python benchmarks/batched_throughput.py " + " ".join(sys.argv[1:]),
         "commit": source_commit(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "native_bfloat16": native_bfloat16(),
+        },
         "batch": args.batch,
         "steps": args.steps,
         "rod_steps_per_s": {},

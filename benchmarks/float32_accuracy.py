@@ -2,7 +2,8 @@
 recordings in the same run: the eager step in float64 and float32, and predict's step (the one-graph
 step with 2 twist iterations and 2 projection sweeps as an ahead-of-time package, unconverged rods
 redone eagerly) in float64 and float32; each against the eager float64 step, and how
-far its predictions are from that step's.
+far its predictions are from that step's; and predict's float32 step with the residual network in
+bfloat16 (``predict_float32_bf16_network``, ``deform.nn.precision``).
 
     python benchmarks/float32_accuracy.py [--rods DLO1 DLO2 DLO3] [--json benchmarks/results/float32_accuracy.json]
 
@@ -54,11 +55,15 @@ def main() -> int:
         recs = load_recordings(root / rod / "eval", model.n)
         row = {"recordings": len(recs)}
         predict_step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True)
+        bf16_step = CompiledStep(
+            model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True, network_dtype=torch.bfloat16
+        )
         variants = {  # name: (step, state dtype)
             "float64": (None, torch.float64),
             "float32": (None, torch.float32),
             "predict_float64": (predict_step, torch.float64),
             "predict_float32": (predict_step, torch.float32),
+            "predict_float32_bf16_network": (bf16_step, torch.float32),
         }
         preds = {}
         for name, (step, dtype) in variants.items():
@@ -75,7 +80,7 @@ def main() -> int:
             row[f"{name}_l1_difference_mm"] = abs(row["float64_l1_m"] - row[f"{name}_l1_m"]) * 1e3
             row[f"{name}_mean_abs_prediction_gap_mm"] = round(1e3 * float(np.mean(gap)), 5)
             row[f"{name}_within_0.1_mm"] = row[f"{name}_l1_difference_mm"] <= 0.1
-        row["redone_rod_steps"] = predict_step.redone
+        row["redone_rod_steps"] = predict_step.redone + bf16_step.redone
         print(rod, json.dumps(row), flush=True)
         out["rods"][rod] = row
     Path(args.json).write_text(json.dumps(out, indent=1) + "\n")

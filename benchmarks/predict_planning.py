@@ -129,6 +129,9 @@ def main() -> int:
             "ticks": s1["counts"]["ticks"] - s0["counts"]["ticks"],
             "misses": misses,
             "tick_to_publish_ms": s1["tick_to_publish_ms"],
+            "rod_steps_redone": s1["counts"].get("predict_steps_redone", 0)
+            - s0["counts"].get("predict_steps_redone", 0),
+            "rod_steps": sum(P * 100 for _, P, _ in CASES) * n,
         }
 
     per_round = max(1, args.n // args.rounds)
@@ -157,6 +160,9 @@ def main() -> int:
                 }
                 for label, v in times.items()
             },
+            "redone_pct_of_rod_steps": round(
+                100.0 * sum(r["rod_steps_redone"] for r in rs) / sum(r["rod_steps"] for r in rs), 3
+            ),
             "loop": {
                 "ticks": ticks,
                 "miss_pct": round(100.0 * misses / max(ticks, 1), 3),
@@ -179,6 +185,7 @@ def main() -> int:
         "rounds": args.rounds,
         "warmup_s": head["warmup_s"],
         "requests": head["requests"],
+        "redone_pct_of_rod_steps": head["redone_pct_of_rod_steps"],
         "targets_p50_ms": {"1024x100 cost": 300, "256x100 final": 100, "64x100 all": 100},
         "loop": head["loop"],
     }

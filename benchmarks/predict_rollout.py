@@ -3,17 +3,18 @@ iteration counts of :class:`deform.compiled.RolloutStep`, interleaved in one pro
 
 Why: the service's predict time mixes the rollout with IPC, JSON and whatever else the machine runs.
 This isolates the rollout and how often its one-graph step misses (a step it leaves unconverged is
-redone with the convergence-checked step, which costs about twice as much). The plans are drawn as
+stepped again, that rod alone, by the convergence-checked loops). The plans are drawn as
 in ``benchmarks/service_bench.py``: each gripper moves linearly to a random offset of up to 10 cm per
 axis over the 100 steps, from the state of a recording at frames 50, 200 and 350.
 
     python benchmarks/predict_rollout.py [--rod DLO1] [--recordings 5] [--settings 2,1 2,2 3,2] [--repeats 3]
     python benchmarks/predict_rollout.py --settings 2,2 2,2:aot    # torch.compile vs ahead of time
 
-A setting ``T,S:aot`` runs the one-graph step as an AOTInductor package (``deform.aot``).
+A setting ``T,S:aot`` runs the one-graph step as an AOTInductor package (``deform.aot``), ``T,S:aot:bf16``
+also with the residual network in bfloat16 (``deform.nn.precision``).
 
 Prints one JSON line per setting: median, p90 and max rollout time (best of ``repeats`` per start
-state), the starts where the one graph missed, steps redone, and pauses.
+state), the starts where the one graph missed, rod-steps redone, and pauses.
 """
 
 import argparse
@@ -64,31 +65,39 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--dtype",
+        default="float32",
+        choices=["float32", "float64"],
+        help="of the rollout (the service's predict: float32)",
+    )
     args = ap.parse_args()
+    dtype = getattr(torch, args.dtype)
     torch.set_num_threads(1)  # as in the service's predict worker
     model = load_model(args.rod)
     steps = {
         s: RolloutStep(
             model,
             branch_free=tuple(int(v) for v in s.split(":")[0].split(",")),
-            ahead_of_time=s.endswith(":aot"),
+            ahead_of_time="aot" in s.split(":")[1:],
+            network_dtype=torch.bfloat16 if "bf16" in s.split(":")[1:] else None,
         )
         for s in args.settings
     }
     for st in steps.values():
-        st.warmup((args.plans,))
+        st.warmup((args.plans,), dtype)
     rng = np.random.default_rng(args.seed)
     results = {s: {"ms": [], "missed_at": [], "redone": 0, "paused": 0} for s in args.settings}
     lin = torch.linspace(0, 1, args.steps, dtype=torch.float64)[None, :, None, None]
     for name, state, grip in start_states(model, args.rod, args.recordings):
         batch = RodState(
             *(
-                t.expand(args.plans, *t.shape[1:]).clone()
+                t.expand(args.plans, *t.shape[1:]).to(dtype)
                 for t in (state.x, state.v, state.d1, state.theta, state.rest)
             )
         )
         offsets = torch.as_tensor(rng.uniform(-0.1, 0.1, (args.plans, 1, 2, 3)))
-        grips = grip[None, None] + lin * offsets[:, :, [0, 0, 1, 1]]
+        grips = (grip[None, None] + lin * offsets[:, :, [0, 0, 1, 1]]).to(dtype)
         for s, st in steps.items():  # interleaved: the same machine state for every setting
             r0, p0 = st.redone, st.paused
             times = []
@@ -112,11 +121,12 @@ def main() -> None:
                     "starts": len(ms),
                     "plans": args.plans,
                     "steps": args.steps,
+                    "dtype": args.dtype,
                     "median_ms": round(float(np.median(ms)), 1),
                     "p90_ms": round(float(np.percentile(ms, 90)), 1),
                     "max_ms": round(float(ms.max()), 1),
                     "starts_missed": len(res["missed_at"]),
-                    "steps_redone": res["redone"],
+                    "rod_steps_redone": res["redone"],
                     "pauses": res["paused"],
                     "missed_at": res["missed_at"],
                 }

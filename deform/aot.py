@@ -62,7 +62,13 @@ def cache_dir() -> Path:
     return Path(os.environ.get("DEFORM_CACHE") or Path.home() / ".cache" / "deform") / "aot"
 
 
-def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype) -> str:
+def package_key(
+    model: DeformModel,
+    branch_free: tuple[int, int],
+    batch: int,
+    dtype: torch.dtype,
+    network_dtype: torch.dtype | None = None,
+) -> str:
     """Hash of everything the compiled code depends on: the model's values and configuration, the
     step's settings, the source of ``deform``, the torch build and CPU, and the thread count
     (``torch.get_num_threads()`` now: inductor writes it into the kernels, so a package built on
@@ -74,6 +80,7 @@ def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dt
         branch_free: (twist iterations, projection sweeps) without host synchronisation.
         batch: rods per step (the bucket).
         dtype: the state's dtype.
+        network_dtype: the residual network's arithmetic (None: float32).
 
     Returns:
         A hex digest naming the package file.
@@ -87,6 +94,7 @@ def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dt
         repr(branch_free),
         str(batch),
         str(dtype),
+        f"network={network_dtype}",
         repr(model.cfg),
         repr([type(e).__name__ for e in getattr(model, "extensions", [])]),
     ):
@@ -102,19 +110,24 @@ def package_key(model: DeformModel, branch_free: tuple[int, int], batch: int, dt
 class _BranchFreeStep(torch.nn.Module):
     """``model.step`` with fixed iterations on flat tensors, and the rods it left unconverged."""
 
-    def __init__(self, model: DeformModel, branch_free: tuple[int, int]):
+    def __init__(self, model: DeformModel, branch_free: tuple[int, int], network_dtype: torch.dtype | None):
         super().__init__()
-        self.model, self.branch_free = model, branch_free
+        self.model, self.branch_free, self.network_dtype = model, branch_free, network_dtype
 
     def forward(self, x: Tensor, v: Tensor, d1: Tensor, theta: Tensor, rest: Tensor, grip: Tensor):
         new, unconverged = branch_free_step(
-            self.model, RodState(x, v, d1, theta, rest), grip, self.branch_free
+            self.model, RodState(x, v, d1, theta, rest), grip, self.branch_free, self.network_dtype
         )
         return new.x, new.v, new.d1, new.theta, new.rest, unconverged
 
 
 def _build(
-    model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype, path: Path
+    model: DeformModel,
+    branch_free: tuple[int, int],
+    batch: int,
+    dtype: torch.dtype,
+    path: Path,
+    network_dtype: torch.dtype | None = None,
 ) -> None:
     """Export the step for a rod at rest (shapes and dtype are all that matter) and compile it."""
     state, grip = rod_at_rest(model, batch, dtype)
@@ -123,7 +136,7 @@ def _build(
     loops = exports_loops(batch)
     options = {**AOT_OPTIONS, "memory_planning": False} if loops else AOT_OPTIONS
     with torch.no_grad(), loops_when_exported(loops):
-        exported = torch.export.export(_BranchFreeStep(model, branch_free), args, strict=False)
+        exported = torch.export.export(_BranchFreeStep(model, branch_free, network_dtype), args, strict=False)
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=path.parent) as tmp:  # atomic: no half-written package
             part = Path(tmp) / path.name
@@ -140,7 +153,13 @@ def _build(
     )
 
 
-def package_path(model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype) -> Path:
+def package_path(
+    model: DeformModel,
+    branch_free: tuple[int, int],
+    batch: int,
+    dtype: torch.dtype,
+    network_dtype: torch.dtype | None = None,
+) -> Path:
     """Where the package of this step is (or would be) cached.
 
     Args:
@@ -148,15 +167,20 @@ def package_path(model: DeformModel, branch_free: tuple[int, int], batch: int, d
         branch_free: (twist iterations, projection sweeps).
         batch: rods per step.
         dtype: the state's dtype.
+        network_dtype: the residual network's arithmetic (None: float32).
 
     Returns:
         The path in :func:`cache_dir`.
     """
-    return cache_dir() / f"step-{package_key(model, branch_free, batch, dtype)}.pt2"
+    return cache_dir() / f"step-{package_key(model, branch_free, batch, dtype, network_dtype)}.pt2"
 
 
 def ensure_package(
-    model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype
+    model: DeformModel,
+    branch_free: tuple[int, int],
+    batch: int,
+    dtype: torch.dtype,
+    network_dtype: torch.dtype | None = None,
 ) -> tuple[Path, bool]:
     """The cached package of this step, compiled now if the cache has none (not loaded: another
     process may build it for one that loads it). A process that finds another building the same
@@ -165,7 +189,7 @@ def ensure_package(
     Returns:
         ``(path, built)``: built is True when it was compiled by this call.
     """
-    path = package_path(model, branch_free, batch, dtype)
+    path = package_path(model, branch_free, batch, dtype, network_dtype)
     if path.exists():
         return path, False
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -175,7 +199,7 @@ def ensure_package(
         fcntl.flock(lock, fcntl.LOCK_EX)
         if path.exists():  # built while this process waited
             return path, False
-        _build(model, branch_free, batch, dtype, path)
+        _build(model, branch_free, batch, dtype, path, network_dtype)
     return path, True
 
 
@@ -188,9 +212,15 @@ class AheadOfTimeStep:
     """
 
     def __init__(
-        self, model: DeformModel, branch_free: tuple[int, int], batch: int, dtype: torch.dtype = torch.float64
+        self,
+        model: DeformModel,
+        branch_free: tuple[int, int],
+        batch: int,
+        dtype: torch.dtype = torch.float64,
+        network_dtype: torch.dtype | None = None,
     ):
         self.model, self.branch_free, self.batch, self.dtype = model, branch_free, batch, dtype
+        self.network_dtype = network_dtype
         self._runner = None
         self._run_flat = None
         self._tensors: list[Tensor] = []  # the parameters and buffers the package was made from
@@ -202,7 +232,9 @@ class AheadOfTimeStep:
         """The package for the model's current parameters and the process's thread count: from the
         cache, else compiled now."""
         self.threads = torch.get_num_threads()
-        self.path, _ = ensure_package(self.model, self.branch_free, self.batch, self.dtype)
+        self.path, _ = ensure_package(
+            self.model, self.branch_free, self.batch, self.dtype, self.network_dtype
+        )
         self._runner = torch._inductor.aoti_load_package(str(self.path))
         # the loader's flat call: the package's own __call__ parses its input and output tree specs
         # from JSON and flattens the arguments on every call, 35 us of a 157 us step at one rod

@@ -80,7 +80,8 @@ class CompiledStep:
     each iteration a graph of its own. ``branch_free=(twist, sweeps)`` (a real-time loop, B = 1):
     the whole step is one graph with that many masked iterations, which cuts the per-call cost
     about 3x; rods it leaves unconverged (by the solvers' own flags, ``check="report"``, or by
-    ``model.unconverged``, ``check="recompute"``) are stepped again eagerly.
+    ``model.unconverged``, ``check="recompute"``) are stepped again eagerly. ``network_dtype``: the
+    residual network's arithmetic in every path (None: float32; :mod:`deform.nn.precision`).
     """
 
     def __init__(
@@ -90,8 +91,10 @@ class CompiledStep:
         branch_free: tuple[int, int] | None = None,
         check: ConvergenceCheck | str = "report",
         ahead_of_time: bool = False,
+        network_dtype: torch.dtype | None = None,
     ):
         self.model = model
+        self.network_dtype = network_dtype
         self.enabled = enabled
         self.branch_free = branch_free
         # the branch-free step as an AOTInductor package per (bucket, dtype) (deform.aot: the same
@@ -116,11 +119,17 @@ class CompiledStep:
         """With ``branch_free``: the step with fixed iteration counts and which rods it left
         unconverged, one graph. Without: the step with its checked loops (a graph per iteration)."""
         if self.branch_free is None:
-            return self.model.step(state, grip_next), None
+            return self.eager(state, grip_next), None
         if self.check == ConvergenceCheck.RECOMPUTE:
-            new = self.model.step(state, grip_next, branch_free=self.branch_free)
+            new = self.model.step(
+                state, grip_next, branch_free=self.branch_free, network_dtype=self.network_dtype
+            )
             return new, self.model.unconverged(state, new, held=grip_next is not None)
-        return branch_free_step(self.model, state, grip_next, self.branch_free)
+        return branch_free_step(self.model, state, grip_next, self.branch_free, self.network_dtype)
+
+    def eager(self, state: RodState, grip_next: Tensor | None) -> RodState:
+        """The model's own step with its checked loops (and this step's network precision)."""
+        return self.model.step(state, grip_next, network_dtype=self.network_dtype)
 
     def _step_fn(self):
         if self._compiled is None:
@@ -134,7 +143,9 @@ class CompiledStep:
         fn = self._aot.get((size, dtype))
         if fn is None:
             try:
-                fn = self._aot[(size, dtype)] = AheadOfTimeStep(self.model, self.branch_free, size, dtype)
+                fn = self._aot[(size, dtype)] = AheadOfTimeStep(
+                    self.model, self.branch_free, size, dtype, self.network_dtype
+                )
             except Exception as exc:
                 self.ahead_of_time = False
                 log.warning(
@@ -147,7 +158,7 @@ class CompiledStep:
         with ``branch_free`` (rods outside the solver tolerances, see ``model.unconverged``), else
         None. Eager (and None) when compilation is off or failed, or with gradients."""
         if not self.active or (torch.is_grad_enabled() and state.x.requires_grad):
-            return self.model.step(state, grip_next), None
+            return self.eager(state, grip_next), None
         batch = state.x.shape[0]
         size = bucket_size(batch)
         padded = RodState(*(_pad(t, size) for t in (state.x, state.v, state.d1, state.theta, state.rest)))
@@ -171,7 +182,7 @@ class CompiledStep:
             self._failed = True
             log.warning("compiled step unavailable (%s: %s); using the eager step", type(exc).__name__, exc)
             with torch.no_grad():
-                return self.model.step(state, grip_next), None
+                return self.eager(state, grip_next), None
         if size != batch:
             out = RodState(*(t[:batch] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
         return out, None if unconverged is None else unconverged[:batch]
@@ -181,7 +192,7 @@ class CompiledStep:
         bad = [] if unconverged is None else unconverged.nonzero().squeeze(-1)
         if len(bad):  # rare (a sudden large motion): those rods again, with the eager checked loops
             with torch.no_grad():
-                redo = self.model.step(state.index(bad), None if grip_next is None else grip_next[bad])
+                redo = self.eager(state.index(bad), None if grip_next is None else grip_next[bad])
             out = RodState(*(t.clone() for t in (out.x, out.v, out.d1, out.theta, out.rest)))
             for t, r in zip((out.x, out.v, out.d1, out.theta), (redo.x, redo.v, redo.d1, redo.theta)):
                 t[bad] = r
@@ -203,11 +214,16 @@ class RolloutStep:
     A step whose fixed iterations (``branch_free``, 2 Newton iterations and 2 projection sweeps)
     converge every rod costs one graph call, against a dozen for the convergence-checked loops
     (each iteration a graph and a host synchronisation). A step the fast graph leaves unconverged
-    (a plan's first large gripper displacement, a fast-moving start) is redone with the checked
-    step (whole batch) and the next step tries the fast graph again. After ``max_misses`` misses in
-    a row the fast graph pauses for one step, then two, four, ... while it keeps missing, so the
-    wasted attempts grow with the logarithm of the rollout's length, and a rollout whose hard part
-    passes returns to the fast graph. Every step is either verified converged or checked: each rod
+    (a plan's first large gripper displacement, a fast-moving start, a plan pulling the rope nearly
+    taut) is redone for the rods it left unconverged alone, with the checked eager loops; the
+    others keep the fast result. Why per rod: at planning scale (hundreds of plans) some plan
+    misses at most steps, and redoing the whole batch then cost more than the fast graph itself
+    (512 random plans from one state: 26 of 100 steps redone whole, 1.75x the rollout time).
+    When most of the batch misses (a single rod, or every plan opening with a jump), the whole
+    batch takes the checked step, and after ``max_misses`` such steps in a row the fast graph pauses
+    for one step, then two, four, ... while it keeps missing, so the wasted attempts grow with the
+    logarithm of the rollout's length, and a rollout whose hard part passes returns to the fast
+    graph. Every step is either verified converged or checked: each rod
     stays within the solver tolerances, except a rod whose grippers are farther apart than it is
     long at that step (:func:`deform.model.overstretched`): no shape meets its lengths, no number of
     sweeps converges, so it is not redone (the service's predict flags such plans in its reply).
@@ -216,6 +232,9 @@ class RolloutStep:
     DLO1 states, one run): with one sweep the fast graph missed in 18 of the 42 rollouts (median
     90.7 ms, p90 141 ms), with two in 3 (93.5 ms, 99 ms), all three starts where some plan pulls the
     grippers nearly or fully as far apart as the rod is long. A third Newton iteration only costs.
+
+    ``network_dtype``: the residual network's arithmetic in every step of the rollout (None:
+    float32; bfloat16 where it is native, :mod:`deform.nn.precision`).
     """
 
     def __init__(
@@ -226,15 +245,18 @@ class RolloutStep:
         max_misses: int = 3,
         ahead_of_time: bool = False,
         compile_checked: bool = True,
+        network_dtype: torch.dtype | None = None,
     ):
         self.model = model
-        self.fast = CompiledStep(model, enabled, branch_free=branch_free, ahead_of_time=ahead_of_time)
+        self.fast = CompiledStep(
+            model, enabled, branch_free=branch_free, ahead_of_time=ahead_of_time, network_dtype=network_dtype
+        )
         # the checked step only redoes the rare steps the fast graph leaves unconverged: eager, it
         # costs no compilation at start-up (its graphs take dynamo 10-20 s even from a warm cache)
-        self.checked = CompiledStep(model, enabled and compile_checked)
+        self.checked = CompiledStep(model, enabled and compile_checked, network_dtype=network_dtype)
         self.max_misses = max_misses
-        self.redone = 0  # steps the fast graph left unconverged, redone with the checked step
-        self.paused = 0  # pauses of the fast graph after ``max_misses`` misses in a row
+        self.redone = 0  # rod-steps the fast graph left unconverged, stepped again by the checked loops
+        self.paused = 0  # pauses of the fast graph after ``max_misses`` mostly-missed steps in a row
 
     @property
     def active(self) -> bool:
@@ -246,7 +268,7 @@ class RolloutStep:
 
     def rollout(self, state: RodState, grips: Tensor) -> Tensor:
         out = torch.empty(grips.shape[0], grips.shape[1], state.x.shape[1], 3, dtype=state.x.dtype)
-        misses, retry_at = 0, 0  # misses in a row; the next step at which the fast graph is tried
+        misses, retry_at = 0, 0  # mostly-missed steps in a row; the next step the fast graph is tried at
         with torch.no_grad():
             # an overstretched rod cannot converge: not a miss (rest lengths do not change in a
             # rollout, so all steps at once: one tensor operation instead of one per step)
@@ -255,19 +277,31 @@ class RolloutStep:
                 new = None
                 if k >= retry_at:
                     new, unconverged = self.fast.attempt(state, grips[:, k])
-                    if unconverged is not None:
-                        unconverged = unconverged & reachable[:, k]
-                    if unconverged is not None and bool(unconverged.any()):
+                    bad = [] if unconverged is None else (unconverged & reachable[:, k]).nonzero().squeeze(-1)
+                    if 2 * len(bad) > len(reachable):  # most of the fast result would be thrown away
                         new, misses = None, misses + 1
-                        self.redone += 1
+                        self.redone += len(reachable)
                         if misses >= self.max_misses:  # pause 1, 2, 4, ... steps
                             retry_at = k + 1 + 2 ** (misses - self.max_misses)
                             self.paused += 1
                     else:
                         misses = 0
+                        if len(bad):
+                            new = self._redo(state, grips[:, k], new, bad)
                 state = self.checked(state, grips[:, k]) if new is None else new
                 out[:, k] = state.x
         return out
+
+    def _redo(self, state: RodState, grip: Tensor, new: RodState, bad: Tensor) -> RodState:
+        """``new`` with the rods ``bad`` stepped again from ``state`` by the checked eager loops.
+        Eager, not the checked compiled step: a few rods cost per call, not per rod, and a subset
+        size warm-up did not see would be compiled in the middle of a request."""
+        redo = self.checked.eager(state.index(bad), grip[bad])
+        new = RodState(*(t.clone() for t in (new.x, new.v, new.d1, new.theta, new.rest)))
+        for t, r in zip((new.x, new.v, new.d1, new.theta), (redo.x, redo.v, redo.d1, redo.theta)):
+            t[bad] = r
+        self.redone += len(bad)
+        return new
 
 
 def rollout(step: RolloutStep | CompiledStep | DeformModel, state: RodState, grips: Tensor) -> Tensor:

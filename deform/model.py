@@ -401,13 +401,15 @@ class DeformModel(nn.Module):
         create_graph: bool = False,
         branch_free: tuple[int, int] = (0, 0),
         report: ConvergenceReport | None = None,
+        network_dtype: torch.dtype | None = None,
     ) -> RodState:
         """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
         (``None``: nothing is held, e.g. a dropped rope). ``branch_free``: iterations of the twist
         solve and sweeps of the projection done without host synchronisation before the checked
         loops (for compiled code; same result per rod, see :func:`newton_theta`). ``report``: a
         :class:`ConvergenceReport` that receives the solvers' per-rod convergence after those iterations (``twist_unconverged``,
-        ``length_error``; see :meth:`unconverged_from_report`)."""
+        ``length_error``; see :meth:`unconverged_from_report`). ``network_dtype``: the residual
+        network's arithmetic (None: float32; bfloat16 in batched rollouts, :mod:`deform.nn.precision`)."""
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
@@ -420,7 +422,9 @@ class DeformModel(nn.Module):
                 accel = accel + ext.acceleration(x, v, mass, state.rest)
         v_pred = v + dt * accel
         if self.options.residual:
-            v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32)).to(x.dtype)
+            v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32), network_dtype).to(
+                x.dtype
+            )
         x_pred = x + dt * v_pred
         if grip_next is not None:
             x_pred = x_pred.clone()

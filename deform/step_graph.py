@@ -20,7 +20,11 @@ COMPILE_OPTIONS = {"cpp_wrapper": True, "memory_planning": True}
 
 
 def branch_free_step(
-    model: DeformModel, state: RodState, grip_next: Tensor | None, branch_free: tuple[int, int]
+    model: DeformModel,
+    state: RodState,
+    grip_next: Tensor | None,
+    branch_free: tuple[int, int],
+    network_dtype: torch.dtype | None = None,
 ) -> tuple[RodState, Tensor]:
     """``model.step`` with fixed iterations, and which rods it left unconverged (by the solvers'
     own flags): what the one-graph step computes, compiled or ahead of time.
@@ -30,12 +34,13 @@ def branch_free_step(
         state: :class:`deform.model.RodState` of B rods.
         grip_next: (B, 4, 3) gripped vertices at the new time, or None (nothing held).
         branch_free: (twist iterations, projection sweeps).
+        network_dtype: the residual network's arithmetic (None: float32).
 
     Returns:
         ``(new state, unconverged)``: unconverged (B,) bool.
     """
     report = ConvergenceReport()
-    new = model.step(state, grip_next, branch_free=branch_free, report=report)
+    new = model.step(state, grip_next, branch_free=branch_free, report=report, network_dtype=network_dtype)
     return new, model.unconverged_from_report(report)
 
 

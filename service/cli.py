@@ -136,23 +136,27 @@ def prebuild(cfg) -> int:
     model = load_model(cfg.rod)
     jobs = []  # the thread count is part of a package's key: each is built as its user runs it
     if cfg.compile_step and cfg.step_ahead_of_time:
-        jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64, cfg.torch_threads))
+        jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64, None, cfg.torch_threads))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
         from deform.compiled import bucket_size
+        from deform.nn.precision import network_dtype
         from service.workers import share_sizes
 
         dtype, threads = getattr(torch, cfg.workers.predict_dtype), predict_threads(cfg.workers)
+        network = network_dtype(cfg.workers.predict_network_dtype)
         # the sizes each predict process rolls out for those plan counts (a large request is split)
         w = cfg.workers
         sizes = share_sizes(w.predict_warmup, w.predict_processes, w.predict_split_min_plans)
         buckets = sorted({bucket_size(b) for per in sizes for b in per})
-        jobs += [(f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, threads) for b in buckets]
+        jobs += [
+            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, network, threads) for b in buckets
+        ]
     before = torch.get_num_threads()
-    for label, branch_free, batch, dtype, threads in jobs:
+    for label, branch_free, batch, dtype, network, threads in jobs:
         t0 = time.perf_counter()
         torch.set_num_threads(threads)
         try:
-            path, _ = ensure_package(model, branch_free, batch, dtype)
+            path, _ = ensure_package(model, branch_free, batch, dtype, network)
         except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
             print(f"{label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
             return 1

@@ -104,12 +104,14 @@ class JobContext:
     def step(self):
         if self._step is None:
             from deform.compiled import RolloutStep
+            from deform.nn.precision import network_dtype
 
             self._step = RolloutStep(
                 self.model,
                 enabled=self.cfg.workers.compile_predict,
                 ahead_of_time=self.cfg.workers.predict_ahead_of_time,
                 compile_checked=self.cfg.workers.compile_checked_step,
+                network_dtype=network_dtype(self.cfg.workers.predict_network_dtype),
             )
         return self._step
 

@@ -93,24 +93,30 @@ class ResidualGNN(nn.Module):
         return torch.cat([rel, v / VEL_SCALE], dim=-1)
 
     def _propagate(self, conv: GCNConv, h: Tensor) -> Tensor:
-        r"""GCN layer on the chain: :math:`\hat A (h W^T) + b`, :math:`\hat A` tridiagonal."""
-        y = conv.lin(h)
+        r"""GCN layer on the chain: :math:`\hat A (h W^T) + b`, :math:`\hat A` tridiagonal, in ``h``'s dtype."""
+        dtype = h.dtype
+        y = F.linear(h, conv.lin.weight.to(dtype))
         prev = F.pad(y[..., :-1, :], (0, 0, 1, 0))  # row i holds y[i-1] (zeros for i = 0)
         nxt = F.pad(y[..., 1:, :], (0, 0, 0, 1))  # row i holds y[i+1] (zeros for i = n-1)
-        dtype = y.dtype
         return (
             self.adj_self.to(dtype) * y
             + self.adj_prev.to(dtype) * prev
             + self.adj_next.to(dtype) * nxt
-            + conv.bias
+            + conv.bias.to(dtype)
         )
 
-    def forward(self, x: Tensor, v: Tensor) -> Tensor:
-        """(..., n, 3) positions and velocities -> (..., n, 3) velocity correction."""
+    def forward(self, x: Tensor, v: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+        """(..., n, 3) positions and velocities -> (..., n, 3) velocity correction in ``x``'s dtype.
+        ``dtype``: the layers' arithmetic (None: ``x``'s; bfloat16 for batched rollouts, see
+        :mod:`deform.nn.precision`)."""
         h = self.features(x, v)
+        h = h if dtype is None else h.to(dtype)
         h = torch.relu(self._propagate(self.conv1, h))
         h = torch.relu(self._propagate(self.conv2, h))
-        return self.head(h) * OUT_SCALE
+        hidden, out = self.head[0], self.head[2]
+        h = torch.relu(F.linear(h, hidden.weight.to(h.dtype), hidden.bias.to(h.dtype)))
+        h = F.linear(h, out.weight.to(h.dtype), out.bias.to(h.dtype))
+        return h.to(x.dtype) * OUT_SCALE
 
     def forward_pyg(self, x: Tensor, v: Tensor) -> Tensor:
         """Reference path through ``GCNConv.forward`` on a single (n, 3) rod (used by tests)."""

@@ -138,7 +138,7 @@ def test_a_package_is_built_once_when_two_ask_for_it_at_once(model, tmp_path, mo
     monkeypatch.setenv("DEFORM_CACHE", str(tmp_path))
     builds = []
 
-    def slow_build(model, branch_free, batch, dtype, path):
+    def slow_build(model, branch_free, batch, dtype, path, network_dtype=None):
         builds.append(batch)
         time.sleep(0.3)
         path.write_bytes(b"package")
@@ -158,3 +158,9 @@ def test_a_package_is_built_once_when_two_ask_for_it_at_once(model, tmp_path, mo
     assert builds == [8]
     assert sorted(built for _, built in results) == [False, True]
     assert results[0][0] == results[1][0] and results[0][0].read_bytes() == b"package"
+
+
+def test_the_network_precision_is_part_of_the_package(model):
+    """A bfloat16 network is other kernels: never loaded for a float32 one, nor the reverse."""
+    keys = {aot.package_key(model, BRANCH_FREE, 4, torch.float32, net) for net in (None, torch.bfloat16)}
+    assert len(keys) == 2

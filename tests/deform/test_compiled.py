@@ -118,9 +118,9 @@ def test_rollout_step_one_graph_while_converged(model, start):
 
 @pytest.mark.compile
 def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, start):
-    """A grip jumping 5 cm needs more sweeps than the one graph holds: that step is the checked
-    compiled step's (whole batch), not the unconverged one-graph result, and the following steps
-    go back to the one graph."""
+    """A grip jumping 5 cm needs more sweeps than the one graph holds: that rod's step is redone
+    alone by the checked loops, not left unconverged; the other rods keep the one graph's result
+    (what they get alone), and the following steps go back to the one graph."""
     state, grips = start
     state, grips = (
         model.step(state, grips[:, 0]),
@@ -135,8 +135,10 @@ def test_rollout_step_redoes_an_unconverged_step_with_the_checked_step(model, st
     assert 1 <= step.redone <= 2 and step.paused == 0
     for k in range(out.shape[1]):  # every step within the projection's tolerance
         assert max_relative_error(out[:, k], state.rest).max() < model.options.pbd_tol
-    # the checked step throughout: the same motion; rods converged early sweep on in its batch-wide
-    # loop while the jerked rod needs more, so they differ within the solver tolerance (0.1 mm here)
+    for r in (1, 2):  # untouched by the jerked rod's redo (a whole-batch redo sweeps them on)
+        alone = rollout(model, state.index([r]), jump[r : r + 1])
+        assert (out[r] - alone[0]).abs().max() < 1e-6
+    # the checked step throughout: the same motion within the solver tolerance (0.1 mm here)
     ref = rollout(CompiledStep(model), state, jump)
     assert (out - ref).abs().max() < 5e-4
 
@@ -154,9 +156,12 @@ def test_rollout_step_pauses_the_fast_graph_after_misses_in_a_row(model, start, 
         step.fast, "attempt", lambda s, g: (real(s, g)[0], torch.ones(s.x.shape[0], dtype=torch.bool))
     )
     out = rollout(step, state, grips)
-    steps = grips.shape[1]  # 38: tried at steps 0, 1, 2, then after pauses at 4, 7, 12, 21
-    assert step.redone == step.max_misses + 4 and step.paused == 5
-    assert step.redone < step.max_misses + math.log2(steps) + 1
+    steps, rods = (
+        grips.shape[1],
+        grips.shape[0],
+    )  # 38 steps: tried at 0, 1, 2, then after pauses at 4, 7, 12, 21
+    assert step.redone == rods * (step.max_misses + 4) and step.paused == 5
+    assert step.redone < rods * (step.max_misses + math.log2(steps) + 1)
     ref = rollout(CompiledStep(model), state, grips)
     assert (out - ref).abs().max() < 1e-6
 
@@ -196,3 +201,31 @@ def test_solver_flags_agree_with_a_recomputed_check(model, start):
             for c in ("report", "recompute")
         ]
         assert flags[0] == flags[1] == expected
+
+
+def test_rollout_step_network_precision_reaches_every_path(model, start, monkeypatch):
+    """A bfloat16 network is used in the fast step and in the redo of a rod it leaves unconverged
+    (one precision throughout a rollout), and it is not the float32 network."""
+    state, grips = start
+    state, grips = model.step(state, grips[:, 0]), grips[:, 1:12]
+
+    def eager_rollout(network_dtype):
+        s, out = state, []
+        with torch.no_grad():
+            for k in range(grips.shape[1]):
+                s = model.step(s, grips[:, k], network_dtype=network_dtype)
+                out.append(s.x)
+        return torch.stack(out, 1)
+
+    low, full = eager_rollout(torch.bfloat16), eager_rollout(None)
+    assert (low - full).abs().max() > 0  # the shipped model's network is trained: precision shows
+    step = RolloutStep(model, enabled=False, network_dtype=torch.bfloat16)
+    real = step.fast.attempt
+    monkeypatch.setattr(  # rod 0 "unconverged" at every step: redone alone by the checked loops
+        step.fast, "attempt", lambda s, g: (real(s, g)[0], torch.tensor([True, False, False]))
+    )
+    out = rollout(step, state, grips)
+    assert step.redone == grips.shape[1]
+    assert torch.equal(out[1:], low[1:])
+    # rod 0 stepped alone: the same arithmetic to rounding, far below the precisions' difference
+    assert (out[0] - low[0]).abs().max() < 1e-3 * (low - full).abs().max()

@@ -37,14 +37,16 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
 
     built = []
 
-    def recorder(m, branch_free, batch, dtype):
-        key = aot.package_key(m, branch_free, batch, dtype)
-        built.append((tuple(branch_free), batch, dtype, key, torch.get_num_threads()))
+    def recorder(m, branch_free, batch, dtype, network_dtype=None):
+        key = aot.package_key(m, branch_free, batch, dtype, network_dtype)
+        built.append((tuple(branch_free), batch, dtype, key, torch.get_num_threads(), network_dtype))
         return tmp_path / f"step-{key}.pt2", True
 
     monkeypatch.setattr(aot, "ensure_package", recorder)
     config = tmp_path / "service.yaml"
-    config.write_text("workers:\n  predict_threads: 2\n  predict_warmup: [64, 1000]\n")
+    config.write_text(
+        "workers:\n  predict_threads: 2\n  predict_warmup: [64, 1000]\n  predict_network_dtype: bfloat16\n"
+    )
     threads_before = torch.get_num_threads()
     assert cli.main(["prebuild", "--rod", "DLO1", "--config", str(config)]) == 0
     assert torch.get_num_threads() == threads_before  # prebuild leaves the process as it found it
@@ -57,13 +59,15 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
     ]
     # each built on the threads its user runs it with: the loop's (torch_threads), predict's
     assert [b[4] for b in built] == [1, 2, 2]
+    # the loop's network in float32, predict's in the configured precision (its workers' key)
+    assert [b[5] for b in built] == [None, torch.bfloat16, torch.bfloat16]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
     worker_copy = DeformModel.load(tmp_path / "worker.pt")
     before = torch.get_num_threads()
     try:
-        for branch_free, batch, dtype, key, threads in built:
+        for branch_free, batch, dtype, key, threads, network in built:
             torch.set_num_threads(threads)
-            assert aot.package_key(worker_copy, branch_free, batch, dtype) == key
+            assert aot.package_key(worker_copy, branch_free, batch, dtype, network) == key
     finally:
         torch.set_num_threads(before)
     assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float32) != built[1][3]
