@@ -38,6 +38,12 @@ BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 # (12, 6) redid a step in 3000 ticks. (4, 2) redid 123 and put tick p99 at 5.8 ms.
 LOOP_BRANCH_FREE = (6, 3)
 PREDICT_BRANCH_FREE = (2, 2)  # the predict rollout's fast graph (see RolloutStep)
+# the rollout's second try for the rods its fast graph left unconverged: the checked solvers' own
+# limits (30 Newton iterations, 20 sweeps) as one graph, in groups of this many rods (one
+# ahead-of-time package; its loops exit once every rod converged). The loop's (6, 3) left most such
+# rods unconverged: they are rods pulled nearly taut, whose projection needs 5-20 sweeps.
+RESCUE_BRANCH_FREE = (30, 20)
+RESCUE_BATCH = 8
 
 
 def bucket_size(batch: int) -> int:
@@ -82,6 +88,8 @@ class CompiledStep:
     about 3x; rods it leaves unconverged (by the solvers' own flags, ``check="report"``, or by
     ``model.unconverged``, ``check="recompute"``) are stepped again eagerly. ``network_dtype``: the
     residual network's arithmetic in every path (None: float32; :mod:`deform.nn.precision`).
+    ``compile_fallback=False``: where the ahead-of-time step cannot be had, the eager step instead
+    of torch.compile (for a graph too large to compile unrolled, see :data:`RESCUE_BRANCH_FREE`).
     """
 
     def __init__(
@@ -92,9 +100,11 @@ class CompiledStep:
         check: ConvergenceCheck | str = "report",
         ahead_of_time: bool = False,
         network_dtype: torch.dtype | None = None,
+        compile_fallback: bool = True,
     ):
         self.model = model
         self.network_dtype = network_dtype
+        self.compile_fallback = compile_fallback
         self.enabled = enabled
         self.branch_free = branch_free
         # the branch-free step as an AOTInductor package per (bucket, dtype) (deform.aot: the same
@@ -149,7 +159,10 @@ class CompiledStep:
             except Exception as exc:
                 self.ahead_of_time = False
                 log.warning(
-                    "ahead-of-time step unavailable (%s: %s); using torch.compile", type(exc).__name__, exc
+                    "ahead-of-time step unavailable (%s: %s); using %s",
+                    type(exc).__name__,
+                    exc,
+                    "torch.compile" if self.compile_fallback else "the eager step",
                 )
         return fn
 
@@ -176,6 +189,8 @@ class CompiledStep:
                         log.warning(
                             "ahead-of-time step failed (%s: %s); using torch.compile", type(exc).__name__, exc
                         )
+                if fn is None and not self.compile_fallback:
+                    raise RuntimeError("no ahead-of-time step, and no torch.compile fallback")
                 if fn is None:
                     out, unconverged = self._step_fn()(padded, grip)
         except Exception as exc:
@@ -215,12 +230,14 @@ class RolloutStep:
     converge every rod costs one graph call, against a dozen for the convergence-checked loops
     (each iteration a graph and a host synchronisation). A step the fast graph leaves unconverged
     (a plan's first large gripper displacement, a fast-moving start, a plan pulling the rope nearly
-    taut) is redone for the rods it left unconverged alone, with the checked eager loops; the
-    others keep the fast result. Why per rod: at planning scale (hundreds of plans) some plan
-    misses at most steps, and redoing the whole batch then cost more than the fast graph itself
-    (512 random plans from one state: 26 of 100 steps redone whole, 1.75x the rollout time).
-    When most of the batch misses (a single rod, or every plan opening with a jump), the whole
-    batch takes the checked step, and after ``max_misses`` such steps in a row the fast graph pauses
+    taut) is redone for the rods it left unconverged alone, the others keep the fast result. Those
+    rods go through the rescue graph (the checked solvers' limits as one ahead-of-time graph, 8 rods
+    a call, :data:`RESCUE_BRANCH_FREE`), or the checked eager loops without it. Why per rod: at
+    planning scale (hundreds of plans) some plan misses at most steps, and redoing the whole batch
+    then cost more than the fast graph itself (512 random plans from one state, one thread: 601 ms
+    per rollout with the whole batch redone, 347 ms per rod with the eager loops, 243 ms with the
+    rescue graph; the fast graph alone about 200 ms). When most of the batch misses (every plan
+    opening with a jump), the whole batch takes the checked step, and after ``max_misses`` such steps in a row the fast graph pauses
     for one step, then two, four, ... while it keeps missing, so the wasted attempts grow with the
     logarithm of the rollout's length, and a rollout whose hard part passes returns to the fast
     graph. Every step is either verified converged or checked: each rod
@@ -254,6 +271,15 @@ class RolloutStep:
         # the checked step only redoes the rare steps the fast graph leaves unconverged: eager, it
         # costs no compilation at start-up (its graphs take dynamo 10-20 s even from a warm cache)
         self.checked = CompiledStep(model, enabled and compile_checked, network_dtype=network_dtype)
+        # ahead of time only: unrolled under torch.compile its 50 iterations would compile for minutes
+        self.rescue = CompiledStep(
+            model,
+            enabled and ahead_of_time,
+            branch_free=RESCUE_BRANCH_FREE,
+            ahead_of_time=True,
+            network_dtype=network_dtype,
+            compile_fallback=False,
+        )
         self.max_misses = max_misses
         self.redone = 0  # rod-steps the fast graph left unconverged, stepped again by the checked loops
         self.paused = 0  # pauses of the fast graph after ``max_misses`` mostly-missed steps in a row
@@ -264,6 +290,8 @@ class RolloutStep:
 
     def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64) -> bool:
         fast = self.fast.warmup(batch_sizes, dtype)
+        if self.rescue.active:  # (inactive: the rods are redone eagerly, nothing to warm up)
+            self.rescue.warmup((RESCUE_BATCH,), dtype)
         return fast & (self.checked.warmup(batch_sizes, dtype) if self.checked.enabled else True)
 
     def rollout(self, state: RodState, grips: Tensor) -> Tensor:
@@ -278,7 +306,10 @@ class RolloutStep:
                 if k >= retry_at:
                     new, unconverged = self.fast.attempt(state, grips[:, k])
                     bad = [] if unconverged is None else (unconverged & reachable[:, k]).nonzero().squeeze(-1)
-                    if 2 * len(bad) > len(reachable):  # most of the fast result would be thrown away
+                    # most of the fast result would be thrown away (and more rods than one rescue
+                    # call takes, which costs less than the whole batch's checked step)
+                    few = self.rescue.active and len(bad) <= RESCUE_BATCH
+                    if 2 * len(bad) > len(reachable) and not few:
                         new, misses = None, misses + 1
                         self.redone += len(reachable)
                         if misses >= self.max_misses:  # pause 1, 2, 4, ... steps
@@ -293,15 +324,39 @@ class RolloutStep:
         return out
 
     def _redo(self, state: RodState, grip: Tensor, new: RodState, bad: Tensor) -> RodState:
-        """``new`` with the rods ``bad`` stepped again from ``state`` by the checked eager loops.
-        Eager, not the checked compiled step: a few rods cost per call, not per rod, and a subset
-        size warm-up did not see would be compiled in the middle of a request."""
-        redo = self.checked.eager(state.index(bad), grip[bad])
+        """``new`` with the rods ``bad`` stepped again from ``state``: by the rescue graph (the
+        checked solvers' limits as one graph, :data:`RESCUE_BATCH` rods a call) and the few it
+        leaves unconverged by the checked eager loops, or by those alone without the rescue graph.
+        Why the rescue graph: an eager step of a few rods cost about 1.3 ms whatever their number
+        (interpreter-bound), two thirds of the fast graph's step of 512 rods; a rescue call 0.5 ms.
+        Not the checked compiled step: a subset size warm-up did not see would be compiled in the
+        middle of a request."""
         new = RodState(*(t.clone() for t in (new.x, new.v, new.d1, new.theta, new.rest)))
-        for t, r in zip((new.x, new.v, new.d1, new.theta), (redo.x, redo.v, redo.d1, redo.theta)):
-            t[bad] = r
+        groups = range(0, len(bad), RESCUE_BATCH) if self.rescue.active else [0]
+        for lo in groups:
+            rods = bad[lo : lo + RESCUE_BATCH] if self.rescue.active else bad
+            part, part_grip = state.index(rods), grip[rods]
+            out = (
+                self._rescued(part, part_grip) if self.rescue.active else self.checked.eager(part, part_grip)
+            )
+            for t, r in zip((new.x, new.v, new.d1, new.theta), (out.x, out.v, out.d1, out.theta)):
+                t[rods] = r
         self.redone += len(bad)
         return new
+
+    def _rescued(self, part: RodState, grip: Tensor) -> RodState:
+        """Up to :data:`RESCUE_BATCH` rods through the rescue graph (padded to its one size), those
+        it leaves unconverged through the checked eager loops."""
+        k = part.x.shape[0]
+        padded = RodState(*(_pad(t, RESCUE_BATCH) for t in (part.x, part.v, part.d1, part.theta, part.rest)))
+        out, unconverged = self.rescue.attempt(padded, _pad(grip, RESCUE_BATCH))
+        out = RodState(*(t[:k].clone() for t in (out.x, out.v, out.d1, out.theta, out.rest)))
+        still = [] if unconverged is None else unconverged[:k].nonzero().squeeze(-1)
+        if len(still):
+            again = self.checked.eager(part.index(still), grip[still])
+            for t, r in zip((out.x, out.v, out.d1, out.theta), (again.x, again.v, again.d1, again.theta)):
+                t[still] = r
+        return out
 
 
 def rollout(step: RolloutStep | CompiledStep | DeformModel, state: RodState, grips: Tensor) -> Tensor:

@@ -130,7 +130,7 @@ def prebuild(cfg) -> int:
 
     from deform import load_model
     from deform.aot import cache_dir, ensure_package
-    from deform.compiled import LOOP_BRANCH_FREE, PREDICT_BRANCH_FREE
+    from deform.compiled import LOOP_BRANCH_FREE, PREDICT_BRANCH_FREE, RESCUE_BATCH, RESCUE_BRANCH_FREE
     from service.config import predict_threads
 
     model = load_model(cfg.rod)
@@ -151,6 +151,8 @@ def prebuild(cfg) -> int:
         jobs += [
             (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, network, threads) for b in buckets
         ]
+        # the second try for the rods a predict step leaves unconverged (deform.compiled.RolloutStep)
+        jobs.append(("predict rescue step", RESCUE_BRANCH_FREE, RESCUE_BATCH, dtype, network, threads))
     before = torch.get_num_threads()
     for label, branch_free, batch, dtype, network, threads in jobs:
         t0 = time.perf_counter()

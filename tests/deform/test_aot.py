@@ -164,3 +164,32 @@ def test_the_network_precision_is_part_of_the_package(model):
     """A bfloat16 network is other kernels: never loaded for a float32 one, nor the reverse."""
     keys = {aot.package_key(model, BRANCH_FREE, 4, torch.float32, net) for net in (None, torch.bfloat16)}
     assert len(keys) == 2
+
+
+def test_unconverged_rods_are_redone_by_the_rescue_package(model, start, monkeypatch):
+    """A grip jumping 5 cm needs more sweeps than predict's one graph holds: that rod goes through
+    the rescue package (the checked solvers' limits as one graph), not the eager loops, and comes
+    out within the projection's tolerance; the other rods keep the one graph's result."""
+    from deform.compiled import CompiledStep
+    from deform.rod.inextensibility import max_relative_error
+
+    state, grips = start
+    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]
+    jump = grips.clone()
+    jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
+    step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
+    assert step.rescue.active
+    eager_calls = []
+    real_eager = step.checked.eager
+    monkeypatch.setattr(
+        step.checked, "eager", lambda s, g: eager_calls.append(s.x.shape[0]) or real_eager(s, g)
+    )
+    out = rollout(step, state, jump)
+    assert step.redone >= 1 and step.rescue.ahead_of_time
+    assert eager_calls == [], "the rescue package converged the jerked rod"
+    for k in range(out.shape[1]):
+        assert max_relative_error(out[:, k], state.rest).max() < model.options.pbd_tol
+    for r in (1, 2):  # untouched by the redo: what the one graph gives them
+        assert torch.equal(out[r], rollout(RolloutStep(model, branch_free=BRANCH_FREE), state, jump)[r])
+    ref = rollout(CompiledStep(model), state, jump)  # the checked step throughout
+    assert (out - ref).abs().max() < 5e-4

@@ -33,7 +33,7 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
 
     import deform.aot as aot
     from deform import DeformModel, load_model
-    from deform.compiled import LOOP_BRANCH_FREE
+    from deform.compiled import LOOP_BRANCH_FREE, RESCUE_BATCH, RESCUE_BRANCH_FREE
 
     built = []
 
@@ -56,11 +56,12 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
         (LOOP_BRANCH_FREE, 1, torch.float64),
         ((2, 2), 64, torch.float32),
         ((2, 2), 512, torch.float32),
+        (RESCUE_BRANCH_FREE, RESCUE_BATCH, torch.float32),  # the rods a predict step left unconverged
     ]
     # each built on the threads its user runs it with: the loop's (torch_threads), predict's
-    assert [b[4] for b in built] == [1, 2, 2]
+    assert [b[4] for b in built] == [1, 2, 2, 2]
     # the loop's network in float32, predict's in the configured precision (its workers' key)
-    assert [b[5] for b in built] == [None, torch.bfloat16, torch.bfloat16]
+    assert [b[5] for b in built] == [None, torch.bfloat16, torch.bfloat16, torch.bfloat16]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
     worker_copy = DeformModel.load(tmp_path / "worker.pt")
     before = torch.get_num_threads()
