@@ -68,6 +68,14 @@ def _pad(t: Tensor, size: int) -> Tensor:
     return torch.cat([t, t[:1].expand(size - t.shape[0], *t.shape[1:])], dim=0)
 
 
+def _with_rods(state: RodState, rods: Tensor, part: RodState) -> RodState:
+    """A copy of ``state`` whose rods ``rods`` are those of ``part`` (rest lengths kept)."""
+    out = RodState(*(t.clone() for t in (state.x, state.v, state.d1, state.theta, state.rest)))
+    for t, r in zip((out.x, out.v, out.d1, out.theta), (part.x, part.v, part.d1, part.theta)):
+        t[rods] = r
+    return out
+
+
 class ConvergenceCheck(str, enum.Enum):
     """How a branch-free step is verified: by the solvers' own flags (cheaper), or by
     :meth:`DeformModel.unconverged` (a second evaluation of the twist Hessian)."""
@@ -208,9 +216,7 @@ class CompiledStep:
         if len(bad):  # rare (a sudden large motion): those rods again, with the eager checked loops
             with torch.no_grad():
                 redo = self.eager(state.index(bad), None if grip_next is None else grip_next[bad])
-            out = RodState(*(t.clone() for t in (out.x, out.v, out.d1, out.theta, out.rest)))
-            for t, r in zip((out.x, out.v, out.d1, out.theta), (redo.x, redo.v, redo.d1, redo.theta)):
-                t[bad] = r
+            out = _with_rods(out, bad, redo)
             self.redone += len(bad)
         return out
 
@@ -331,18 +337,15 @@ class RolloutStep:
         (interpreter-bound), two thirds of the fast graph's step of 512 rods; a rescue call 0.5 ms.
         Not the checked compiled step: a subset size warm-up did not see would be compiled in the
         middle of a request."""
-        new = RodState(*(t.clone() for t in (new.x, new.v, new.d1, new.theta, new.rest)))
-        groups = range(0, len(bad), RESCUE_BATCH) if self.rescue.active else [0]
-        for lo in groups:
-            rods = bad[lo : lo + RESCUE_BATCH] if self.rescue.active else bad
-            part, part_grip = state.index(rods), grip[rods]
-            out = (
-                self._rescued(part, part_grip) if self.rescue.active else self.checked.eager(part, part_grip)
+        if not self.rescue.active:
+            part = self.checked.eager(state.index(bad), grip[bad])
+        else:
+            groups = [self._rescued(state.index(g), grip[g]) for g in bad.split(RESCUE_BATCH)]
+            part = RodState(
+                *(torch.cat(ts) for ts in zip(*((o.x, o.v, o.d1, o.theta, o.rest) for o in groups)))
             )
-            for t, r in zip((new.x, new.v, new.d1, new.theta), (out.x, out.v, out.d1, out.theta)):
-                t[rods] = r
         self.redone += len(bad)
-        return new
+        return _with_rods(new, bad, part)
 
     def _rescued(self, part: RodState, grip: Tensor) -> RodState:
         """Up to :data:`RESCUE_BATCH` rods through the rescue graph (padded to its one size), those
@@ -350,12 +353,10 @@ class RolloutStep:
         k = part.x.shape[0]
         padded = RodState(*(_pad(t, RESCUE_BATCH) for t in (part.x, part.v, part.d1, part.theta, part.rest)))
         out, unconverged = self.rescue.attempt(padded, _pad(grip, RESCUE_BATCH))
-        out = RodState(*(t[:k].clone() for t in (out.x, out.v, out.d1, out.theta, out.rest)))
+        out = RodState(*(t[:k] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
         still = [] if unconverged is None else unconverged[:k].nonzero().squeeze(-1)
         if len(still):
-            again = self.checked.eager(part.index(still), grip[still])
-            for t, r in zip((out.x, out.v, out.d1, out.theta), (again.x, again.v, again.d1, again.theta)):
-                t[still] = r
+            out = _with_rods(out, still, self.checked.eager(part.index(still), grip[still]))
         return out
 
 
