@@ -11,7 +11,8 @@ axis over the 100 steps, from the state of a recording at frames 50, 200 and 350
     python benchmarks/predict_rollout.py --settings 2,2 2,2:aot    # torch.compile vs ahead of time
 
 A setting ``T,S:aot`` runs the one-graph step as an AOTInductor package (``deform.aot``), ``T,S:aot:bf16``
-also with the residual network in bfloat16 (``deform.nn.precision``).
+also with the residual network in bfloat16 (``deform.nn.precision``; from 512 plans on, below that
+the float32 network runs either way).
 
 Prints one JSON line per setting: median, p90 and max rollout time (best of ``repeats`` per start
 state), the starts where the one graph missed, rod-steps redone, and pauses.

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from deform.aot import AheadOfTimeStep
 from deform.model import DeformModel, RodState, overstretched
+from deform.nn import precision
 from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 
 log = logging.getLogger("deform.compiled")
@@ -95,7 +96,8 @@ class CompiledStep:
     the whole step is one graph with that many masked iterations, which cuts the per-call cost
     about 3x; rods it leaves unconverged (by the solvers' own flags, ``check="report"``, or by
     ``model.unconverged``, ``check="recompute"``) are stepped again eagerly. ``network_dtype``: the
-    residual network's arithmetic in every path (None: float32; :mod:`deform.nn.precision`).
+    residual network's arithmetic in every path from :data:`deform.nn.precision.BFLOAT16_MIN_BATCH`
+    rods per step on (None, and below that: float32; :mod:`deform.nn.precision`).
     ``compile_fallback=False``: where the ahead-of-time step cannot be had, the eager step instead
     of torch.compile (for a graph too large to compile unrolled, see :data:`RESCUE_BRANCH_FREE`).
     """
@@ -140,14 +142,20 @@ class CompiledStep:
             return self.eager(state, grip_next), None
         if self.check == ConvergenceCheck.RECOMPUTE:
             new = self.model.step(
-                state, grip_next, branch_free=self.branch_free, network_dtype=self.network_dtype
+                state, grip_next, branch_free=self.branch_free, network_dtype=self._network(state.x.shape[0])
             )
             return new, self.model.unconverged(state, new, held=grip_next is not None)
-        return branch_free_step(self.model, state, grip_next, self.branch_free, self.network_dtype)
+        return branch_free_step(
+            self.model, state, grip_next, self.branch_free, self._network(state.x.shape[0])
+        )
 
     def eager(self, state: RodState, grip_next: Tensor | None) -> RodState:
         """The model's own step with its checked loops (and this step's network precision)."""
-        return self.model.step(state, grip_next, network_dtype=self.network_dtype)
+        return self.model.step(state, grip_next, network_dtype=self._network(state.x.shape[0]))
+
+    def _network(self, batch: int) -> torch.dtype | None:
+        """The residual network's dtype for a step of ``batch`` rods (:func:`deform.nn.precision.for_batch`)."""
+        return precision.for_batch(self.network_dtype, batch)
 
     def _step_fn(self):
         if self._compiled is None:
@@ -162,7 +170,7 @@ class CompiledStep:
         if fn is None:
             try:
                 fn = self._aot[(size, dtype)] = AheadOfTimeStep(
-                    self.model, self.branch_free, size, dtype, self.network_dtype
+                    self.model, self.branch_free, size, dtype, self._network(size)
                 )
             except Exception as exc:
                 self.ahead_of_time = False

@@ -63,7 +63,7 @@ KNOWN = {
     ),
     "predict_planning.json": (
         "Planning-scale predict in the service",
-        "python benchmarks/predict_planning.py --n 20 --rounds 2 --compare predict_processes=1",
+        "python benchmarks/predict_planning.py --n 20 --rounds 2 --compare predict_network_dtype=float32",
     ),
 }
 
@@ -628,7 +628,12 @@ def render_predict_planning(d: dict) -> list[str]:
     out = [
         f"Default configuration ({d.get('rounds')} services, interleaved with each variant);"
         f" loop meanwhile: {loop.get('miss_pct')} % of {loop.get('ticks')} ticks missed,"
-        f" tick-to-publish p99 {get(d, 'loop', 'tick_to_publish_ms', 'p99')} ms.",
+        f" tick-to-publish p99 {get(d, 'loop', 'tick_to_publish_ms', 'p99')} ms."
+        + (
+            f" Rod-steps the one-graph step left unconverged: {d['redone_pct_of_rod_steps']} %."
+            if "redone_pct_of_rod_steps" in d
+            else ""
+        ),
         "",
     ]
     return out + table(header, rows)
@@ -639,6 +644,7 @@ def render_float32(d: dict) -> list[str]:
         ("float32", "eager float32"),
         ("predict_float64", "predict's step"),
         ("predict_float32", "predict's step, float32"),
+        ("predict_float32_bf16_network", "predict's step, float32, bfloat16 network"),
     ]
     names = [(k, label) for k, label in names if any(f"{k}_l1_cm" in r for r in d.get("rods", {}).values())]
     rows = []

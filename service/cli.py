@@ -123,7 +123,8 @@ def _wait(stop: threading.Event, duration: float | None = None) -> None:
 
 def prebuild(cfg) -> int:
     """Build the ahead-of-time packages a start with ``cfg`` loads (the loop step, the predict step per
-    warm-up size) so that the first start is a warm one (about 10 s instead of about 60)."""
+    warm-up size, predict's rescue graph) so that the first start is a warm one (about 10 s instead
+    of a minute or more)."""
     import time
 
     import torch
@@ -139,7 +140,7 @@ def prebuild(cfg) -> int:
         jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64, None, cfg.torch_threads))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
         from deform.compiled import bucket_size
-        from deform.nn.precision import network_dtype
+        from deform.nn.precision import for_batch, network_dtype
         from service.workers import share_sizes
 
         dtype, threads = getattr(torch, cfg.workers.predict_dtype), predict_threads(cfg.workers)
@@ -149,10 +150,12 @@ def prebuild(cfg) -> int:
         sizes = share_sizes(w.predict_warmup, w.predict_processes, w.predict_split_min_plans)
         buckets = sorted({bucket_size(b) for per in sizes for b in per})
         jobs += [
-            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, network, threads) for b in buckets
+            (f"predict step, {b} plans", PREDICT_BRANCH_FREE, b, dtype, for_batch(network, b), threads)
+            for b in buckets
         ]
         # the second try for the rods a predict step leaves unconverged (deform.compiled.RolloutStep)
-        jobs.append(("predict rescue step", RESCUE_BRANCH_FREE, RESCUE_BATCH, dtype, network, threads))
+        rescue_network = for_batch(network, RESCUE_BATCH)
+        jobs.append(("predict rescue step", RESCUE_BRANCH_FREE, RESCUE_BATCH, dtype, rescue_network, threads))
     before = torch.get_num_threads()
     for label, branch_free, batch, dtype, network, threads in jobs:
         t0 = time.perf_counter()

@@ -82,8 +82,9 @@ class Workers(_Strict):
     # scores the paper's metric within 0.003 mm of the eager float64 step on DLO1-DLO3
     # (benchmarks/predict_planning.py, benchmarks/float32_accuracy.py); replies are float32 anyway
     predict_dtype: Literal["float32", "float64"] = "float32"
-    # the residual network's arithmetic in predict's rollouts (deform.nn.precision): auto is
-    # bfloat16 on a CPU that multiplies it natively (AMX, AVX512-BF16), else float32
+    # the residual network's arithmetic in predict's rollouts of 512 rods or more per process
+    # (deform.nn.precision; below, float32 is faster): auto is bfloat16 on a CPU that multiplies it
+    # natively (AMX, AVX512-BF16), else float32
     predict_network_dtype: Literal["auto", "float32", "bfloat16"] = "auto"
     # threads of the predict worker's rollouts (null: every core). One by default: the compiled
     # step's parallel loops wait at ~120 barriers per step for their slowest thread, so on 2 cores

@@ -60,8 +60,9 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
     ]
     # each built on the threads its user runs it with: the loop's (torch_threads), predict's
     assert [b[4] for b in built] == [1, 2, 2, 2]
-    # the loop's network in float32, predict's in the configured precision (its workers' key)
-    assert [b[5] for b in built] == [None, torch.bfloat16, torch.bfloat16, torch.bfloat16]
+    # the loop's network in float32, predict's in the configured precision from 512 rods on (its
+    # workers' key: deform.nn.precision.for_batch)
+    assert [b[5] for b in built] == [None, None, torch.bfloat16, None]
     model.save(tmp_path / "worker.pt")  # what service/workers.py hands its child processes
     worker_copy = DeformModel.load(tmp_path / "worker.pt")
     before = torch.get_num_threads()

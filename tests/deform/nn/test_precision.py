@@ -51,6 +51,12 @@ def test_native_bfloat16_is_false_when_torch_cannot_tell(monkeypatch):
     assert precision.native_bfloat16() is False
 
 
+def test_bfloat16_only_from_the_batch_where_it_pays():
+    assert precision.for_batch(torch.bfloat16, precision.BFLOAT16_MIN_BATCH) is torch.bfloat16
+    assert precision.for_batch(torch.bfloat16, precision.BFLOAT16_MIN_BATCH - 1) is None
+    assert precision.for_batch(None, 4096) is None
+
+
 def test_unknown_setting_is_refused():
     with pytest.raises(ValueError, match="bfloat16"):
         precision.network_dtype("float16")
