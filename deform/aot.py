@@ -110,7 +110,9 @@ def package_key(
 class _BranchFreeStep(torch.nn.Module):
     """``model.step`` with fixed iterations on flat tensors, and the rods it left unconverged."""
 
-    def __init__(self, model: DeformModel, branch_free: tuple[int, int], network_dtype: torch.dtype | None):
+    def __init__(
+        self, model: DeformModel, branch_free: tuple[int, int], network_dtype: torch.dtype | None = None
+    ):
         super().__init__()
         self.model, self.branch_free, self.network_dtype = model, branch_free, network_dtype
 
