@@ -33,6 +33,9 @@ def test_unknown_keys_and_bad_values_name_the_file_and_field(tmp_path):
     bad.write_text("rate_hz: -1\n")
     with pytest.raises(ServiceConfigError, match="rate_hz"):
         load_config(bad)
+    bad.write_text("workers: {predict_network_dtype: float16}\n")  # not a precision predict offers
+    with pytest.raises(ServiceConfigError, match="predict_network_dtype"):
+        load_config(bad)
     with pytest.raises(ServiceConfigError, match="no such file"):
         load_config(tmp_path / "missing.yaml")
 
