@@ -12,7 +12,11 @@ axis over the 100 steps, from the state of a recording at frames 50, 200 and 350
 
 A setting ``T,S:aot`` runs the one-graph step as an AOTInductor package (``deform.aot``), ``T,S:aot:bf16``
 also with the residual network in bfloat16 (``deform.nn.precision``; from 512 plans on, below that
-the float32 network runs either way).
+the float32 network runs either way), ``...:norescue`` redoes unconverged rods with the checked eager
+loops instead of the rescue graph. ``--start sagging`` starts every plan from one sagging rod that
+many plans pull nearly taut (where the one graph misses):
+
+    python benchmarks/predict_rollout.py --start sagging --plans 512 --repeats 3 --settings 2,2:aot:norescue 2,2:aot
 
 Prints one JSON line per setting: median, p90 and max rollout time (best of ``repeats`` per start
 state), the starts where the one graph missed, rod-steps redone, and pauses.
@@ -52,6 +56,19 @@ def start_states(model, rod: str, n_recordings: int):
             yield f"{r.name}@{k}", s, X[k + 1, gi]
 
 
+def sagging_start(model):
+    """One rod hanging between grippers 0.8 m apart with 15 cm of sag, at rest in that shape (its
+    rest lengths are this shape's): random plans of up to 10 cm per axis then pull many of the
+    rods nearly taut, where the one-graph step misses (planning-scale sampling meets this)."""
+    from deform import gripped_indices
+
+    s = torch.linspace(0, 1, model.n, dtype=torch.float64)
+    x = torch.stack([0.8 * s, 0 * s, 0.4 - 0.15 * torch.sin(torch.pi * s)], -1)[None]
+    state = model.initial_state(x, x)
+    grip = x[0, gripped_indices(model.n)]
+    yield "sagging", model.step(state, grip[None]), grip
+
+
 def main() -> None:
     from deform import RodState, load_model
     from deform.compiled import RolloutStep, rollout
@@ -66,6 +83,12 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--start",
+        default="recorded",
+        choices=["recorded", "sagging"],
+        help="recorded states, or sagging_start",
+    )
     ap.add_argument(
         "--dtype",
         default="float32",
@@ -85,12 +108,18 @@ def main() -> None:
         )
         for s in args.settings
     }
+    for s, st in steps.items():
+        if "norescue" in s.split(":")[1:]:  # unconverged rods through the checked eager loops only
+            st.rescue.enabled = False
     for st in steps.values():
         st.warmup((args.plans,), dtype)
     rng = np.random.default_rng(args.seed)
     results = {s: {"ms": [], "missed_at": [], "redone": 0, "paused": 0} for s in args.settings}
     lin = torch.linspace(0, 1, args.steps, dtype=torch.float64)[None, :, None, None]
-    for name, state, grip in start_states(model, args.rod, args.recordings):
+    starts = (
+        sagging_start(model) if args.start == "sagging" else start_states(model, args.rod, args.recordings)
+    )
+    for name, state, grip in starts:
         batch = RodState(
             *(
                 t.expand(args.plans, *t.shape[1:]).to(dtype)

@@ -248,9 +248,9 @@ class RolloutStep:
     rods go through the rescue graph (the checked solvers' limits as one ahead-of-time graph, 8 rods
     a call, :data:`RESCUE_BRANCH_FREE`), or the checked eager loops without it. Why per rod: at
     planning scale (hundreds of plans) some plan misses at most steps, and redoing the whole batch
-    then cost more than the fast graph itself (512 random plans from one state, one thread: 601 ms
-    per rollout with the whole batch redone, 347 ms per rod with the eager loops, 243 ms with the
-    rescue graph; the fast graph alone about 200 ms). When most of the batch misses (every plan
+    then cost more than the fast graph itself (``benchmarks/predict_rollout.py --start sagging
+    --plans 512``, one thread: 348 ms per rollout with the eager loops, 223 ms with the rescue
+    graph; the whole-batch redo before, timed by a scratch script on that start: 601 ms). When most of the batch misses (every plan
     opening with a jump), the whole batch takes the checked step, and after ``max_misses`` such steps in a row the fast graph pauses
     for one step, then two, four, ... while it keeps missing, so the wasted attempts grow with the
     logarithm of the rollout's length, and a rollout whose hard part passes returns to the fast
