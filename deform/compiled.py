@@ -47,16 +47,17 @@ RESCUE_BRANCH_FREE = (30, 20)
 RESCUE_BATCH = 8
 
 
-def bucket_size(batch: int) -> int:
+def bucket_size(batch: int, buckets: tuple[int, ...] = BUCKETS) -> int:
     """Smallest bucket that holds ``batch`` rods (batches above the largest bucket are not padded).
 
     Args:
         batch: rods to step.
+        buckets: the compiled batch sizes, ascending.
 
     Returns:
         The bucket (a compiled batch size) to pad to, or ``batch`` above the largest.
     """
-    for b in BUCKETS:
+    for b in buckets:
         if batch <= b:
             return b
     return batch
@@ -100,6 +101,7 @@ class CompiledStep:
     rods per step on (None, and below that: float32; :mod:`deform.nn.precision`).
     ``compile_fallback=False``: where the ahead-of-time step cannot be had, the eager step instead
     of torch.compile (for a graph too large to compile unrolled, see :data:`RESCUE_BRANCH_FREE`).
+    ``buckets``: the batch sizes compiled, a batch padded to the smallest that holds it.
     """
 
     def __init__(
@@ -111,8 +113,10 @@ class CompiledStep:
         ahead_of_time: bool = False,
         network_dtype: torch.dtype | None = None,
         compile_fallback: bool = True,
+        buckets: tuple[int, ...] = BUCKETS,
     ):
         self.model = model
+        self.buckets = buckets
         self.network_dtype = network_dtype
         self.compile_fallback = compile_fallback
         self.enabled = enabled
@@ -189,7 +193,7 @@ class CompiledStep:
         if not self.active or (torch.is_grad_enabled() and state.x.requires_grad):
             return self.eager(state, grip_next), None
         batch = state.x.shape[0]
-        size = bucket_size(batch)
+        size = bucket_size(batch, self.buckets)
         padded = RodState(*(_pad(t, size) for t in (state.x, state.v, state.d1, state.theta, state.rest)))
         grip = None if grip_next is None else _pad(grip_next, size)
         try:
@@ -285,7 +289,8 @@ class RolloutStep:
         # the checked step only redoes the rare steps the fast graph leaves unconverged: eager, it
         # costs no compilation at start-up (its graphs take dynamo 10-20 s even from a warm cache)
         self.checked = CompiledStep(model, enabled and compile_checked, network_dtype=network_dtype)
-        # ahead of time only: unrolled under torch.compile its 50 iterations would compile for minutes
+        # ahead of time only: unrolled under torch.compile its 50 iterations would compile for
+        # minutes; one package, every group of rods padded to its size
         self.rescue = CompiledStep(
             model,
             enabled and ahead_of_time,
@@ -293,6 +298,7 @@ class RolloutStep:
             ahead_of_time=True,
             network_dtype=network_dtype,
             compile_fallback=False,
+            buckets=(RESCUE_BATCH,),
         )
         self.max_misses = max_misses
         self.redone = 0  # rod-steps the fast graph left unconverged, stepped again by the checked loops
@@ -347,25 +353,13 @@ class RolloutStep:
         middle of a request."""
         if not self.rescue.active:
             part = self.checked.eager(state.index(bad), grip[bad])
-        else:
-            groups = [self._rescued(state.index(g), grip[g]) for g in bad.split(RESCUE_BATCH)]
+        else:  # the rescue step redoes what its graph leaves unconverged with the same eager loops
+            groups = [self.rescue(state.index(g), grip[g]) for g in bad.split(RESCUE_BATCH)]
             part = RodState(
                 *(torch.cat(ts) for ts in zip(*((o.x, o.v, o.d1, o.theta, o.rest) for o in groups)))
             )
         self.redone += len(bad)
         return _with_rods(new, bad, part)
-
-    def _rescued(self, part: RodState, grip: Tensor) -> RodState:
-        """Up to :data:`RESCUE_BATCH` rods through the rescue graph (padded to its one size), those
-        it leaves unconverged through the checked eager loops."""
-        k = part.x.shape[0]
-        padded = RodState(*(_pad(t, RESCUE_BATCH) for t in (part.x, part.v, part.d1, part.theta, part.rest)))
-        out, unconverged = self.rescue.attempt(padded, _pad(grip, RESCUE_BATCH))
-        out = RodState(*(t[:k] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
-        still = [] if unconverged is None else unconverged[:k].nonzero().squeeze(-1)
-        if len(still):
-            out = _with_rods(out, still, self.checked.eager(part.index(still), grip[still]))
-        return out
 
 
 def rollout(step: RolloutStep | CompiledStep | DeformModel, state: RodState, grips: Tensor) -> Tensor:
