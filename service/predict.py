@@ -92,9 +92,7 @@ def parse_request(body: bytes, limits, dt: float) -> Request:
         raise InputError("bad_shape", "plans must be a regular numeric array") from None
     if plans.ndim != 4 or plans.shape[2:] != (2, 7) or plans.shape[0] < 1 or plans.shape[1] < 1:
         raise InputError("bad_shape", f"plans shape {plans.shape}, expected (plans, steps, 2, 7)")
-    P, S = plans.shape[:2]
-    if P > limits.max_plans or S > limits.max_steps or P * S > limits.max_plan_steps_total:
-        raise InputError("too_large", f"{P} plans x {S} steps")
+    check_size(plans.shape[0], plans.shape[1], limits)
     if not np.all(np.isfinite(plans)):
         raise InputError("nan_pose")
     qn = np.linalg.norm(plans[..., 3:], axis=-1)
@@ -105,11 +103,17 @@ def parse_request(body: bytes, limits, dt: float) -> Request:
         raise InputError("bad_request", '"return": "none" needs a "cost"')
     return Request(
         plans=plans,
-        steps=returned_steps(req.get("return"), S),
+        steps=returned_steps(req.get("return"), plans.shape[1]),
         id=req.get("id"),
         binary=req.get("encoding") == "binary",
         cost=req.get("cost"),
     )
+
+
+def check_size(plans: int, steps: int, limits) -> None:
+    """Refuse a request of more plans, steps or plan-steps than ``limits`` allow (InputError)."""
+    if plans > limits.max_plans or steps > limits.max_steps or plans * steps > limits.max_plan_steps_total:
+        raise InputError("too_large", f"{plans} plans x {steps} steps")
 
 
 def snapshot(est: Estimator) -> tuple[tuple, int]:
@@ -137,8 +141,9 @@ def rollout(step, base: tuple, grips: np.ndarray, dtype: torch.dtype = torch.flo
 
 @dataclass
 class Part:
-    """One predict process's share of a request: the reply's fields for plans ``[lo, hi)``, or the
-    request's error (every share parses the whole request, so all report the same error).
+    """One predict process's share of a request (a block of its plans, :func:`share`, sent as a
+    request of its own, ``predict_codec.split_request``): the reply's fields for those plans, or
+    the error their parse found.
 
     ``vertices``: the returned steps of those plans as little-endian float32 bytes (binary replies)
     or as the JSON text of their list (JSON replies), ready to be joined with the other shares."""
@@ -169,21 +174,18 @@ def share(plans: int, shard: int, shards: int) -> tuple[int, int]:
     return shard * plans // shards, (shard + 1) * plans // shards
 
 
-def answer_part(ctx, body: bytes, base: tuple, stamp_ns: int, shard: int = 0, shards: int = 1) -> Part:
-    """Validate, roll out and encode one share of a request (:func:`share`). Pure of service state,
-    so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg``, ``step`` and ``dtype``."""
+def answer_part(ctx, body: bytes, base: tuple, stamp_ns: int) -> Part:
+    """Validate, roll out and encode a request (or one share of it, see :class:`Part`). Pure of
+    service state, so it runs the same in a worker process. ``ctx`` has ``model``, ``cfg``,
+    ``step`` and ``dtype``."""
     try:
         req = parse_request(body, ctx.cfg.limits, ctx.model.dt)
         cost = None if req.cost is None else plan_cost.parse_cost(req.cost, ctx.model.n)
     except InputError as exc:
         error = json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
         return Part(False, error, exc.reason, str(exc))
-    lo, hi = share(req.plans.shape[0], shard, shards)
-    grips = grips_from_poses(req.plans[lo:hi], ctx.cfg.grippers)
-    if hi > lo:
-        verts = rollout(ctx.step, base, grips, ctx.dtype)
-    else:
-        verts = np.zeros((0, req.plans.shape[1], ctx.model.n, 3), dtype=np.float32)
+    grips = grips_from_poses(req.plans, ctx.cfg.grippers)
+    verts = rollout(ctx.step, base, grips, ctx.dtype)
     # plans that at some step hold the rod farther apart than it is long: no real rope follows them
     # intact (the model stretches the rod evenly to reach; a planner should discard them)
     taut = overstretched(torch.from_numpy(grips), torch.from_numpy(base[4])).any(-1).tolist()
@@ -209,10 +211,12 @@ def answer_part(ctx, body: bytes, base: tuple, stamp_ns: int, shard: int = 0, sh
 
 def assemble(parts: list[Part]) -> tuple[bool, bytes, str | None, str | None]:
     """The reply to a request from its shares, in plan order: -> (ok, reply, error reason, detail).
-    The same bytes as one process answering the whole request."""
+    The same bytes as one process answering the whole request; an error, that of the first share
+    (in plan order) that found one."""
+    for part in parts:
+        if not part.ok:
+            return False, part.error, part.reason, part.detail
     first = parts[0]
-    if not first.ok:
-        return False, first.error, first.reason, first.detail
     header = {
         "id": first.header["id"],
         "stamp": first.header["stamp"],
@@ -245,6 +249,9 @@ def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
     try:
         if len(body) > est.cfg.limits.max_request_bytes:  # before copying it anywhere
             raise InputError("too_large", f"{len(body)} bytes > {est.cfg.limits.max_request_bytes}")
+        shape = predict_codec.request_shape(body)
+        if shape is not None and len(shape) == 4:  # here: the processes each see only their share
+            check_size(shape[0], shape[1], est.cfg.limits)
         base, stamp = snapshot(est)
     except InputError as exc:
         est.stats.reject("predict", exc.reason, str(exc))

@@ -78,16 +78,41 @@ def is_binary_request(payload: bytes) -> bool:
     return payload[:4] == REQUEST_MAGIC
 
 
-def request_plans(payload: bytes) -> int | None:
-    """The plan count a binary request's header states (its data unread), or None (JSON, or a
+def request_shape(payload: bytes) -> tuple[int, ...] | None:
+    """The plans' shape a binary request's header states (its data unread), or None (JSON, or a
     header that does not parse: the full parse then reports the error)."""
     if not is_binary_request(payload) or len(payload) < _FIXED.size:
         return None
     _, _, _, size = _FIXED.unpack_from(payload)
     try:
-        return int(json.loads(payload[_FIXED.size : _FIXED.size + size])["shape"][0])
-    except (ValueError, KeyError, TypeError, IndexError):
+        return tuple(int(k) for k in json.loads(payload[_FIXED.size : _FIXED.size + size])["shape"])
+    except (ValueError, KeyError, TypeError):
         return None
+
+
+def request_plans(payload: bytes) -> int | None:
+    """The plan count a binary request's header states, or None (see :func:`request_shape`)."""
+    shape = request_shape(payload)
+    return shape[0] if shape else None
+
+
+def split_request(payload: bytes, bounds: list[tuple[int, int]]) -> list[bytes] | None:
+    """A binary request cut into requests of consecutive blocks of its plans, ``[lo, hi)`` for each
+    of ``bounds``, with the same other fields: what each predict process is sent, so that the
+    processes together receive and parse the request once rather than once each (1024 plans x 100
+    steps are 11.5 MB).
+
+    Returns:
+        The blocks' requests, or None when the request does not decode to (plans, steps, 2, 7)
+        (the whole request then goes to one process, whose parse reports the error).
+    """
+    try:
+        fields, data = _split(payload, REQUEST_MAGIC, _REQUEST_DTYPES)
+    except CodecError:
+        return None
+    if data.ndim != 4 or data.shape[2:] != (2, 7):
+        return None
+    return [encode_request(data[lo:hi], fields, data.dtype.str) for lo, hi in bounds]
 
 
 def decode_request(payload: bytes) -> tuple[dict, np.ndarray]:

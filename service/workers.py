@@ -127,15 +127,15 @@ def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]
     return pack_tracker(tracker, ctx.model), time.perf_counter() - t0
 
 
-def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int, shard: int = 0, shards: int = 1):
-    """-> this process's share of the answer (``predict.answer_part``), the seconds it took in here,
-    and the rollout steps its one-graph step left unconverged (redone with the checked step; they
-    double a step's cost, so status counts them)."""
+def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
+    """-> the answer to a request or to this process's share of one (``predict.answer_part``), the
+    seconds it took in here, and the rollout steps its one-graph step left unconverged (redone with
+    the checked step; they double a step's cost, so status counts them)."""
     from service import predict
 
     t0 = time.perf_counter()
     redone0 = getattr(ctx.step, "redone", 0)
-    part = predict.answer_part(ctx, body, base, stamp_ns, shard, shards)
+    part = predict.answer_part(ctx, body, base, stamp_ns)
     return part, time.perf_counter() - t0, getattr(ctx.step, "redone", 0) - redone0
 
 
@@ -275,7 +275,7 @@ def shares_for(plans: int | None, processes: int, split_min_plans: int) -> int:
     """
     if plans is None or plans < split_min_plans:
         return 1
-    return processes
+    return min(processes, plans)  # no process without a plan
 
 
 def share_sizes(plan_counts, processes: int, split_min_plans: int) -> list[list[int]]:
@@ -402,7 +402,10 @@ class PredictPool:
         workers = list(self.workers)  # the second process may join meanwhile
         plans = predict_codec.request_plans(body) if len(workers) > 1 else None
         k = shares_for(plans, len(workers), self.split_min_plans)
-        calls = [(w, ("predict", body, base, stamp_ns, i, k)) for i, w in enumerate(workers[:k])]
+        bodies = None
+        if k > 1:  # each process is sent its block of plans alone (predict.handle checked the size)
+            bodies = predict_codec.split_request(body, [predict.share(plans, i, k) for i in range(k)])
+        calls = [(w, ("predict", b, base, stamp_ns)) for w, b in zip(workers, bodies or [body])]
         results = self._each(calls, timeout)
         reply = predict.assemble([part for part, _, _ in results])
         return (*reply, max(r[1] for r in results), sum(r[2] for r in results))

@@ -280,30 +280,40 @@ def _same_reply(a: bytes, b: bytes) -> None:
     }
 
 
-@pytest.mark.parametrize("binary", [False, True])
 @pytest.mark.parametrize("ret", ["all", "every:6", "none"])
-def test_a_request_answered_in_shares_is_the_whole_answer(est, binary, ret):
-    """Shares of 3 (1 + 2 + 2 plans) and of 8 (some empty), joined, give the one-process reply."""
+def test_a_request_answered_in_shares_is_the_whole_answer(est, ret):
+    """A binary request cut into blocks of 1 + 2 + 2 plans, each answered as a request of its own
+    and joined, gives the one-process reply."""
     from service import predict_codec
     from service.workers import InlineWorker
 
     ctx = InlineWorker(est.model, est.cfg).ctx
     plans = _five_plans()
-    fields = {"id": "x", "return": ret, "cost": {"goal": np.zeros((est.model.n, 3)).tolist()}}
-    raw = (
-        predict_codec.encode_request(plans, {**fields, "encoding": "binary"})
-        if binary
-        else body(plans, **fields)
-    )
+    fields = {"id": "x", "return": ret, "encoding": "binary", "cost": {"goal": np.zeros((est.model.n, 3)).tolist()}}
+    raw = predict_codec.encode_request(plans, fields)
     base, stamp = predict.snapshot(est)
     whole = predict.answer(ctx, raw, base, stamp)
     assert whole[0]
-    for shards in (3, 8):
-        parts = [predict.answer_part(ctx, raw, base, stamp, i, shards) for i in range(shards)]
-        assert sum(p.shape[0] for p in parts) == 5
-        joined = predict.assemble(parts)
-        assert joined[0]
-        _same_reply(joined[1], whole[1])
+    shares = predict_codec.split_request(raw, [predict.share(5, i, 3) for i in range(3)])
+    assert [predict_codec.request_plans(b) for b in shares] == [1, 2, 2]
+    parts = [predict.answer_part(ctx, b, base, stamp) for b in shares]
+    joined = predict.assemble(parts)
+    assert joined[0]
+    _same_reply(joined[1], whole[1])
+
+
+def test_a_bad_share_is_the_reply_and_a_request_that_does_not_decode_is_not_split():
+    """The first share (in plan order) whose parse fails gives the reply's error; a request whose
+    data does not match its header is not cut (the process it goes to whole reports that)."""
+    from service import predict_codec
+
+    ok = predict.Part(True, header={"id": None, "stamp": 0.0}, shape=(1, 1, 2, 3), overstretched=[False])
+    bad = predict.Part(False, b'{"error": "nan_pose"}', "nan_pose", "")
+    worse = predict.Part(False, b'{"error": "bad_quaternion"}', "bad_quaternion", "")
+    assert predict.assemble([ok, bad, worse])[2] == "nan_pose"
+    raw = predict_codec.encode_request(_five_plans(), {})
+    assert predict_codec.split_request(raw[:-8], [(0, 2), (2, 5)]) is None
+    assert predict_codec.split_request(predict_codec.encode_request(_five_plans()[..., :5], {}), [(0, 5)]) is None
 
 
 def test_the_pool_splits_large_binary_requests_only(est):
@@ -318,7 +328,7 @@ def test_the_pool_splits_large_binary_requests_only(est):
             self.jobs = []
 
         def call(self, op, *args, timeout=None):
-            self.jobs.append((op, args[3:]))
+            self.jobs.append((op, args))
             return super().call(op, *args, timeout=timeout)
 
     workers = [Counting(est.model, est.cfg) for _ in range(2)]
@@ -327,13 +337,24 @@ def test_the_pool_splits_large_binary_requests_only(est):
     plans = _five_plans()
     large = predict_codec.encode_request(plans, {"id": 1})
     ok, reply, *_ = pool.predict(large, base, stamp)
-    assert ok and [w.jobs for w in workers] == [[("predict", (0, 2))], [("predict", (1, 2))]]
+    sent = [[(op, predict_codec.request_plans(args[0])) for op, args in w.jobs] for w in workers]
+    assert ok and sent == [[("predict", 2)], [("predict", 3)]]  # each process its block of plans alone
     _same_reply(reply, predict.answer(InlineWorker(est.model, est.cfg).ctx, large, base, stamp)[1])
     for w in workers:
         w.jobs.clear()
     for raw in (predict_codec.encode_request(plans[:3], {}), body(plans)):
         pool.predict(raw, base, stamp)
     assert [len(w.jobs) for w in workers] == [2, 0]
-    # a bad request of many plans: every share finds the same error, the reply states it once
+    # a bad request of many plans: not cut, the first process finds the error
     ok, reply, reason, *_ = pool.predict(predict_codec.encode_request(plans[..., :5], {}), base, stamp)
     assert not ok and reason == "bad_shape"
+    # a bad pose in the second block: that share's error is the reply
+    nan = plans.copy()
+    nan[4, 0, 0, 0] = np.nan
+    ok, reply, reason, *_ = pool.predict(predict_codec.encode_request(nan, {}), base, stamp)
+    assert not ok and reason == "nan_pose"
+    # more plans than the limits allow: refused before any process is sent a share of it
+    for w in workers:
+        w.jobs.clear()
+    ok, reply = predict.handle(est, predict_codec.encode_request(np.tile(GOOD, (9, 2, 1, 1)), {}), pool)
+    assert not ok and json.loads(reply)["error"] == "too_large" and not any(w.jobs for w in workers)
