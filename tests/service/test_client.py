@@ -78,6 +78,10 @@ def test_round_trip_vertices_stream_predict_status(model, endpoint):
             final = rope.predict_full(plans, steps="final", binary=False, request_id="p1")
             assert final.vertices.shape == (3, 1, model.n, 3) and final.steps.tolist() == [20]
             assert final.id == "p1" and full.steps.tolist() == list(range(1, 21))
+            with pytest.raises(ValueError):  # refused before anything is sent
+                rope.predict_full(plans, plan_dtype="float16")
+            wide = rope.predict_full(plans, plan_dtype="float64")
+            assert wide.vertices.shape == full.vertices.shape
             costs = rope.costs(plans, {"goal": full.vertices[2, -1]})
             assert costs.shape == (3,) and int(np.argmin(costs)) == 2
             with pytest.raises(BadRequest) as bad:
