@@ -76,11 +76,11 @@ def plan_costs(vertices: np.ndarray, rest: np.ndarray, spec: CostSpec) -> dict:
     if spec.goal is not None:
         terms["goal"] = np.linalg.norm(vertices[:, -1] - spec.goal[None], axis=-1).mean(-1)
     # the largest squared stretch ratio over steps and edges, one square root per plan (not per edge)
+    # in the rollout's own precision (float32 by default: 1e-7 of a stretch ratio)
     edges = np.diff(vertices, axis=2)  # (P, S, n-1, 3)
-    ratio2 = np.einsum("psei,psei->pse", edges, edges) / np.square(np.asarray(rest, dtype=float)).reshape(
-        1, 1, -1
-    )
-    terms["stretch"] = np.clip(np.sqrt(ratio2.max(axis=(1, 2))) - 1.0, 0.0, None)
+    rest2 = np.square(np.asarray(rest, dtype=vertices.dtype)).reshape(1, 1, -1)
+    ratio2 = np.einsum("psei,psei->pse", edges, edges) / rest2
+    terms["stretch"] = np.clip(np.sqrt(ratio2.max(axis=(1, 2)), dtype=float) - 1.0, 0.0, None)
     if spec.plane_z is not None:
         terms["plane"] = np.clip(spec.plane_z - vertices[..., 2], 0.0, None).max(-1).mean(-1)
     costs = sum(spec.weights[k] * terms[k] for k in TERMS)
