@@ -63,7 +63,7 @@ KNOWN = {
     ),
     "predict_planning.json": (
         "Planning-scale predict in the service",
-        "python benchmarks/predict_planning.py --n 30 --rounds 3 --compare predict_network_dtype=float32",
+        "python benchmarks/predict_planning.py --n 30 --rounds 3 --compare predict_network_dtype=auto",
     ),
 }
 

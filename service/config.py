@@ -84,9 +84,9 @@ class Workers(_Strict):
     predict_dtype: Literal["float32", "float64"] = "float32"
     # the residual network's arithmetic in predict's rollouts of 512 rods or more per process
     # (deform.nn.precision; below, float32 is faster): auto is bfloat16 on a CPU that multiplies it
-    # natively (AMX, AVX512-BF16), else float32: 1024 x 100 plans took 0.92-1.02x the time (median
-    # 0.94x) in eight paired service runs, the loop's misses no different (docs/service.md)
-    predict_network_dtype: Literal["auto", "float32", "bfloat16"] = "auto"
+    # natively (AMX, AVX512-BF16), else float32. Opt-in: in nine paired service runs 1024 x 100
+    # plans took 0.92-1.03x the time with it, a gain within this VM's noise (docs/service.md)
+    predict_network_dtype: Literal["auto", "float32", "bfloat16"] = "float32"
     # threads of the predict worker's rollouts (null: every core). One by default: the compiled
     # step's parallel loops wait at ~120 barriers per step for their slowest thread, so on 2 cores
     # shared with the loop, fusion and a camera, two threads were slower (a 1024-rod step with one
