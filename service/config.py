@@ -84,7 +84,7 @@ class Workers(_Strict):
     predict_dtype: Literal["float32", "float64"] = "float32"
     # the residual network's arithmetic in predict's rollouts of 512 rods or more per process
     # (deform.nn.precision; below, float32 is faster): auto is bfloat16 on a CPU that multiplies it
-    # natively (AMX, AVX512-BF16), else float32. Opt-in: in nine paired service runs 1024 x 100
+    # natively (AMX, AVX512-BF16), else float32. Opt-in: in ten paired service runs 1024 x 100
     # plans took 0.92-1.03x the time with it, a gain within this VM's noise (docs/service.md)
     predict_network_dtype: Literal["auto", "float32", "bfloat16"] = "float32"
     # threads of the predict worker's rollouts (null: every core). One by default: the compiled
