@@ -301,6 +301,9 @@ class RolloutStep:
             buckets=(RESCUE_BATCH,),
         )
         self.max_misses = max_misses
+        # False while the rescue graph is deferred (warmup(rescue=False)): its rods go to the eager
+        # loops meanwhile, so a step never waits for a package build
+        self.rescue_ready = True
         self.redone = 0  # rod-steps the fast graph left unconverged, stepped again by the checked loops
         self.paused = 0  # pauses of the fast graph after ``max_misses`` mostly-missed steps in a row
 
@@ -308,11 +311,23 @@ class RolloutStep:
     def active(self) -> bool:
         return self.fast.active and (self.checked.active or not self.checked.enabled)
 
-    def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64) -> bool:
+    def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64, rescue: bool = True) -> bool:
+        """Compile (or load) the steps for these batch sizes now. -> the fast graph is active.
+
+        ``rescue=False`` defers the rescue graph (:meth:`warmup_rescue` later): on a cold start its
+        package is a build of its own (about 25 s), which another process can make meanwhile."""
         fast = self.fast.warmup(batch_sizes, dtype)
+        if rescue:
+            self.warmup_rescue(dtype)
+        else:
+            self.rescue_ready = False
+        return fast & (self.checked.warmup(batch_sizes, dtype) if self.checked.enabled else True)
+
+    def warmup_rescue(self, dtype: torch.dtype = torch.float64) -> None:
+        """Build or load the rescue graph now and use it from the next step on."""
         if self.rescue.active:  # (inactive: the rods are redone eagerly, nothing to warm up)
             self.rescue.warmup((RESCUE_BATCH,), dtype)
-        return fast & (self.checked.warmup(batch_sizes, dtype) if self.checked.enabled else True)
+        self.rescue_ready = True
 
     def rollout(self, state: RodState, grips: Tensor) -> Tensor:
         out = torch.empty(grips.shape[0], grips.shape[1], state.x.shape[1], 3, dtype=state.x.dtype)
@@ -328,7 +343,7 @@ class RolloutStep:
                     bad = [] if unconverged is None else (unconverged & reachable[:, k]).nonzero().squeeze(-1)
                     # most of the fast result would be thrown away (and more rods than one rescue
                     # call takes, which costs less than the whole batch's checked step)
-                    few = self.rescue.active and len(bad) <= RESCUE_BATCH
+                    few = self._rescues() and len(bad) <= RESCUE_BATCH
                     if 2 * len(bad) > len(reachable) and not few:
                         new, misses = None, misses + 1
                         self.redone += len(reachable)
@@ -343,6 +358,10 @@ class RolloutStep:
                 out[:, k] = state.x
         return out
 
+    def _rescues(self) -> bool:
+        """Whether unconverged rods go through the rescue graph (else the checked eager loops)."""
+        return self.rescue.active and self.rescue_ready
+
     def _redo(self, state: RodState, grip: Tensor, new: RodState, bad: Tensor) -> RodState:
         """``new`` with the rods ``bad`` stepped again from ``state``: by the rescue graph (the
         checked solvers' limits as one graph, :data:`RESCUE_BATCH` rods a call) and the few it
@@ -351,7 +370,7 @@ class RolloutStep:
         (interpreter-bound), two thirds of the fast graph's step of 512 rods; a rescue call 0.5 ms.
         Not the checked compiled step: a subset size warm-up did not see would be compiled in the
         middle of a request."""
-        if not self.rescue.active:
+        if not self._rescues():
             part = self.checked.eager(state.index(bad), grip[bad])
         else:  # the rescue step redoes what its graph leaves unconverged with the same eager loops
             groups = [self.rescue(state.index(g), grip[g]) for g in bad.split(RESCUE_BATCH)]

@@ -204,3 +204,41 @@ def test_unconverged_rods_are_redone_by_the_rescue_package(model, start, monkeyp
         assert torch.equal(out[r], rollout(RolloutStep(model, branch_free=BRANCH_FREE), state, jump)[r])
     ref = rollout(CompiledStep(model), state, jump)  # the checked step throughout
     assert (out - ref).abs().max() < 5e-4
+
+
+def test_a_deferred_rescue_graph_leaves_unconverged_rods_to_the_eager_loops(model, start, monkeypatch):
+    """Until ``warmup_rescue``, a rollout never builds or calls the rescue package (a cold start
+    lets another process build it): the jerked rod goes through the checked eager loops; after it,
+    through the rescue package."""
+    state, grips = start
+    state, grips = model.step(state, grips[:, 0]), grips[:, 1:]
+    jump = grips.clone()
+    jump[0, 3:, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
+    step = RolloutStep(model, branch_free=BRANCH_FREE, ahead_of_time=True)
+    step.warmup((), state.x.dtype, rescue=False)
+    rescued = []
+
+    class Spy:  # the rescue step, its calls counted
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def __call__(self, s, g):
+            rescued.append(s.x.shape[0])
+            return self.inner(s, g)
+
+    step.rescue = Spy(step.rescue)
+    eager_calls = []
+    real_eager = step.checked.eager
+    monkeypatch.setattr(
+        step.checked, "eager", lambda s, g: eager_calls.append(s.x.shape[0]) or real_eager(s, g)
+    )
+    rollout(step, state, jump)
+    assert not step.rescue_ready and step.redone >= 1
+    assert rescued == [] and step.rescue._aot == {} and eager_calls, "the eager loops redid the rod"
+    step.warmup_rescue(state.x.dtype)
+    eager_calls.clear()
+    rollout(step, state, jump)
+    assert step.rescue_ready and rescued and eager_calls == []

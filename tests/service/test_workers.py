@@ -205,3 +205,40 @@ def test_share_sizes_are_what_each_predict_process_rolls_out():
     assert share_sizes([64, 256, 1001], 2, 128) == [[64, 128, 500], [128, 501]]
     assert share_sizes([64, 256], 1, 128) == [[64, 256]]
     assert share_sizes([], 2, 128) == [[], []]
+
+
+def test_the_first_predict_process_defers_the_rescue_graph_to_the_second():
+    """With a second process to start, the first warms up without the rescue graph (predict is
+    ready a package build sooner on a cold start); the second builds it at its own warm-up, and the
+    first loads it after that. Alone, the first warms it up itself."""
+    import time
+
+    from service.workers import PredictPool
+
+    class Fake:
+        pid = 0
+
+        def __init__(self, log):
+            self.log = log
+
+        def call(self, op, *args, timeout=None):
+            self.log.append((self, op, *args))
+            return True
+
+        def close(self):
+            pass
+
+    log = []
+    first, second = Fake(log), Fake(log)
+    pool = PredictPool([first], split_min_plans=128, more=[lambda: second])
+    assert pool.call("warmup", [64, 1024]) is True
+    assert log[0] == (first, "warmup", [64, 512], False)  # predict is ready here
+    assert pool.started.wait(5)
+    deadline = time.monotonic() + 5
+    while (first, "warmup_rescue") not in log and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert log[1:] == [(second, "warmup", [512]), (second, "warmup_rescue"), (first, "warmup_rescue")]
+    log.clear()
+    alone = PredictPool([first], split_min_plans=128)
+    alone.call("warmup", [64])
+    assert log == [(first, "warmup", [64], True)]
