@@ -17,7 +17,8 @@ The Zenoh reply carries encoding ``application/octet-stream`` (JSON replies ``ap
 A request may come the same way (magic ``b"DFPQ"``): the header holds the JSON request's fields
 other than ``plans`` (``dt``, ``id``, ``return``, ``encoding``, ``cost``) plus ``shape`` [P, S, 2, 7]
 and ``dtype`` (``"<f8"`` or ``"<f4"``), then the plans' poses follow as little-endian floats in C
-order. 1024 plans x 100 steps are 11.5 MB this way (float64) against about 28 MB of JSON.
+order. 1024 plans x 100 steps are 11.5 MB this way in float64 (5.7 MB in float32) against about
+28 MB of JSON.
 """
 
 from __future__ import annotations
