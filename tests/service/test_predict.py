@@ -289,7 +289,12 @@ def test_a_request_answered_in_shares_is_the_whole_answer(est, ret):
 
     ctx = InlineWorker(est.model, est.cfg).ctx
     plans = _five_plans()
-    fields = {"id": "x", "return": ret, "encoding": "binary", "cost": {"goal": np.zeros((est.model.n, 3)).tolist()}}
+    fields = {
+        "id": "x",
+        "return": ret,
+        "encoding": "binary",
+        "cost": {"goal": np.zeros((est.model.n, 3)).tolist()},
+    }
     raw = predict_codec.encode_request(plans, fields)
     base, stamp = predict.snapshot(est)
     whole = predict.answer(ctx, raw, base, stamp)
@@ -313,7 +318,10 @@ def test_a_bad_share_is_the_reply_and_a_request_that_does_not_decode_is_not_spli
     assert predict.assemble([ok, bad, worse])[2] == "nan_pose"
     raw = predict_codec.encode_request(_five_plans(), {})
     assert predict_codec.split_request(raw[:-8], [(0, 2), (2, 5)]) is None
-    assert predict_codec.split_request(predict_codec.encode_request(_five_plans()[..., :5], {}), [(0, 5)]) is None
+    assert (
+        predict_codec.split_request(predict_codec.encode_request(_five_plans()[..., :5], {}), [(0, 5)])
+        is None
+    )
 
 
 def test_the_pool_splits_large_binary_requests_only(est):
