@@ -312,7 +312,8 @@ class RolloutStep:
         return self.fast.active and (self.checked.active or not self.checked.enabled)
 
     def warmup(self, batch_sizes=(1,), dtype: torch.dtype = torch.float64, rescue: bool = True) -> bool:
-        """Compile (or load) the steps for these batch sizes now. -> the fast graph is active.
+        """Compile (or load) the steps for these batch sizes now. -> the compiled steps are in use
+        (the fast graph, and the checked one where it is compiled).
 
         ``rescue=False`` defers the rescue graph (:meth:`warmup_rescue` later): on a cold start its
         package is a build of its own (about 25 s), which another process can make meanwhile."""

@@ -141,7 +141,7 @@ def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
 
 def job_warmup(ctx: JobContext, batch_sizes, rescue: bool = True) -> bool:
     """Compile or load predict's steps for these plan counts (``rescue=False``: all but the rescue
-    graph, see :meth:`PredictPool.call`). -> whether the compiled step is in use."""
+    graph, see ``PredictPool._warmup``). -> whether the compiled step is in use."""
     active = ctx.step.warmup(tuple(batch_sizes), ctx.dtype, rescue=rescue) if batch_sizes else ctx.step.active
     gc.freeze()  # the compiled code's objects too (see _serve)
     return active
