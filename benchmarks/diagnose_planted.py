@@ -101,8 +101,13 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such.
 TOOL_VERSION = 8
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
-# (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL).
-RULE = "v7: the mean windowed improvement above the threshold, the term beyond its material level"
+# (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
+# is also named below the threshold when its interval over check recordings lies above 0
+# (deform.diagnose.scoring.nameable).
+RULE = (
+    "v8: the mean windowed improvement above the threshold, or a term beyond its material level "
+    "with its 90 % interval above 0; never a term within its material level"
+)
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 
 

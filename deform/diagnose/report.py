@@ -14,9 +14,14 @@ from deform.io.recordings import Recording
 
 
 def _significance(c: dict) -> str:
-    """The candidate table's verdict: significant, and if so whether beyond the material level."""
+    """The candidate table's verdict: significant, and if so whether beyond the material level; or
+    nameable on its fitted size (rule v8, :func:`deform.diagnose.scoring.nameable`)."""
     if not c["significant"]:
-        return "no"
+        return (
+            "no; beyond a rope's material level, helping on the check: nameable"
+            if c.get("nameable")
+            else "no"
+        )
     return "yes" if c.get("beyond_material_level", True) else "yes, within a rope's material level: not named"
 
 
@@ -150,7 +155,8 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         "Open loop: the same for whole-recording predictions (reported, not deciding: they drift, and "
         "spread twice as wide on controls). ± : approximate 1-sigma (Laplace). A term fitted within a "
         "rope's own material level (internal damping up to the level every rope's material has) is "
-        "significant but not named.",
+        "significant but not named; one fitted beyond that level whose 90 % interval lies above 0 may be "
+        "named below the threshold (its gain is diluted by the nominal model's own numerical dissipation).",
         "",
         "![candidates](candidates.png)" if "candidates.png" in files else "",
         "",

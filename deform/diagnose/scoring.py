@@ -14,6 +14,13 @@ With the usual 4 check recordings a percentile interval rests on at most 35 dist
 the 11 controls of the two planted benchmarks it did not separate noise (the best candidate's lower
 bound was above 0 on 6 of them, all below the threshold), while it refused real effects that are
 absent from some recordings by physics (a table the rope does not reach in one recording).
+
+A term with a material level (internal damping) may also be named on its fitted size (rule v8,
+:func:`nameable`): fitted beyond the level, which is 2x the largest fit on any control, and helping
+on the held-out recordings (the interval's lower bound above 0), even below the threshold. Its gain
+is diluted by construction: the nominal model's own numerical dissipation (PBD projection, a vertex
+per marker) already stands in for part of a material damping, so a strongly damped rope is *easier*
+for the nominal model than a control, while the fitted size stays far from any control's.
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deform.diagnose.terms import beyond_material_level
+from deform.diagnose.terms import beyond_material_level, has_material_level
 
 # min_gain of the windowed check statistic (tool v6), calibrated on control datasets only (quick
 # budget) with calibrate_min_gain(alpha=0.05): the 6 PyElastica controls of the benchmark (light and
@@ -90,6 +97,38 @@ def score(
     return Score(mean, lo, hi, thr, bool(mean > thr))
 
 
+def nameable(
+    name: str,
+    params: dict[str, float],
+    improvement: float,
+    ci_low: float,
+    threshold: float,
+    material_levels: bool = True,
+    by_level: bool = True,
+) -> bool:
+    """Whether a fitted candidate may be named (the tool's rule, v8).
+
+    Named when its mean improvement exceeds ``threshold``, or (``by_level``) when the term has a
+    material level, is fitted beyond it and its improvement's interval over check recordings lies
+    above 0 (module docstring); never when it is fitted within its material level
+    (``material_levels``, rule v7).
+
+    Args:
+        name: a key of :data:`deform.diagnose.terms.LIBRARY`.
+        params: its fitted parameters.
+        improvement: mean relative improvement over the reference.
+        ci_low: lower bound of the improvement's bootstrap interval.
+        threshold: the significance threshold for this term.
+        material_levels: apply rule v7 (False: rules before v7).
+        by_level: apply rule v8 (False: rules before v8).
+    """
+    if material_levels and not beyond_material_level(name, params):
+        return False
+    if improvement > threshold:
+        return True
+    return by_level and has_material_level(name) and beyond_material_level(name, params) and ci_low > 0.0
+
+
 # --- calibration of the significance rule over control datasets (no effect planted) -----------------
 
 
@@ -141,6 +180,7 @@ def reselect(
     per_param: float = PER_PARAM,
     require_interval: bool = False,
     material_levels: bool = True,
+    by_level: bool = True,
 ) -> dict:
     """Re-derive forward selection from a report's stored candidate scores under another threshold.
 
@@ -158,6 +198,8 @@ def reselect(
         require_interval: also require the interval's lower bound above 0 (tools before v4).
         material_levels: a term fitted within a rope's own material level is not named
             (:func:`deform.diagnose.terms.beyond_material_level`; rule v7); False: rules before v7.
+        by_level: a term fitted beyond its material level and helping on every resample of the
+            check recordings may be named below the threshold (:func:`nameable`; rule v8).
 
     Returns:
         ``selected``, ``final_check_l1_m`` and ``no_further_round``.
@@ -175,8 +217,15 @@ def reselect(
             c
             for c in rows
             if (c["improvement_ci90"][0] > 0 or not require_interval)
-            and c["improvement"] > min_gain + per_param * c["n_params"]
-            and (not material_levels or beyond_material_level(c["name"], c.get("params", {})))
+            and nameable(
+                c["name"],
+                c.get("params", {}),
+                c["improvement"],
+                c["improvement_ci90"][0],
+                min_gain + per_param * c["n_params"],
+                material_levels=material_levels,
+                by_level=by_level and not require_interval,
+            )
         ]
         if not sig:
             break

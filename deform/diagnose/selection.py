@@ -17,7 +17,7 @@ import numpy as np
 
 from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.scoring import Score, bootstrap_ci, score
+from deform.diagnose.scoring import Score, bootstrap_ci, nameable, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
     MATERIAL_DAMPING_MAX,
@@ -330,6 +330,7 @@ def diagnose(
                     "improvement_rollout": float(((c_ref.rollout - checked.rollout) / c_ref.rollout).mean()),
                     "significant": sc.significant,
                     "beyond_material_level": beyond_material_level(name, term.params()),
+                    "nameable": nameable(name, term.params(), sc.improvement, sc.ci_low, sc.threshold),
                     "round": rnd + 1,
                     "on_top_of": list(selected_names),
                     "n_params": term.n_params,
@@ -340,7 +341,11 @@ def diagnose(
                     "growing_windows": tb.final_horizon is not None,
                 }
             )
-        sig = [r for r in results if r.score.significant and beyond_material_level(r.name, r.term.params())]
+        sig = [
+            r
+            for r in results
+            if nameable(r.name, r.term.params(), r.score.improvement, r.score.ci_low, r.score.threshold)
+        ]
         if not sig:
             break
         best = max(sig, key=lambda r: r.score.improvement)

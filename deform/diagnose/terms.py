@@ -557,6 +557,11 @@ def beyond_material_level(name: str, params: dict[str, float]) -> bool:
     return params.get(key, float("inf")) > value
 
 
+def has_material_level(name: str) -> bool:
+    """Whether a term of the library has a rope's material level (:attr:`Term.material_level`)."""
+    return getattr(LIBRARY.get(name), "material_level", None) is not None
+
+
 def make_term(
     name: str, n: int, arclength: np.ndarray, context: dict | None = None, read_roll: bool = True
 ) -> Term:

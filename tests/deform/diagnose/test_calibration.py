@@ -74,3 +74,28 @@ def test_a_term_within_a_ropes_material_level_is_not_named():
     assert reselect(weak, 1.0, min_gain=0.03, material_levels=False)["selected"] == ["internal_damping"]
     strong = [damping(4e-4, 0.045)]
     assert reselect(strong, 1.0, min_gain=0.03)["selected"] == ["internal_damping"]
+
+
+def test_internal_damping_fitted_far_beyond_a_ropes_level_is_named_below_the_threshold():
+    """Rule v8: a term with a material level, fitted beyond it, is named when every resample of the
+    check recordings says it helps (interval above 0), though its gain is under the threshold; not
+    when the interval holds 0, not within its level, and never for a term without a level."""
+    from deform.diagnose.scoring import nameable
+    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL
+
+    def damping(nu, improvement, lo):
+        row = _cand("internal_damping", 1, [], improvement, lo, 0.9)
+        return {**row, "params": {"bending_rate_damping_m4_per_s": nu}}
+
+    far = 10 * INTERNAL_DAMPING_LEVEL
+    assert reselect([damping(far, 0.036, 0.018)], 1.0, min_gain=0.03)["selected"] == ["internal_damping"]
+    assert reselect([damping(far, 0.036, 0.018)], 1.0, min_gain=0.03, by_level=False)["selected"] == []
+    assert reselect([damping(far, 0.037, -0.009)], 1.0, min_gain=0.03)["selected"] == []
+    assert reselect([damping(INTERNAL_DAMPING_LEVEL, 0.036, 0.018)], 1.0, min_gain=0.03)["selected"] == []
+    # a term without a level needs its threshold, whatever its interval
+    assert reselect([_cand("point_mass", 1, [], 0.036, 0.018, 0.9)], 1.0, min_gain=0.03)["selected"] == []
+    # a candidate above its threshold wins over one named on its level
+    both = [damping(far, 0.036, 0.018), _cand("point_mass", 1, [], 0.06, 0.01, 0.8)]
+    assert reselect(both, 1.0, min_gain=0.03)["selected"] == ["point_mass"]
+    assert nameable("internal_damping", {"bending_rate_damping_m4_per_s": far}, 0.02, 0.001, 0.04)
+    assert not nameable("aerodynamic_drag", {"linear_1_per_s": 5.0}, 0.02, 0.001, 0.05)
