@@ -397,7 +397,8 @@ def laplace_uncertainty(
         term: the term whose parameters are assessed.
 
     Returns:
-        Physical parameter name -> standard deviation.
+        Physical parameter name -> standard deviation; None where the loss has no positive
+        curvature there (flat or rough at the fit: the windows do not determine it).
     """
     rng = random.Random(budget.seed + 777)
     horizon = longest_horizon(budget, recordings)
@@ -411,7 +412,7 @@ def laplace_uncertainty(
     base = loss()
     n_eff = windows[0].shape[0]
     center = term.params()
-    spread: dict[str, float] = {k: 0.0 for k in center}
+    spread: dict[str, float | None] = {k: 0.0 for k in center}
     for p in term.parameters():
         flat = p.data.view(-1)
         for i in range(flat.numel()):
@@ -423,11 +424,15 @@ def laplace_uncertainty(
             down = loss()
             curv = (up + down - 2 * base) / d**2
             sigma_raw = math.sqrt(base / (n_eff * curv)) if curv > 0 else math.inf
-            sigma_raw = min(sigma_raw, 10.0)
-            flat[i] = orig + sigma_raw
+            undetermined = sigma_raw > 10.0  # (raw parameters are logs and the like: e^10 is no estimate)
+            flat[i] = orig + (1.0 if undetermined else sigma_raw)
             hi = term.params()
             flat[i] = orig
+            if undetermined:  # the physical parameters this raw one moves
+                spread.update({k: None for k in center if hi[k] != center[k]})
+                continue
             for k in center:
-                spread[k] = math.hypot(spread[k], hi[k] - center[k]) if math.isfinite(hi[k]) else math.inf
+                if spread[k] is not None:
+                    spread[k] = math.hypot(spread[k], hi[k] - center[k]) if math.isfinite(hi[k]) else None
     sim.sync()
     return spread

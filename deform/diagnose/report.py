@@ -93,7 +93,7 @@ def _fmt(d: dict, std: dict | None = None) -> str:
     for k, v in d.items():
         s = f"{k}={v:.4g}"
         if std and k in std:
-            s += f" ± {std[k]:.2g}"
+            s += " (± not determined)" if std[k] is None else f" ± {std[k]:.2g}"
         parts.append(s)
     return ", ".join(parts)
 

@@ -377,7 +377,9 @@ def diagnose(
         order = sorted((r for r in results if r.name != name), key=lambda r: -r.score.improvement)
         remaining = [r.name for r in order if r.score.improvement > 0][: budget.later_round_candidates]
     for t in selected:
-        std = laplace_uncertainty(base_sim, inputs.fit, cb, t)
+        # on the windows the term was fitted on: a slow term's loss is flat on the short ones
+        tb = slow_cb if budget.grow_slow_terms and t.slow else cb
+        std = laplace_uncertainty(base_sim, inputs.fit, tb, t)
         for c in candidates_out:
             if c["name"] == t.name and c["on_top_of"] == selected_names[: selected_names.index(t.name)]:
                 c["params_std"] = std

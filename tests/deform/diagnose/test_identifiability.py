@@ -28,3 +28,22 @@ def test_contact_grid_starts_at_the_localised_height():
     assert 0.16 in heights and round(0.10 + 0.002, 4) in heights
     plain = make_term("ground_contact", 8, s, {"lowest_z": 0.10})
     assert 0.16 not in {round(float(plain.h0) + 0.02 * p["raw_h"], 4) for p in plain.grid()}
+
+
+def test_parameter_spread_is_none_where_the_fit_windows_do_not_determine_it(sources):
+    """Laplace 1-sigma: finite for a wind the motion feels; None (report: "not determined") for a
+    table far below the rope, whose height, stiffness and friction leave the loss flat, instead of
+    the e^10-wide number a capped log step gave."""
+    from deform.diagnose.fitting import FitBudget, laplace_uncertainty
+    from deform.diagnose.simulator import Nominal, Simulator, arclength_of
+
+    from .conftest import SPEC
+
+    s = arclength_of(sources)
+    budget = FitBudget(iterations=1, batch=6, horizon=15)
+    table = make_term("ground_contact", SPEC.n_vertices, s, {"lowest_z": -5.0})
+    std = laplace_uncertainty(Simulator(SPEC, Nominal(), [table]), sources, budget, table)
+    assert set(std) == set(table.params()) and all(v is None for v in std.values())
+    wind = make_term("external_force", SPEC.n_vertices, s, {})
+    std = laplace_uncertainty(Simulator(SPEC, Nominal(), [wind]), sources, budget, wind)
+    assert all(v is not None and 0 < v < 9.81 for v in std.values()), std  # (an unfitted model: wide)
