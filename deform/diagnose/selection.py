@@ -92,6 +92,7 @@ class FittedCandidate:
     score: Score
     reference: np.ndarray
     budget: FitBudget
+    nameable: bool  # by the tool's rule (deform.diagnose.scoring.nameable)
 
 
 @dataclass
@@ -129,7 +130,7 @@ def contact_height(loc: dict) -> float | None:
 def equivalence_class(
     name: str, e_win, e_ref, others: list[tuple[str, object]], confidence: float = 0.90
 ) -> dict:
-    """The significant candidates that marker motion cannot tell apart from the chosen one.
+    """The nameable candidates that marker motion cannot tell apart from the chosen one.
 
     Per check recording, the difference of relative errors ``(e_other - e_win) / e_ref``; if its
     bootstrap interval over recordings holds 0, the two explanations fit the held-out data equally
@@ -140,7 +141,7 @@ def equivalence_class(
         name: the chosen term.
         e_win: (R,) its check L1 per recording.
         e_ref: (R,) the reference's.
-        others: (name, (R,) check L1) of the other significant candidates.
+        others: (name, (R,) check L1) of the other nameable candidates (:func:`deform.diagnose.scoring.nameable`).
         confidence: of the bootstrap intervals.
     """
     members, why = [name], []
@@ -319,18 +320,20 @@ def diagnose(
                 new_term=term,
             )
             sc = score(e_ref, checked.window, term.n_params)
-            results.append(FittedCandidate(name, term, csim, checked, sc, e_ref, tb))
+            params = term.params()
+            named = nameable(name, params, sc.improvement, sc.ci_low, sc.threshold)
+            results.append(FittedCandidate(name, term, csim, checked, sc, e_ref, tb, named))
             candidates_out.append(
                 {
                     "name": name,
-                    "params": term.params(),
+                    "params": params,
                     "check_l1_m": float(checked.rollout.mean()),
                     "check_window_l1_m": float(checked.window.mean()),
                     "improvement": sc.improvement,
                     "improvement_rollout": float(((c_ref.rollout - checked.rollout) / c_ref.rollout).mean()),
                     "significant": sc.significant,
-                    "beyond_material_level": beyond_material_level(name, term.params()),
-                    "nameable": nameable(name, term.params(), sc.improvement, sc.ci_low, sc.threshold),
+                    "beyond_material_level": beyond_material_level(name, params),
+                    "nameable": named,
                     "round": rnd + 1,
                     "on_top_of": list(selected_names),
                     "n_params": term.n_params,
@@ -341,11 +344,7 @@ def diagnose(
                     "growing_windows": tb.final_horizon is not None,
                 }
             )
-        sig = [
-            r
-            for r in results
-            if nameable(r.name, r.term.params(), r.score.improvement, r.score.ci_low, r.score.threshold)
-        ]
+        sig = [r for r in results if r.nameable]
         if not sig:
             break
         best = max(sig, key=lambda r: r.score.improvement)
