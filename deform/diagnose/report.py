@@ -25,6 +25,20 @@ def _significance(c: dict) -> str:
     return "yes" if c.get("beyond_material_level", True) else "yes, within a rope's material level: not named"
 
 
+def _named_on_size(c: dict) -> list[str]:
+    """report.md's lines for a selected candidate named under its threshold (rule v8), else none."""
+    if c["significant"]:
+        return []
+    return [
+        f"{c['name']} (round {c['round']}) is named on its fitted size: its gain "
+        f"({c['improvement'] * 100:+.1f} %) is under the threshold ({c['threshold'] * 100:.1f} %), but it "
+        "is fitted beyond a rope's material level and helps on every resample of the check "
+        f"recordings (90 % interval {c['improvement_ci90'][0] * 100:+.1f} to "
+        f"{c['improvement_ci90'][1] * 100:+.1f} %).",
+        "",
+    ]
+
+
 def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
     import matplotlib
 
@@ -167,6 +181,7 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
     ]
     for c in rep["candidates"]:
         if "fit_noise" in c:
+            lines += _named_on_size(c)
             lines += [
                 f"{c['name']} (round {c['round']}) fitted again on other windows: improvement "
                 f"{c['fit_noise']['improvement_refit'] * 100:+.1f} % (first fit {c['improvement'] * 100:+.1f} %; "

@@ -99,3 +99,12 @@ def test_internal_damping_fitted_far_beyond_a_ropes_level_is_named_below_the_thr
     assert reselect(both, 1.0, min_gain=0.03)["selected"] == ["point_mass"]
     assert nameable("internal_damping", {"bending_rate_damping_m4_per_s": far}, 0.02, 0.001, 0.04)
     assert not nameable("aerodynamic_drag", {"linear_1_per_s": 5.0}, 0.02, 0.001, 0.05)
+
+
+def test_the_report_says_when_a_term_is_named_on_its_fitted_size():
+    from deform.diagnose.report import _named_on_size
+
+    row = {**_cand("internal_damping", 1, [], 0.036, 0.018, 0.9), "significant": False, "threshold": 0.04}
+    text = " ".join(_named_on_size(row))
+    assert "named on its fitted size" in text and "+3.6 %" in text and "+1.8 to +8.6 %" in text
+    assert _named_on_size({**row, "significant": True}) == []

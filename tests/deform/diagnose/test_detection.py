@@ -79,6 +79,7 @@ def test_report_files_name_what_cannot_be_told_apart(wind, sources, tmp_path):
     assert "Selected: **external_force**" in md
     assert "What marker motion cannot tell apart" in md and "**mass_scale** from a stiffness scale" in md
     assert "fitted again on other windows" in md  # the selected term's own fit noise
+    assert "named on its fitted size" not in md  # significant: named on its gain
     chosen = next(c for c in diag.report["candidates"] if c["name"] == "external_force")
     assert chosen["equivalence_class"][0] == "external_force" and "noise" in chosen["fit_noise"]
 
