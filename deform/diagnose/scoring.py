@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deform.diagnose.terms import beyond_material_level, has_material_level
+from deform.diagnose.terms import beyond_material_level, fitted_beyond_level
 
 # min_gain of the windowed check statistic (tool v6), calibrated on control datasets only (quick
 # budget) with calibrate_min_gain(alpha=0.05): the 6 PyElastica controls of the benchmark (light and
@@ -126,7 +126,7 @@ def nameable(
         return False
     if improvement > threshold:
         return True
-    return by_level and has_material_level(name) and beyond_material_level(name, params) and ci_low > 0.0
+    return by_level and fitted_beyond_level(name, params) and ci_low > 0.0
 
 
 # --- calibration of the significance rule over control datasets (no effect planted) -----------------

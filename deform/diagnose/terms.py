@@ -557,9 +557,18 @@ def beyond_material_level(name: str, params: dict[str, float]) -> bool:
     return params.get(key, float("inf")) > value
 
 
-def has_material_level(name: str) -> bool:
-    """Whether a term of the library has a rope's material level (:attr:`Term.material_level`)."""
-    return getattr(LIBRARY.get(name), "material_level", None) is not None
+def fitted_beyond_level(name: str, params: dict[str, float]) -> bool:
+    """Whether a term that has a rope's material level (:attr:`Term.material_level`) was fitted
+    beyond it; False for terms without a level, or without the level's parameter in ``params``.
+
+    Args:
+        name: a key of :data:`LIBRARY`.
+        params: the term's fitted parameters (``Term.params()``, as stored in a report).
+    """
+    level = getattr(LIBRARY.get(name), "material_level", None)
+    if level is None or level[0] not in params:
+        return False
+    return params[level[0]] > level[1]
 
 
 def make_term(

@@ -99,6 +99,7 @@ def test_internal_damping_fitted_far_beyond_a_ropes_level_is_named_below_the_thr
     assert reselect(both, 1.0, min_gain=0.03)["selected"] == ["point_mass"]
     assert nameable("internal_damping", {"bending_rate_damping_m4_per_s": far}, 0.02, 0.001, 0.04)
     assert not nameable("aerodynamic_drag", {"linear_1_per_s": 5.0}, 0.02, 0.001, 0.05)
+    assert not nameable("internal_damping", {}, 0.02, 0.001, 0.04)  # no fitted size, no evidence
 
 
 def test_the_report_says_when_a_term_is_named_on_its_fitted_size():
