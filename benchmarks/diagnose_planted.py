@@ -1003,6 +1003,12 @@ def main() -> None:
         "--smoke", action="store_true", help="tiny budget: checks the pipeline, numbers meaningless"
     )
     p.add_argument("--seeds", type=int, default=3, help="seeds per planted effect")
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="independent simulators: start at this seed (held-out seeds beside a stored benchmark)",
+    )
     p.add_argument("--control-seeds", type=int, default=5, help="control datasets (no effect)")
     p.add_argument("--effects", nargs="*", default=None)
     p.add_argument("--real", nargs="*", default=list(RODS))
@@ -1141,7 +1147,7 @@ def main() -> None:
         jobs = [
             (k, e, s)
             for k in args.rod_kinds
-            for s in range(max(args.seeds, args.control_seeds))
+            for s in range(args.first_seed, max(args.seeds, args.control_seeds))
             for e in ([None] if s < args.control_seeds else []) + (effects if s < args.seeds else [])
         ]
         if not args.summary_only:
