@@ -32,8 +32,8 @@ def _named_on_size(c: dict) -> list[str]:
     return [
         f"{c['name']} (round {c['round']}) is named on its fitted size: its gain "
         f"({c['improvement'] * 100:+.1f} %) is under the threshold ({c['threshold'] * 100:.1f} %), but it "
-        "is fitted beyond a rope's material level and helps on every resample of the check "
-        f"recordings (90 % interval {c['improvement_ci90'][0] * 100:+.1f} to "
+        "is fitted beyond a rope's material level and helps across the check recordings "
+        f"(90 % interval {c['improvement_ci90'][0] * 100:+.1f} to "
         f"{c['improvement_ci90'][1] * 100:+.1f} %).",
         "",
     ]

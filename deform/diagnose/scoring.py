@@ -198,8 +198,8 @@ def reselect(
         require_interval: also require the interval's lower bound above 0 (tools before v4).
         material_levels: a term fitted within a rope's own material level is not named
             (:func:`deform.diagnose.terms.beyond_material_level`; rule v7); False: rules before v7.
-        by_level: a term fitted beyond its material level and helping on every resample of the
-            check recordings may be named below the threshold (:func:`nameable`; rule v8).
+        by_level: a term fitted beyond its material level whose 90 % interval over the check
+            recordings lies above 0 may be named below the threshold (:func:`nameable`; rule v8).
 
     Returns:
         ``selected``, ``final_check_l1_m`` and ``no_further_round``.

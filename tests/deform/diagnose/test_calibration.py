@@ -77,8 +77,8 @@ def test_a_term_within_a_ropes_material_level_is_not_named():
 
 
 def test_internal_damping_fitted_far_beyond_a_ropes_level_is_named_below_the_threshold():
-    """Rule v8: a term with a material level, fitted beyond it, is named when every resample of the
-    check recordings says it helps (interval above 0), though its gain is under the threshold; not
+    """Rule v8: a term with a material level, fitted beyond it, is named when its 90 % interval over
+    the check recordings lies above 0, though its gain is under the threshold; not
     when the interval holds 0, not within its level, and never for a term without a level."""
     from deform.diagnose.scoring import nameable
     from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL
