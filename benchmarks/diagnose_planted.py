@@ -728,10 +728,10 @@ def write(result: dict, stem: str = "diagnose") -> None:
         ("calibrated", "Calibrated rule (same form, threshold from this benchmark's controls)"),
         (
             "as_run",
-            "Rule the rows were run with "
+            "Decisions as the rows were run "
             f"({result['rules']['tool_rule']['min_gain'] * 100:.1f} % + "
-            f"{result['rules']['tool_rule']['per_param'] * 100:.0f} %/param, and the 90 % bootstrap "
-            "interval above 0)",
+            f"{result['rules']['tool_rule']['per_param'] * 100:.0f} %/param, with the rest of the rule "
+            "of their day)",
         ),
     ):
         summ = result["summary"].get(rule)
