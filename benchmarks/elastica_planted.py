@@ -155,11 +155,22 @@ def marker_layout(sources: list[Recording], length_m: float) -> tuple[np.ndarray
     return tail + np.concatenate([[0.0], np.cumsum(spacing)]), tail
 
 
-def held_nodes(s_nodes: np.ndarray, s_a: float, s_b: float) -> np.ndarray:
-    """Node ids covering the material interval [s_a, s_b] (snapped outwards to the node grid)."""
+def held_nodes(
+    s_nodes: np.ndarray, s_a: float, s_b: float, inner: str | None = None, snap: str = "outward"
+) -> np.ndarray:
+    """Node ids covering the material interval [s_a, s_b], snapped outwards to the node grid; with
+    ``snap="nearest"`` the ``inner`` end ("a" or "b": the side facing the free rope) goes to the
+    nearest node instead, so the clamp ends within half a node of the gripped marker rather than up
+    to a node past it (``benchmarks/clamp_study.py``)."""
     dx = s_nodes[1] - s_nodes[0]
     lo = math.floor(s_a / dx + 1e-9)
     hi = math.ceil(s_b / dx - 1e-9)
+    if snap == "nearest" and inner == "b":
+        hi = max(round(s_b / dx), lo + 1)
+    elif snap == "nearest" and inner == "a":
+        lo = min(round(s_a / dx), hi - 1)
+    elif snap != "outward":
+        raise ValueError(f"snap must be 'outward' or 'nearest', not {snap!r}")
     return np.arange(max(lo, 0), min(hi, len(s_nodes) - 1) + 1)
 
 
@@ -495,11 +506,14 @@ def generate_elastica(
     seed: int = 0,
     noise_m: float = 3e-4,
     strength: float = 1.0,
+    grip_snap: str = "outward",
 ) -> tuple[list[Recording], dict]:
     """-> (recordings, truth). One output recording per source: the source's gripper motion over a
     window of ``n_frames`` at a seeded offset, replayed on a PyElastica rod with one planted
     ``effect`` (None: a control) of size ``strength`` (1 = ``DEFAULTS``). ``truth`` holds the
-    planted parameters plus "effect", "rod_kind", the rod's material and the numerics."""
+    planted parameters plus "effect", "rod_kind", the rod's material and the numerics.
+    ``grip_snap``: how the clamps meet the node grid (:func:`held_nodes`; the benchmark's rows are
+    "outward")."""
     if effect is not None and effect not in EFFECTS:
         raise ValueError(f"unknown effect {effect!r}; expected one of {EFFECTS}")
     if rod_kind not in ROD_KINDS:
@@ -521,8 +535,8 @@ def generate_elastica(
     s_nodes = np.arange(n_el + 1) * dx
     s_markers, tail = marker_layout(sources, L)
     span = s_markers[-1] - s_markers[0]
-    held_a = held_nodes(s_nodes, s_markers[0], s_markers[1])
-    held_b = held_nodes(s_nodes, s_markers[-2], s_markers[-1])
+    held_a = held_nodes(s_nodes, s_markers[0], s_markers[1], inner="b", snap=grip_snap)
+    held_b = held_nodes(s_nodes, s_markers[-2], s_markers[-1], inner="a", snap=grip_snap)
 
     starts = [int(rng.integers(0, r.n_frames - n_frames + 1)) for r in sources]
     # a table just above the lowest points most recordings reach: the rope touches it in most of them
@@ -679,6 +693,11 @@ def generate_elastica(
                 "max_stretch": max(strain),
                 "p99_stretch": float(np.percentile(strain, 99)),
                 "starts": starts,
+                # the clamps' material extent [m]: the benchmark's rows hold past the gripped markers
+                "held_s_m": [
+                    [float(s_nodes[held_a[0]]), float(s_nodes[held_a[-1]])],
+                    [float(s_nodes[held_b[0]]), float(s_nodes[held_b[-1]])],
+                ],
             },
         }
     )
