@@ -165,12 +165,12 @@ def held_nodes(
     dx = s_nodes[1] - s_nodes[0]
     lo = math.floor(s_a / dx + 1e-9)
     hi = math.ceil(s_b / dx - 1e-9)
+    if snap not in ("outward", "nearest") or (snap == "nearest" and inner not in ("a", "b")):
+        raise ValueError(f"snap 'outward', or 'nearest' with inner 'a' or 'b'; got {snap!r}, {inner!r}")
     if snap == "nearest" and inner == "b":
         hi = max(round(s_b / dx), lo + 1)
-    elif snap == "nearest" and inner == "a":
+    elif snap == "nearest":
         lo = min(round(s_a / dx), hi - 1)
-    elif snap != "outward":
-        raise ValueError(f"snap must be 'outward' or 'nearest', not {snap!r}")
     return np.arange(max(lo, 0), min(hi, len(s_nodes) - 1) + 1)
 
 

@@ -296,6 +296,12 @@ def diagnose(
     remaining = list(budget.candidates)
     candidates_out: list[dict] = []
     slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON)
+
+    def budget_for(term: Term) -> FitBudget:
+        """A term's fit budget: slow terms on windows growing to the scoring windows (see
+        :attr:`DiagnoseBudget.grow_slow_terms`), the others on the candidate budget's."""
+        return slow_cb if budget.grow_slow_terms and term.slow else cb
+
     for rnd in range(budget.max_rounds):
         if not remaining:
             break
@@ -303,7 +309,7 @@ def diagnose(
         results = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context, read_roll=budget.read_roll)
-            tb = slow_cb if budget.grow_slow_terms and term.slow else cb
+            tb = budget_for(term)
             if tb.final_horizon not in references:
                 references[tb.final_horizon] = refit_reference(
                     spec, base_nominal, selected, inputs, tb, base_err, f"round {rnd + 1}: reference"
@@ -377,8 +383,7 @@ def diagnose(
         remaining = [r.name for r in order if r.score.improvement > 0][: budget.later_round_candidates]
     for t in selected:
         # on the windows the term was fitted on: a slow term's loss is flat on the short ones
-        tb = slow_cb if budget.grow_slow_terms and t.slow else cb
-        std = laplace_uncertainty(base_sim, inputs.fit, tb, t)
+        std = laplace_uncertainty(base_sim, inputs.fit, budget_for(t), t)
         for c in candidates_out:
             if c["name"] == t.name and c["on_top_of"] == selected_names[: selected_names.index(t.name)]:
                 c["params_std"] = std

@@ -566,9 +566,7 @@ def fitted_beyond_level(name: str, params: dict[str, float]) -> bool:
         params: the term's fitted parameters (``Term.params()``, as stored in a report).
     """
     level = getattr(LIBRARY.get(name), "material_level", None)
-    if level is None or level[0] not in params:
-        return False
-    return params[level[0]] > level[1]
+    return level is not None and level[0] in params and beyond_material_level(name, params)
 
 
 def make_term(
