@@ -65,9 +65,11 @@ def budget(quick) -> DiagnoseBudget:
 def tool_budget(args) -> DiagnoseBudget:
     """The budget of the tool's runs: ``--quick``, and ``--fits-version N`` for the fits of an
     older tool (6: slow terms on the candidates' fixed windows; 7: rest curvature in the "up"
-    convention's roll, not read from each recording)."""
+    convention's roll, not read from each recording; 8: the rope freed at the gripped markers)."""
     version = getattr(args, "fits_version", None) or TOOL_VERSION
-    return dataclasses.replace(budget(args.quick), grow_slow_terms=version >= 7, read_roll=version >= 8)
+    return dataclasses.replace(
+        budget(args.quick), grow_slow_terms=version >= 7, read_roll=version >= 8, fit_clamp=version >= 9
+    )
 
 
 def param_error(found: dict, truth: dict, edge_m: float) -> dict:
@@ -98,8 +100,9 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # a step; the contact grid also with the nominal stiffness halved; damping shares 1, 1/2, 1/5. v7: slow
 # terms (internal damping) and a reference of their own fitted on windows growing to the one-second
 # scoring windows (DiagnoseBudget.grow_slow_terms, on by default); rows of v6 run with
-# --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such.
-TOOL_VERSION = 8
+# --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such. v9: the
+# nominal model fits a clamp length past the gripped markers (deform.diagnose.simulator.clamped).
+TOOL_VERSION = 9
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0

@@ -49,6 +49,10 @@ class DiagnoseBudget:
     # grippers from its first 0.2 s (Simulator.initial_roll); off: the "up" convention's roll in
     # every recording (tool v7). On from tool v8 (docs/diagnose.md)
     read_roll: bool = True
+    # the nominal model fits how far past the gripped markers the grippers hold the rope
+    # (Simulator: ``clamped``); off: the rope is freed at the markers (tool v8). On from tool v9:
+    # the held-out PyElastica controls' false stiffness variations came from it (docs/diagnose.md)
+    fit_clamp: bool = True
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
@@ -267,6 +271,7 @@ def diagnose(
     s = arclength_of(inputs.fit)
     cb = dataclasses.replace(budget.candidate, progress=budget.progress)
     nominal = _nominal_from_model(start_model) if start_model else Nominal()
+    nominal.clamp_dm.requires_grad_(budget.fit_clamp)
     sim = Simulator(spec, nominal)
     coarse = None if start_model else coarse_nominal(sim, inputs.fit)
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)

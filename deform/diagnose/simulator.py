@@ -26,11 +26,13 @@ NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
 
 
 MATERIAL_DAMPING_MAX = MATERIAL_DAMPING_LEVEL  # the nominal fit's bound (see terms.MATERIAL_DAMPING_LEVEL)
+CLAMP_MAX_M = 0.05  # the longest clamp past a gripped marker the nominal fit considers
 
 
 class Nominal(nn.Module):
     """Plain DER: uniform bending EI and twisting GJ [N m^2], linear velocity damping [1/s] (at most
-    ``damping_max`` when fitted: see MATERIAL_DAMPING_MAX)."""
+    ``damping_max`` when fitted: see MATERIAL_DAMPING_MAX), and the clamp length [m] past the
+    gripped markers where the free rope starts (see :func:`clamped`)."""
 
     def __init__(
         self,
@@ -38,12 +40,16 @@ class Nominal(nn.Module):
         gj: float = 7e-4,
         damping: float = 0.5,
         damping_max: float = MATERIAL_DAMPING_MAX,
+        clamp_m: float = 0.0,
     ):
         super().__init__()
         self.damping_max = damping_max
         self.log_ei = nn.Parameter(torch.tensor(math.log(ei), dtype=torch.float64))
         self.log_gj = nn.Parameter(torch.tensor(math.log(gj), dtype=torch.float64))
         self.log_damping = nn.Parameter(torch.tensor(math.log(damping), dtype=torch.float64))
+        self.clamp_max_m = CLAMP_MAX_M  # lowered by a Simulator to half its marker spacing
+        # the clamp in 10 cm units: Adam's nominal step (0.03) then moves it 3 mm
+        self.clamp_dm = nn.Parameter(torch.tensor(clamp_m / 0.1, dtype=torch.float64))
 
     @torch.no_grad()
     def params(self) -> dict[str, float]:
@@ -51,6 +57,7 @@ class Nominal(nn.Module):
             "bend_stiffness_Nm2": float(self.log_ei.exp()),
             "twist_stiffness_Nm2": float(self.log_gj.exp()),
             "damping_1_per_s": float(self.log_damping.exp()),
+            "clamp_m": float(self.clamp_dm) * 0.1,
         }
 
     def clamp_(self) -> None:
@@ -58,6 +65,7 @@ class Nominal(nn.Module):
             self.log_ei.clamp_(math.log(1e-6), math.log(0.3))
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(self.damping_max))
+            self.clamp_dm.clamp_(0.0, self.clamp_max_m / 0.1)
 
     def at_damping_bound(self) -> bool:
         """The fit wants more velocity damping than a rope's material damping gives."""
@@ -167,6 +175,29 @@ ROLL_ANGLES = 16  # rolls tried by Simulator.initial_roll (22.5 degrees apart, t
 ROLL_FRAMES = 20  # frames after the first two that a recording's roll is read from (0.2 s at 100 Hz)
 
 
+def clamped(grip: Tensor, clamp: Tensor) -> Tensor:
+    """Gripped vertices (..., 4, 3) with the inner two moved ``clamp`` [m] along the gripper's axis
+    towards the free rope: where the rod leaves the gripper, not where its marker sits.
+
+    Why: a gripper holds the rope past the marker it carries (the jaws' length); the rope leaves it
+    straight along the axis of the gripped edge, so the free part is shorter and its ends stiffer
+    than a model freeing the rope at the marker. Unseen in marker data, so a nominal parameter.
+
+    Args:
+        grip: (..., 4, 3) vertices 0, 1, n-2, n-1.
+        clamp: scalar clamp length past the markers 1 and n-2 [m].
+
+    Returns:
+        (..., 4, 3).
+    """
+    a = G.normalize(grip[..., 1, :] - grip[..., 0, :])
+    b = G.normalize(grip[..., 2, :] - grip[..., 3, :])
+    c = clamp.to(grip.dtype)
+    return torch.stack(
+        [grip[..., 0, :], grip[..., 1, :] + c * a, grip[..., 2, :] + c * b, grip[..., 3, :]], -2
+    )
+
+
 def roll_directors(d1: Tensor, t: Tensor, roll: Tensor) -> Tensor:
     """Directors ``d1`` (B, m, 3) turned by ``roll`` (B,) [rad] about their unit tangents ``t``:
     the whole material frame rolled, twist unchanged (rotation about the tangent commutes with
@@ -202,6 +233,9 @@ class Simulator:
         self.model = DeformModel(cfg, ModelOptions(residual=False))
         self.n = n
         self.nominal = nominal
+        # a clamp ends before the next marker: at most half the mean marker spacing
+        nominal.clamp_max_m = min(nominal.clamp_max_m, 0.5 * spec.length_m / (spec.n_vertices - 1))
+        nominal.clamp_()
         self.terms = list(terms or [])
         emap = (
             [0]
@@ -309,11 +343,13 @@ class Simulator:
             a = pos - lo
             return (1 - a) * grips[:, i] + a * grips[:, i + 1]
 
+        clamp = self.nominal.clamp_dm * 0.1
         x0, x1 = frames[:, margin], frames[:, margin + 1]
-        if tau is not None:  # the rod's gripped ends lag the recorded grips from the first frame on
-            x0, x1 = x0.clone(), x1.clone()
-            x0[:, idx] = grip_at(margin).to(x0.dtype)
-            x1[:, idx] = grip_at(margin + 1).to(x1.dtype)
+        # the rod's gripped ends lag the recorded grips from the first frame on (delay), and its free
+        # part starts where the clamp ends
+        x0, x1 = x0.clone(), x1.clone()
+        x0[:, idx] = clamped(grip_at(margin), clamp).to(x0.dtype)
+        x1[:, idx] = clamped(grip_at(margin + 1), clamp).to(x1.dtype)
         state = self.model.initial_state(
             refine_markers(x0, self.hidden), refine_markers(x1, self.hidden), dt=self.model.dt * self.substeps
         )
@@ -336,14 +372,20 @@ class Simulator:
         out = []
         for k in range(steps):
             for j in range(1, self.substeps + 1):
-                g = grip_at(margin + 1 + k + j / self.substeps)
+                g = clamped(grip_at(margin + 1 + k + j / self.substeps), clamp)
                 state = self.model.step(state, g, create_graph=create_graph)
             x = state.x[:, self.markers] if self.hidden else state.x
-            if tau is not None:
-                # the gripped markers are the protocol's inputs, given at every step: with a delay the
-                # rod's ends lag them, but the prediction is not scored on where the inputs are
-                x = x.clone()
-                x[:, idx] = grips[:, margin + 2 + k].to(x.dtype)
+            # the gripped markers are the protocol's inputs, given at every step: with a delay the
+            # rod's ends lag them and with a clamp its nodes 1 and n-2 are the clamp's ends, but the
+            # prediction is not scored on where the inputs are
+            x = torch.cat(
+                [
+                    grips[:, margin + 2 + k, :2].to(x.dtype),
+                    x[:, 2:-2],
+                    grips[:, margin + 2 + k, 2:].to(x.dtype),
+                ],
+                1,
+            )
             out.append(x)
         return torch.stack(out, 1)
 

@@ -1,0 +1,40 @@
+"""The clamp past the gripped markers: a nominal parameter the grip carries, found from marker motion."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from deform.diagnose.fitting import fit
+from deform.diagnose.simulator import Nominal, Simulator, clamped
+from deform.io.recordings import Recording
+
+from .conftest import SPEC, tiny_budget
+
+
+def test_clamp_moves_the_inner_grips_along_the_gripper_axis():
+    grip = torch.tensor([[0.0, 0, 0], [0.03, 0, 0], [0.5, 0.1, 0], [0.5, 0.14, 0]], dtype=torch.float64)
+    out = clamped(grip, torch.tensor(0.02, dtype=torch.float64))
+    assert torch.equal(out[[0, 3]], grip[[0, 3]])
+    assert torch.allclose(out[1], torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64))
+    assert torch.allclose(out[2], torch.tensor([0.5, 0.08, 0.0], dtype=torch.float64))
+    assert torch.equal(clamped(grip, torch.tensor(0.0, dtype=torch.float64)), grip)
+
+
+def _recordings_with_clamp(sources, clamp_m: float) -> list[Recording]:
+    truth = Simulator(SPEC, Nominal(2e-3, 1.4e-3, 0.5, clamp_m=clamp_m))
+    return [
+        Recording(name=f"clamp_{i}", positions=p, dt=r.dt)
+        for i, (p, r) in enumerate(zip(truth.predict(sources), sources))
+    ]
+
+
+@pytest.mark.parametrize("clamp_m", [0.0, 0.025])
+def test_nominal_fit_finds_the_clamp_length(sources, clamp_m):
+    """From a clamp of 0 (a model freeing the rope at its marker), the nominal fit moves to the clamp
+    the recordings were made with; on recordings freed at the marker it stays near 0."""
+    recs = _recordings_with_clamp(sources, clamp_m)
+    budget = dataclasses.replace(tiny_budget([]).candidate, iterations=40)
+    sim = Simulator(SPEC, Nominal(2e-3, 1.4e-3, 0.5))
+    fit(sim, recs, budget)
+    assert sim.nominal.params()["clamp_m"] == pytest.approx(clamp_m, abs=0.004)
