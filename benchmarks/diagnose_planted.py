@@ -181,7 +181,9 @@ def oracle_check(spec, nominal_params: dict, effect, truth, inputs, quick: bool)
         nominal_params["bend_stiffness_Nm2"],
         nominal_params["twist_stiffness_Nm2"],
         nominal_params["damping_1_per_s"],
+        clamp_m=nominal_params.get("clamp_m", 0.0),
     )
+    nom.clamp_dm.requires_grad_("clamp_m" in nominal_params)  # fits before v9 freed the rope at the markers
     sim = Simulator(spec, nom, [term])
     fit(sim, inputs.fit, dataclasses.replace(budget(quick).candidate, progress=False), desc="oracle")
     return float(per_recording_l1(sim.predict(inputs.check), inputs.check).mean())
