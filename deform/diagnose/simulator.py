@@ -27,6 +27,7 @@ NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
 
 MATERIAL_DAMPING_MAX = MATERIAL_DAMPING_LEVEL  # the nominal fit's bound (see terms.MATERIAL_DAMPING_LEVEL)
 CLAMP_MAX_M = 0.05  # the longest clamp past a gripped marker the nominal fit considers
+CLAMP_UNIT_M = 0.1  # the clamp parameter's unit: Adam's nominal step (0.03) then moves it 3 mm
 
 
 class Nominal(nn.Module):
@@ -48,8 +49,7 @@ class Nominal(nn.Module):
         self.log_gj = nn.Parameter(torch.tensor(math.log(gj), dtype=torch.float64))
         self.log_damping = nn.Parameter(torch.tensor(math.log(damping), dtype=torch.float64))
         self.clamp_max_m = CLAMP_MAX_M  # lowered by a Simulator to half its marker spacing
-        # the clamp in 10 cm units: Adam's nominal step (0.03) then moves it 3 mm
-        self.clamp_dm = nn.Parameter(torch.tensor(clamp_m / 0.1, dtype=torch.float64))
+        self.clamp_dm = nn.Parameter(torch.tensor(clamp_m / CLAMP_UNIT_M, dtype=torch.float64))
 
     @torch.no_grad()
     def params(self) -> dict[str, float]:
@@ -57,7 +57,7 @@ class Nominal(nn.Module):
             "bend_stiffness_Nm2": float(self.log_ei.exp()),
             "twist_stiffness_Nm2": float(self.log_gj.exp()),
             "damping_1_per_s": float(self.log_damping.exp()),
-            "clamp_m": float(self.clamp_dm) * 0.1,
+            "clamp_m": float(self.clamp_length()),
         }
 
     def clamp_(self) -> None:
@@ -65,7 +65,11 @@ class Nominal(nn.Module):
             self.log_ei.clamp_(math.log(1e-6), math.log(0.3))
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(self.damping_max))
-            self.clamp_dm.clamp_(0.0, self.clamp_max_m / 0.1)
+            self.clamp_dm.clamp_(0.0, self.clamp_max_m / CLAMP_UNIT_M)
+
+    def clamp_length(self) -> Tensor:
+        """The clamp past the gripped markers [m] (differentiable)."""
+        return self.clamp_dm * CLAMP_UNIT_M
 
     def at_damping_bound(self) -> bool:
         """The fit wants more velocity damping than a rope's material damping gives."""
@@ -343,7 +347,7 @@ class Simulator:
             a = pos - lo
             return (1 - a) * grips[:, i] + a * grips[:, i + 1]
 
-        clamp = self.nominal.clamp_dm * 0.1
+        clamp = self.nominal.clamp_length()
         x0, x1 = frames[:, margin], frames[:, margin + 1]
         # the rod's gripped ends lag the recorded grips from the first frame on (delay), and its free
         # part starts where the clamp ends
