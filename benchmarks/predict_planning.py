@@ -114,6 +114,18 @@ def main() -> int:
             timeout=3600,
         )
         s1 = status(rope)
+        # the service's own timings of the same requests (the client asks the cases in turn):
+        # handed to the predict processes -> reply assembled, and the slowest share inside its process
+        served = s1["counts"].get("predictions", 0) - s0["counts"].get("predictions", 0)
+        inside = {}
+        if served == len(CASES) * n:
+            handled, computed = (
+                r.values(last=served) for r in (svc.stats.predict_s, svc.stats.predict_compute_s)
+            )
+            inside = {
+                label: {"service": handled[i :: len(CASES)], "worker": computed[i :: len(CASES)]}
+                for i, (label, _, _) in enumerate(CASES)
+            }
         feed.kill()
         rope.close()
         svc.stop()
@@ -126,6 +138,7 @@ def main() -> int:
         return {
             "warmup_s": warmup,
             "times": json.loads(lines[-1]),
+            "inside": inside,
             "ticks": s1["counts"]["ticks"] - s0["counts"]["ticks"],
             "misses": misses,
             "tick_to_publish_ms": s1["tick_to_publish_ms"],
@@ -160,6 +173,16 @@ def main() -> int:
                 }
                 for label, v in times.items()
             },
+            # where a request's time goes (p50s): the client's whole request, the service's handling
+            # (split, the processes' pipes, assembly) and the slowest share's parse, rollout and encode
+            "inside_p50_ms": {
+                label: {
+                    part: round(1e3 * float(np.median(v)), 1)
+                    for part in ("service", "worker")
+                    if (v := [t for r in rs for t in r["inside"].get(label, {}).get(part, [])])
+                }
+                for label in times
+            },
             "redone_pct_of_rod_steps": round(
                 100.0 * sum(r["rod_steps_redone"] for r in rs) / sum(r["rod_steps"] for r in rs), 3
             ),
@@ -185,6 +208,7 @@ def main() -> int:
         "rounds": args.rounds,
         "warmup_s": head["warmup_s"],
         "requests": head["requests"],
+        "inside_p50_ms": head["inside_p50_ms"],
         "redone_pct_of_rod_steps": head["redone_pct_of_rod_steps"],
         "targets_p50_ms": {"1024x100 cost": 300, "256x100 final": 100, "64x100 all": 100},
         "loop": head["loop"],

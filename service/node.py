@@ -324,7 +324,8 @@ class Service:
         if not initial:
             self.stats.publish_s.add(publish_s)
         if self.rerun is not None:
-            step = self.stats.step_s._buf[-1] * 1e3 if self.stats.step_s._buf and not initial else None
+            last = self.stats.step_s.latest()
+            step = last * 1e3 if last is not None and not initial else None
             self.rerun.submit("estimate", estimate, step, publish_s * 1e3, self.est.mode())
             cloud = getattr(self.est, "last_cloud", None)
             if cloud is not None and cloud is not self._last_logged_cloud:

@@ -25,9 +25,18 @@ class Rolling:
     def add(self, value: float) -> None:
         self._buf.append(value)
 
+    def values(self, last: int | None = None) -> list[float]:
+        """The buffered samples, oldest first (all, or the ``last`` ones)."""
+        values = list(self._buf)
+        return values[-last:] if last else values
+
+    def latest(self) -> float | None:
+        """The newest sample, or None before the first."""
+        return self._buf[-1] if self._buf else None
+
     def summary(self, scale: float = 1e3, last: int | None = None) -> dict:
         """p50, p99 and max (times ``scale``: ms by default) over the buffer or its ``last`` samples."""
-        values = list(self._buf)[-last:] if last else self._buf
+        values = self.values(last)
         if not values:
             return {"p50": None, "p99": None, "max": None, "n": 0}
         a = np.fromiter(values, dtype=float) * scale
