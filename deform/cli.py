@@ -261,6 +261,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="full",
         help="fitting effort: full (default) or quick (about a third; the planted benchmark's)",
     )
+    g.add_argument(
+        "--clamp",
+        default="fit",
+        metavar="fit|METRES",
+        help="how far past the gripped markers the grippers hold the rope: fit (default, fitted with "
+        "the nominal model), or a known length in metres held fixed (0: the rope is free at the markers)",
+    )
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 

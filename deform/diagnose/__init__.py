@@ -1,6 +1,7 @@
 """Discrepancy tool: locate where the plain DER model and recordings differ, name the missing physics.
 
-``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]``
+``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]
+[--budget full|quick] [--clamp fit|METRES]``
 
 Modules: :mod:`.spec` (inputs and their checks), :mod:`.simulator` (bound DER model),
 :mod:`.terms` (candidate library), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
@@ -10,10 +11,32 @@ Modules: :mod:`.spec` (inputs and their checks), :mod:`.simulator` (bound DER mo
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import tempfile
 from pathlib import Path
+
+
+def given_clamp(value: str, spec) -> float | None:
+    """``--clamp``: None for ``fit``, else the length [m] to hold (UsageError when it is not a
+    length between 0 and half the marker spacing, :func:`deform.diagnose.simulator.clamp_bound`)."""
+    from deform.diagnose.simulator import clamp_bound
+    from deform.errors import UsageError
+
+    if value == "fit":
+        return None
+    try:
+        clamp = float(value)
+    except ValueError:
+        raise UsageError(f"--clamp {value!r}: expected fit or a length in metres") from None
+    bound = clamp_bound(spec)
+    if not 0.0 <= clamp <= bound:
+        raise UsageError(
+            f"--clamp {value}: a clamp ends before the next marker, between 0 and {bound:.4f} m "
+            "(half the marker spacing) for this rod"
+        )
+    return clamp
 
 
 def run_cli(args) -> int:
@@ -40,6 +63,9 @@ def run_cli(args) -> int:
         raise UsageError(f"{args.model}: --model: no such file")
     inputs = load_inputs(args.rod, args.fit, args.check)
     budget = DiagnoseBudget.quick() if getattr(args, "budget", "full") == "quick" else DiagnoseBudget()
+    clamp = given_clamp(getattr(args, "clamp", "fit"), inputs.spec)
+    if clamp is not None:
+        budget = dataclasses.replace(budget, fit_clamp=False, clamp_m=clamp)
     diag = diagnose(inputs, budget, start_model=getattr(args, "model", None))
     tmp = Path(tempfile.mkdtemp(prefix=".diagnose-", dir=out.parent if out.parent.exists() else None))
     try:

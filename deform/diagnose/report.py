@@ -138,7 +138,11 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         f"Parameters: {_fmt(nom['params'])}",
         "",
         "`clamp_m` is how far past the gripped markers (vertices 1 and n-2) the grippers hold the rope, "
-        "fitted with the rest: where the free rope starts.",
+        + (
+            "fitted with the rest: where the free rope starts."
+            if nom.get("clamp_fitted", True)
+            else "given (`--clamp`) and held: where the free rope starts."
+        ),
         "",
         f"Check error (the whole recording open loop, paper's metric): **{nom['check_l1_m'] * 100:.3f} cm**; "
         f"one-second predictions along the recordings: {nom['check_window_l1_m'] * 100:.3f} cm",

@@ -53,6 +53,10 @@ class DiagnoseBudget:
     # (Simulator: ``clamped``); off: the rope is freed at the markers (tool v8). On from tool v9:
     # the held-out PyElastica controls' false stiffness variations came from it (docs/diagnose.md)
     fit_clamp: bool = True
+    # the clamp length [m] the nominal fit starts from (fit_clamp) or holds (not fit_clamp): a user
+    # who knows how far past the gripped markers the jaws hold the rope gives it (deform diagnose
+    # --clamp); 0 with fit_clamp off frees the rope at the markers
+    clamp_m: float = 0.0
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
@@ -271,7 +275,7 @@ def diagnose(
     s = arclength_of(inputs.fit)
     cb = dataclasses.replace(budget.candidate, progress=budget.progress)
     nominal = _nominal_from_model(start_model) if start_model else Nominal()
-    nominal.clamp_dm.requires_grad_(budget.fit_clamp)
+    nominal.set_clamp(budget.clamp_m, fitted=budget.fit_clamp)
     sim = Simulator(spec, nominal)
     coarse = None if start_model else coarse_nominal(sim, inputs.fit)
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
@@ -399,6 +403,7 @@ def diagnose(
             "check_window_l1_m": float(c_nom.window.mean()),
             "check_l1_by_recording_m": dict(zip([r.name for r in inputs.check], e_nom.tolist())),
             "coarse_identification": coarse,
+            "clamp_fitted": budget.fit_clamp,
             "warnings": list(inputs.warnings),
         },
         "localization": loc,

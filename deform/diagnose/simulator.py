@@ -30,6 +30,12 @@ CLAMP_MAX_M = 0.05  # the longest clamp past a gripped marker the nominal fit co
 CLAMP_UNIT_M = 0.1  # the clamp parameter's unit: Adam's nominal step (0.03) then moves it 3 mm
 
 
+def clamp_bound(spec: RodSpec) -> float:
+    """The longest clamp [m] a rod's model takes: it ends before the next marker, at most half the
+    mean marker spacing (and at most CLAMP_MAX_M)."""
+    return min(CLAMP_MAX_M, 0.5 * spec.length_m / (spec.n_vertices - 1))
+
+
 class Nominal(nn.Module):
     """Plain DER: uniform bending EI and twisting GJ [N m^2], linear velocity damping [1/s] (at most
     ``damping_max`` when fitted: see MATERIAL_DAMPING_MAX), and the clamp length [m] past the
@@ -66,6 +72,12 @@ class Nominal(nn.Module):
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(self.damping_max))
             self.clamp_dm.clamp_(0.0, self.clamp_max_m / CLAMP_UNIT_M)
+
+    def set_clamp(self, clamp_m: float, fitted: bool) -> None:
+        """Start the clamp at ``clamp_m`` [m]; ``fitted``: the fit moves it, else it is held there."""
+        with torch.no_grad():
+            self.clamp_dm.fill_(clamp_m / CLAMP_UNIT_M)
+        self.clamp_dm.requires_grad_(fitted)
 
     def clamp_length(self) -> Tensor:
         """The clamp past the gripped markers [m] (differentiable)."""
@@ -237,8 +249,7 @@ class Simulator:
         self.model = DeformModel(cfg, ModelOptions(residual=False))
         self.n = n
         self.nominal = nominal
-        # a clamp ends before the next marker: at most half the mean marker spacing
-        nominal.clamp_max_m = min(nominal.clamp_max_m, 0.5 * spec.length_m / (spec.n_vertices - 1))
+        nominal.clamp_max_m = min(nominal.clamp_max_m, clamp_bound(spec))
         nominal.clamp_()
         self.terms = list(terms or [])
         emap = (

@@ -132,3 +132,43 @@ def test_budget_option_picks_the_budget(tmp_path, monkeypatch):
             ]
         )
     assert bad.value.code == 2
+
+
+@pytest.mark.parametrize("value", ["-0.01", "0.5", "nan", "jaws"])
+def test_a_bad_clamp_is_one_error_line_and_nothing_written(tmp_path, capsys, value):
+    """The clamp ends before the next marker: 0 to half the marker spacing (0.043 m here), or fit."""
+    rod, fit, check = _write(tmp_path)
+    out = tmp_path / "out"
+    args = ["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check), "--out", str(out)]
+    assert main(args + ["--clamp", value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--clamp" in err[0] and "error" in err[0]
+    assert not out.exists()
+
+
+def test_a_given_clamp_is_held_and_fit_is_the_default(tmp_path, monkeypatch):
+    import deform.diagnose.selection as selection
+
+    rod, fit, check = _write(tmp_path)
+    used = []
+
+    def fake_diagnose(inputs, budget, start_model=None):
+        used.append(budget)
+        raise SystemExit(0)  # stop before any fitting
+
+    monkeypatch.setattr(selection, "diagnose", fake_diagnose)
+    args = [
+        "diagnose",
+        "--rod",
+        str(rod),
+        "--fit",
+        str(fit),
+        "--check",
+        str(check),
+        "--out",
+        str(tmp_path / "o"),
+    ]
+    for extra in ([], ["--clamp", "fit"], ["--clamp", "0.02"], ["--clamp", "0"]):
+        with pytest.raises(SystemExit):
+            main(args + extra)
+    assert [(b.fit_clamp, b.clamp_m) for b in used] == [(True, 0.0), (True, 0.0), (False, 0.02), (False, 0.0)]

@@ -38,3 +38,17 @@ def test_nominal_fit_finds_the_clamp_length(sources, clamp_m):
     sim = Simulator(SPEC, Nominal(2e-3, 1.4e-3, 0.5))
     fit(sim, recs, budget)
     assert sim.nominal.params()["clamp_m"] == pytest.approx(clamp_m, abs=0.004)
+
+
+def test_a_given_clamp_is_held_by_the_fit(sources):
+    """``--clamp METRES``: a gripper geometry the user knows stays where it is given, even where the
+    recordings were made with another clamp, while EI and the damping are still fitted."""
+    recs = _recordings_with_clamp(sources, 0.025)
+    budget = dataclasses.replace(tiny_budget([]).candidate, iterations=10)
+    nominal = Nominal(2e-3, 1.4e-3, 0.5)
+    nominal.set_clamp(0.01, fitted=False)
+    sim = Simulator(SPEC, nominal)
+    ei = nominal.params()["bend_stiffness_Nm2"]
+    fit(sim, recs, budget)
+    assert sim.nominal.params()["clamp_m"] == pytest.approx(0.01, abs=1e-12)
+    assert sim.nominal.params()["bend_stiffness_Nm2"] != ei
