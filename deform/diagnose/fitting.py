@@ -325,7 +325,7 @@ def _descend(
         if torch.isfinite(loss) and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
             torch.nn.utils.clip_grad_norm_(params, 5.0)
             opt.step()
-            sim.nominal.clamp_()
+            sim.clamp_()
         else:
             skipped += 1
         if sched is not None:

@@ -54,7 +54,6 @@ class Nominal(nn.Module):
         self.log_ei = nn.Parameter(torch.tensor(math.log(ei), dtype=torch.float64))
         self.log_gj = nn.Parameter(torch.tensor(math.log(gj), dtype=torch.float64))
         self.log_damping = nn.Parameter(torch.tensor(math.log(damping), dtype=torch.float64))
-        self.clamp_max_m = CLAMP_MAX_M  # lowered by a Simulator to half its marker spacing
         self.clamp_dm = nn.Parameter(torch.tensor(clamp_m / CLAMP_UNIT_M, dtype=torch.float64))
 
     @torch.no_grad()
@@ -66,12 +65,14 @@ class Nominal(nn.Module):
             "clamp_m": float(self.clamp_length()),
         }
 
-    def clamp_(self) -> None:
+    def clamp_(self, clamp_max_m: float = CLAMP_MAX_M) -> None:
+        """Keep the parameters in their physical ranges, the clamp at most ``clamp_max_m`` [m] (the
+        rod's :func:`clamp_bound`, which a :class:`Simulator` passes)."""
         with torch.no_grad():
             self.log_ei.clamp_(math.log(1e-6), math.log(0.3))
             self.log_gj.clamp_(math.log(1e-6), math.log(0.3))
             self.log_damping.clamp_(math.log(1e-3), math.log(self.damping_max))
-            self.clamp_dm.clamp_(0.0, self.clamp_max_m / CLAMP_UNIT_M)
+            self.clamp_dm.clamp_(0.0, clamp_max_m / CLAMP_UNIT_M)
 
     def set_clamp(self, clamp_m: float, fitted: bool) -> None:
         """Start the clamp at ``clamp_m`` [m]; ``fitted``: the fit moves it, else it is held there."""
@@ -249,8 +250,8 @@ class Simulator:
         self.model = DeformModel(cfg, ModelOptions(residual=False))
         self.n = n
         self.nominal = nominal
-        nominal.clamp_max_m = min(nominal.clamp_max_m, clamp_bound(spec))
-        nominal.clamp_()
+        self.clamp_max_m = clamp_bound(spec)
+        self.clamp_()
         self.terms = list(terms or [])
         emap = (
             [0]
@@ -265,6 +266,10 @@ class Simulator:
                 t.set_markers(self.markers, n)
             if hasattr(t, "acceleration") or hasattr(t, "mass"):
                 self.model.extensions.append(t)
+
+    def clamp_(self) -> None:
+        """Keep the nominal parameters in range, the clamp within this rod's bound."""
+        self.nominal.clamp_(self.clamp_max_m)
 
     def node_arclength(self, marker_arclength: np.ndarray) -> np.ndarray:
         return between_markers(marker_arclength, self.hidden)
