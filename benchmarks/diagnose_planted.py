@@ -266,14 +266,33 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
         if finished(key, done, runs_path, args):
             continue
         t0 = time.perf_counter()
-        recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
-        t_sim = time.perf_counter() - t0
-        if effect is None:
-            controls[(kind, seed)] = recs
-        pair = controls.get((kind, seed))
-        if pair is None and effect is not None:
-            pair, _ = generate(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
-            controls[(kind, seed)] = pair
+        try:
+            recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+            t_sim = time.perf_counter() - t0
+            if effect is None:
+                controls[(kind, seed)] = recs
+            pair = controls.get((kind, seed))
+            if pair is None and effect is not None:
+                pair, _ = generate(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+                controls[(kind, seed)] = pair
+        except RuntimeError as exc:  # the simulator's own step diverged: no dataset, stated as such
+            if "diverged" not in str(exc):
+                raise
+            row = {
+                "key": key,
+                "config": _config(args),
+                "kind": "diverged",
+                "simulator": simulator,
+                "rod_kind": kind,
+                "effect": effect or "none",
+                "seed": seed,
+                "reason": str(exc),
+                "seconds": time.perf_counter() - t0,
+            }
+            append_run(runs_path, row)
+            done[key] = row
+            print(json.dumps({k: row[k] for k in ("key", "reason")}), flush=True)
+            continue
         inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
         rep = diagnose(inputs, tool_budget(args)).report
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
@@ -712,6 +731,8 @@ def write(result: dict, stem: str = "diagnose") -> None:
         f"Budget: {result['budget']}",
         "",
     ]
+    for r in result.get("diverged", []):
+        lines += [f"No dataset for `{r['key']}`: {r['reason']} (the simulator's own step).", ""]
     cal = result["rules"]["calibration"]
     if cal:
         lines += [
@@ -1193,6 +1214,7 @@ def main() -> None:
         },
         "planted": planted,
         "real": real,
+        "diverged": sorted((r for r in done.values() if r["kind"] == "diverged"), key=lambda r: r["key"]),
     }
     write(result, stem)
 
