@@ -65,7 +65,7 @@ class Nominal(nn.Module):
             "clamp_m": float(self.clamp_length()),
         }
 
-    def clamp_(self, clamp_max_m: float = CLAMP_MAX_M) -> None:
+    def clamp_(self, clamp_max_m: float) -> None:
         """Keep the parameters in their physical ranges, the clamp at most ``clamp_max_m`` [m] (the
         rod's :func:`clamp_bound`, which a :class:`Simulator` passes)."""
         with torch.no_grad():

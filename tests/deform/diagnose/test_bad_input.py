@@ -32,8 +32,29 @@ def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=Fals
     return rod, fit, check
 
 
-def _cli(rod, fit, check, out):
-    return main(["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check), "--out", str(out)])
+def _cli(rod, fit, check, out, *extra):
+    return main(
+        ["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check), "--out", str(out), *extra]
+    )
+
+
+def _budgets_asked(monkeypatch, tmp_path, *option_lists) -> list:
+    """The DiagnoseBudget ``deform diagnose`` builds for each list of extra options (stopped before
+    any fitting)."""
+    import deform.diagnose.selection as selection
+
+    rod, fit, check = _write(tmp_path)
+    used = []
+
+    def fake_diagnose(inputs, budget, start_model=None):
+        used.append(budget)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(selection, "diagnose", fake_diagnose)
+    for extra in option_lists:
+        with pytest.raises(SystemExit):
+            _cli(rod, fit, check, tmp_path / "out", *extra)
+    return used
 
 
 @pytest.mark.parametrize(
@@ -85,52 +106,14 @@ def test_two_check_recordings_warn_about_the_interval(tmp_path):
 
 
 def test_budget_option_picks_the_budget(tmp_path, monkeypatch):
-    import deform.diagnose.selection as selection
     from deform.diagnose.selection import DiagnoseBudget
 
-    rod, fit, check = _write(tmp_path)
-    used = []
-
-    def fake_diagnose(inputs, budget, start_model=None):
-        used.append(budget)
-        raise SystemExit(0)  # stop before any fitting
-
-    monkeypatch.setattr(selection, "diagnose", fake_diagnose)
-    for choice in ("quick", "full"):
-        with pytest.raises(SystemExit):
-            main(
-                [
-                    "diagnose",
-                    "--rod",
-                    str(rod),
-                    "--fit",
-                    str(fit),
-                    "--check",
-                    str(check),
-                    "--out",
-                    str(tmp_path / "out"),
-                    "--budget",
-                    choice,
-                ]
-            )
+    used = _budgets_asked(monkeypatch, tmp_path, ["--budget", "quick"], ["--budget", "full"])
     assert used[0] == DiagnoseBudget.quick() and used[1] == DiagnoseBudget()
     assert used[0].candidate.iterations < used[1].candidate.iterations
+    rod, fit, check = tmp_path / "rod.json", tmp_path / "fit", tmp_path / "check"
     with pytest.raises(SystemExit) as bad:
-        main(
-            [
-                "diagnose",
-                "--rod",
-                str(rod),
-                "--fit",
-                str(fit),
-                "--check",
-                str(check),
-                "--out",
-                str(tmp_path / "out"),
-                "--budget",
-                "huge",
-            ]
-        )
+        _cli(rod, fit, check, tmp_path / "out", "--budget", "huge")
     assert bad.value.code == 2
 
 
@@ -139,36 +122,13 @@ def test_a_bad_clamp_is_one_error_line_and_nothing_written(tmp_path, capsys, val
     """The clamp ends before the next marker: 0 to half the marker spacing (0.043 m here), or fit."""
     rod, fit, check = _write(tmp_path)
     out = tmp_path / "out"
-    args = ["diagnose", "--rod", str(rod), "--fit", str(fit), "--check", str(check), "--out", str(out)]
-    assert main(args + ["--clamp", value]) == 2
+    assert _cli(rod, fit, check, out, "--clamp", value) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--clamp" in err[0] and "error" in err[0]
     assert not out.exists()
 
 
 def test_a_given_clamp_is_held_and_fit_is_the_default(tmp_path, monkeypatch):
-    import deform.diagnose.selection as selection
-
-    rod, fit, check = _write(tmp_path)
-    used = []
-
-    def fake_diagnose(inputs, budget, start_model=None):
-        used.append(budget)
-        raise SystemExit(0)  # stop before any fitting
-
-    monkeypatch.setattr(selection, "diagnose", fake_diagnose)
-    args = [
-        "diagnose",
-        "--rod",
-        str(rod),
-        "--fit",
-        str(fit),
-        "--check",
-        str(check),
-        "--out",
-        str(tmp_path / "o"),
-    ]
-    for extra in ([], ["--clamp", "fit"], ["--clamp", "0.02"], ["--clamp", "0"]):
-        with pytest.raises(SystemExit):
-            main(args + extra)
+    options = ([], ["--clamp", "fit"], ["--clamp", "0.02"], ["--clamp", "0"])
+    used = _budgets_asked(monkeypatch, tmp_path, *options)
     assert [(b.fit_clamp, b.clamp_m) for b in used] == [(True, 0.0), (True, 0.0), (False, 0.02), (False, 0.0)]
