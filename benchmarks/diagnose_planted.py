@@ -106,10 +106,13 @@ TOOL_VERSION = 9
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0
-# (deform.diagnose.scoring.nameable).
+# (deform.diagnose.scoring.nameable). Rule v9: nothing is named in a round where a term fitted within
+# its material level does as well as the pick, both less their parameter penalty
+# (deform.diagnose.scoring.material_level_suffices).
 RULE = (
-    "v8: the mean windowed improvement above the threshold, or a term beyond its material level "
-    "with its 90 % interval above 0; never a term within its material level"
+    "v9: the mean windowed improvement above the threshold, or a term beyond its material level "
+    "with its 90 % interval above 0; never a term within its material level, and nothing where such "
+    "a term does as well as the pick, penalised"
 )
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 

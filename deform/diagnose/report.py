@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from deform.diagnose.localize import plot_localization
+from deform.diagnose.scoring import PER_PARAM
 from deform.diagnose.selection import Diagnosis
 from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import Recording
@@ -35,6 +36,21 @@ def _named_on_size(c: dict) -> list[str]:
         "is fitted beyond a rope's material level and helps across the check recordings "
         f"(90 % interval {c['improvement_ci90'][0] * 100:+.1f} to "
         f"{c['improvement_ci90'][1] * 100:+.1f} %).",
+        "",
+    ]
+
+
+def _held_by_material_level(c: dict) -> list[str]:
+    """report.md's lines for a round's pick left unnamed because a term within its material level
+    explained the check recordings as well (rule v9), else none."""
+    w = c.get("held_by_material_level")
+    if not w:
+        return []
+    return [
+        f"Round {c['round']} names nothing: {w['term']}, fitted within a rope's own material level, explains "
+        f"the check recordings as well as {c['name']} ({w['term_penalised'] * 100:+.1f} % against "
+        f"{w['pick_penalised'] * 100:+.1f} %, each less {PER_PARAM * 100:.0f} % per parameter). The rope's "
+        "ordinary material physics accounts for the misfit as well as the new term would.",
         "",
     ]
 
@@ -177,7 +193,9 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         "spread twice as wide on controls). ± : approximate 1-sigma (Laplace). A term fitted within a "
         "rope's own material level (internal damping up to the level every rope's material has) is "
         "significant but not named; one fitted beyond that level whose 90 % interval lies above 0 may be "
-        "named below the threshold (its gain is diluted by the nominal model's own numerical dissipation).",
+        "named below the threshold (its gain is diluted by the nominal model's own numerical dissipation). "
+        "Nothing is named in a round where a term within its material level does as well as the best "
+        "candidate, both less their parameter penalty.",
         "",
         "![candidates](candidates.png)" if "candidates.png" in files else "",
         "",
@@ -186,6 +204,8 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         f"Selected: **{', '.join(rep['selected']) or 'none'}**",
         "",
     ]
+    for c in rep["candidates"]:
+        lines += _held_by_material_level(c)
     for c in rep["candidates"]:
         if "fit_noise" in c:
             lines += _named_on_size(c)

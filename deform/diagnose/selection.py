@@ -17,7 +17,7 @@ import numpy as np
 
 from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.scoring import Score, bootstrap_ci, nameable, score
+from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
     MATERIAL_DAMPING_MAX,
@@ -362,7 +362,16 @@ def diagnose(
         sig = [r for r in results if r.nameable]
         if not sig:
             break
-        best = max(sig, key=lambda r: r.score.improvement)
+        choice = choose([c for c in candidates_out if c["round"] == rnd + 1])
+        if choice.held_by is not None:  # rule v9: the rope's own material physics does as well
+            pick, held = choice.best, choice.held_by
+            pick["held_by_material_level"] = {
+                "term": held["name"],
+                "term_penalised": penalised(held["improvement"], held["n_params"]),
+                "pick_penalised": penalised(pick["improvement"], pick["n_params"]),
+            }
+            break
+        best = next(r for r in sig if r.name == choice.named["name"])
         name = best.name
         cls = equivalence_class(
             name,

@@ -109,3 +109,42 @@ def test_the_report_says_when_a_term_is_named_on_its_fitted_size():
     text = " ".join(_named_on_size(row))
     assert "named on its fitted size" in text and "+3.6 %" in text and "+1.8 to +8.6 %" in text
     assert _named_on_size({**row, "significant": True}) == []
+
+
+def test_nothing_is_named_when_a_term_within_its_material_level_does_as_well():
+    """Rule v9: table contact (+11.7 %, 3 parameters) is not named beside internal damping fitted
+    within a rope's material level (+11.9 %, 1 parameter), as on a PyElastica control; it is when the
+    damping does clearly worse after the penalty, and the rule holds in later rounds too."""
+    from deform.diagnose.scoring import choose
+    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL
+
+    def damping(improvement, rnd=1, on_top=()):
+        row = _cand("internal_damping", rnd, list(on_top), improvement, -0.01, 0.9)
+        return {**row, "params": {"bending_rate_damping_m4_per_s": INTERNAL_DAMPING_LEVEL / 2}}
+
+    contact = _cand("ground_contact", 1, [], 0.117, 0.065, 0.8, k=3)
+    assert reselect([contact, damping(0.119)], 1.0, min_gain=0.03)["selected"] == []
+    assert reselect([contact, damping(0.119)], 1.0, min_gain=0.03, parsimony=False)["selected"] == [
+        "ground_contact"
+    ]
+    # penalised, contact's 8.7 % against the damping's 9.0 %: still the damping's
+    assert reselect([contact, damping(0.100)], 1.0, min_gain=0.03)["selected"] == []
+    assert reselect([contact, damping(0.05)], 1.0, min_gain=0.03)["selected"] == ["ground_contact"]
+    second = [contact, damping(0.05), _cand("point_mass", 2, ["ground_contact"], 0.06, 0.02, 0.7)]
+    assert reselect(second + [damping(0.06, 2, ["ground_contact"])], 1.0, min_gain=0.03)["selected"] == [
+        "ground_contact"
+    ]
+    assert reselect(second, 1.0, min_gain=0.03)["selected"] == ["ground_contact", "point_mass"]
+    choice = choose([{**r, "nameable": r["name"] != "internal_damping"} for r in (contact, damping(0.119))])
+    assert choice.best["name"] == "ground_contact" and choice.held_by["name"] == "internal_damping"
+    assert choice.named is None
+
+
+def test_the_report_says_when_material_physics_explains_the_misfit():
+    from deform.diagnose.report import _held_by_material_level
+
+    row = _cand("ground_contact", 1, [], 0.117, 0.065, 0.8, k=3)
+    held = {"term": "internal_damping", "term_penalised": 0.109, "pick_penalised": 0.087}
+    text = " ".join(_held_by_material_level({**row, "held_by_material_level": held}))
+    assert "Round 1 names nothing" in text and "+10.9 % against +8.7 %" in text
+    assert _held_by_material_level(row) == []
