@@ -566,7 +566,7 @@ def fitted_beyond_level(name: str, params: dict[str, float]) -> bool:
         params: the term's fitted parameters (``Term.params()``, as stored in a report).
     """
     level = getattr(LIBRARY.get(name), "material_level", None)
-    return level is not None and level[0] in params and beyond_material_level(name, params)
+    return level is not None and level[0] in params and params[level[0]] > level[1]
 
 
 def make_term(
