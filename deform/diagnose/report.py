@@ -55,6 +55,38 @@ def _held_by_material_level(c: dict) -> list[str]:
     ]
 
 
+def _unconfirmed(rep: dict) -> list[str]:
+    """report.md's lines for the last round's best candidate left unnamed when some check recordings
+    confirm it and others do not: physics that acts only where a recording reaches it (a table
+    touched in few of them) needs check recordings that exercise it. None otherwise."""
+    rows = [c for c in rep["candidates"] if c.get("improvement_by_check_recording")]
+    if not rows:
+        return []
+    last = max(c["round"] for c in rows)
+    named = set(rep["selected"])
+    unnamed = [
+        c
+        for c in rows
+        if c["round"] == last and c["name"] not in named and c.get("beyond_material_level", True)
+    ]
+    if not unnamed:
+        return []
+    c = max(unnamed, key=lambda c: c["improvement"])
+    by = c["improvement_by_check_recording"]
+    if c["improvement"] <= 0 or max(by) <= c["threshold"]:
+        return []
+    names = list(rep["nominal"].get("check_l1_by_recording_m", {})) or [f"#{i}" for i in range(len(by))]
+    per = ", ".join(f"{n} {v * 100:+.1f} %" for n, v in zip(names, by))
+    return [
+        f"Not confirmed: {c['name']} (round {c['round']}) improves some check recordings beyond its "
+        f"threshold ({c['threshold'] * 100:.1f} %) but not on average ({c['improvement'] * 100:+.1f} %): "
+        f"{per}. Physics that acts only where a recording reaches it (a table the rope touches in few "
+        "of them) is decided by check recordings that exercise it; add such recordings to check/ to "
+        "decide.",
+        "",
+    ]
+
+
 def _plots(diag: Diagnosis, check: list[Recording], out: Path) -> list[str]:
     import matplotlib
 
@@ -206,6 +238,7 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
     ]
     for c in rep["candidates"]:
         lines += _held_by_material_level(c)
+    lines += _unconfirmed(rep)
     for c in rep["candidates"]:
         if "fit_noise" in c:
             lines += _named_on_size(c)

@@ -353,6 +353,7 @@ def diagnose(
                     "on_top_of": list(selected_names),
                     "n_params": term.n_params,
                     "improvement_ci90": [sc.ci_low, sc.ci_high],
+                    "improvement_by_check_recording": ((e_ref - checked.window) / e_ref).tolist(),
                     "threshold": sc.threshold,
                     "reference_check_l1_m": float(c_ref.rollout.mean()),
                     "reference_check_window_l1_m": float(e_ref.mean()),

@@ -148,3 +148,27 @@ def test_the_report_says_when_material_physics_explains_the_misfit():
     text = " ".join(_held_by_material_level({**row, "held_by_material_level": held}))
     assert "Round 1 names nothing" in text and "+10.9 % against +8.7 %" in text
     assert _held_by_material_level(row) == []
+
+
+def test_the_report_names_a_candidate_that_some_check_recordings_confirm_and_others_do_not():
+    """A table touched in one check recording of four: the contact candidate helps that one beyond
+    its threshold and is not named on average; the report says which recordings confirm it."""
+    from deform.diagnose.report import _unconfirmed
+
+    contact = {
+        **_cand("ground_contact", 1, [], 0.002, -0.05, 0.9, k=3),
+        "threshold": 0.06,
+        "beyond_material_level": True,
+        "improvement_by_check_recording": [0.09, -0.03, -0.02, -0.032],
+    }
+    rep = {
+        "candidates": [contact],
+        "selected": [],
+        "nominal": {"check_l1_by_recording_m": {"a": 0.01, "b": 0.01, "c": 0.01, "d": 0.01}},
+    }
+    text = " ".join(_unconfirmed(rep))
+    assert "Not confirmed: ground_contact" in text and "a +9.0 %" in text and "d -3.2 %" in text
+    even = {**contact, "improvement_by_check_recording": [0.01, 0.0, -0.01, 0.008]}
+    assert _unconfirmed({**rep, "candidates": [even]}) == []  # no recording beyond the threshold
+    assert _unconfirmed({**rep, "selected": ["ground_contact"]}) == []  # named: nothing to say
+    assert _unconfirmed({**rep, "candidates": [{**contact, "improvement": -0.01}]}) == []
