@@ -186,7 +186,9 @@ def coarse_identification(
     grid = [
         (math.log(ei), math.log(c)) for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2) for c in (0.3, 1.0, 3.0)
     ]
-    for log_ei, log_c in tqdm(grid, desc="coarse identification", disable=not progress, leave=False):
+    for log_ei, log_c in tqdm(
+        grid, desc="coarse identification", disable=None if progress else True, leave=False
+    ):
         with torch.no_grad():
             model.log_beta.copy_(base_beta - shift0 + log_ei)
             model.log_gamma.copy_(base_gamma - shift0 + log_ei)
@@ -476,7 +478,7 @@ def train(
         range(start, cfg.iterations),
         initial=start,
         total=cfg.iterations,
-        disable=not progress,
+        disable=None if progress else True,  # None: tqdm shows bars on a terminal only
         desc=f"train {model.cfg.name}",
         unit="it",
     )

@@ -312,7 +312,9 @@ def _descend(
         else None
     )
     history, skipped = [], 0
-    bar = tqdm(range(budget.iterations), desc=desc, disable=not budget.progress, leave=False, unit="it")
+    bar = tqdm(
+        range(budget.iterations), desc=desc, disable=None if budget.progress else True, leave=False, unit="it"
+    )
     for i in bar:
         horizon, batch = window_schedule(budget, recordings, i)
         windows = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
