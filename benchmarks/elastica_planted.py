@@ -754,14 +754,12 @@ def print_detectability_table(generate, describe_numerics, description: str) -> 
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--strength", type=float, default=1.0)
     args = ap.parse_args()
+    from diagnose_planted import ELASTICA_SOURCES, RODS  # the benchmark's rods, one table
+
     root = find_data_root()
-    rods = {
-        "light": ("DLO1", 1.152, 0.0345, 13),
-        "stiff": ("DLO3", 0.998, 0.0968, 12),
-        "medium": ("DLO2", 0.996, 0.0652, 12),
-    }
     for kind in args.kinds:
-        name, length, mass, nv = rods[kind]
+        name = ELASTICA_SOURCES[kind]
+        length, mass, nv = RODS[name]
         sources = load_recordings(root / name / "train")[: args.sources]
         spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)
         t0 = _time.perf_counter()

@@ -81,44 +81,17 @@ detectability, planted_truth = elastica.detectability, elastica.planted_truth
 
 __all__ = ["DEFAULTS", "EFFECTS", "ROD_KINDS", "detectability", "generate_mujoco", "planted_truth"]
 
-# Material of the two reference rods (length and mass come from the RodSpec). The links are about
-# ``link_m`` long (the gripped portions are one link each, whatever their length): 39 (light) / 34
-# (stiff) links. The fastest modes of the chain are twists of single links (small axial inertia), at
-# about 4900 (light) / 6000 rad/s (stiff), twice that with the stiff segment: an explicit step would
-# need 0.1 ms; the discrete (implicit) integrator is stable at 0.5 ms, where it damps those modes
-# numerically and leaves the bending modes that move the markers (below 100 rad/s) alone.
+# Material of the reference rods: PyElastica's (``elastica.ROD_KINDS``; length and mass come from the
+# RodSpec), discretised here as links about ``link_m`` long (the gripped portions are one link each,
+# whatever their length): 39 (light) / 34 (stiff) links. The fastest modes of the chain are twists
+# of single links (small axial inertia), at about 4900 (light) / 6000 rad/s (stiff), twice that with
+# the stiff segment: an explicit step would need 0.1 ms; the discrete (implicit) integrator is stable
+# at 0.5 ms, where it damps those modes numerically and leaves the bending modes that move the
+# markers (below 100 rad/s) alone.
+MATERIAL = ("length_m", "mass_kg", "radius_m", "bend_stiffness_Nm2", "material_damping_m4_per_s")
 ROD_KINDS = {
-    # like DLO1 (1.152 m, 34.5 g), a soft cable 8 mm thick
-    "light": {
-        "length_m": 1.152,
-        "mass_kg": 0.0345,
-        "radius_m": 0.004,
-        "bend_stiffness_Nm2": 1.0e-3,
-        "material_damping_m4_per_s": 2e-6,
-        "link_m": 0.03,
-        "dt_s": 5e-4,
-    },
-    # like DLO3 (0.998 m, 96.8 g), the stiffest of the five, 12 mm thick
-    "stiff": {
-        "length_m": 0.998,
-        "mass_kg": 0.0968,
-        "radius_m": 0.006,
-        "bend_stiffness_Nm2": 1.2e-2,
-        "material_damping_m4_per_s": 2e-6,
-        "link_m": 0.03,
-        "dt_s": 5e-4,
-    },
-    # a third rod, added after the two above were benchmarked and never tuned on: DLO2's length,
-    # mass and gripper motions (0.996 m, 65.2 g), 10 mm thick, EI between the light and stiff rods
-    "medium": {
-        "length_m": 0.996,
-        "mass_kg": 0.0652,
-        "radius_m": 0.005,
-        "bend_stiffness_Nm2": 4.0e-3,
-        "material_damping_m4_per_s": 2e-6,
-        "link_m": 0.03,
-        "dt_s": 5e-4,
-    },
+    kind: {**{k: rod[k] for k in MATERIAL}, "link_m": 0.03, "dt_s": 5e-4}
+    for kind, rod in elastica.ROD_KINDS.items()
 }
 INTEGRATOR = "discrete"  # MuJoCo 4's implicit step: joint springs, damping and constraints in its metric
 SETTLE_S = 1.0  # settling time before the first recorded frame [s]
@@ -138,34 +111,7 @@ CONTACT_TIMECONST_S = 0.01  # contact: critically damped, stiffness ~ 1 / timeco
 # ground 1.49 / 1.73, clip 1.44 / 1.98, stiff segment 1.41 / 1.59, wind 1.00 / 0.92, internal
 # damping 0.63 / 0.58, rest curvature 0.88 / 1.42, delay 0.86 / 0.70. Controls vs the real
 # recordings they replay: 1.97 / 1.77 cm.
-_COMMON = {
-    "aerodynamic_drag": {"quadratic_1_per_m": 3.0},  # x strength
-    "ground_contact": {"stiffness_1_per_s2": 1.0e4, "friction": 0.5},  # friction x strength (<= 1.5)
-    "point_mass": {"mass_fraction": 0.20, "position_s": 0.35},  # mass x strength
-    "stiffness_variation": {"stiffness_ratio": 5.0, "start_s": 0.30, "end_s": 0.55},  # (ratio - 1) x strength
-    "rest_curvature": {"kappa1_per_m": 2.0, "kappa2_per_m": 0.0},  # x strength
-    "actuation_delay": {"delay_frames": 2.0},  # x strength
-}
-DEFAULTS = {
-    "light": {
-        **_COMMON,
-        "external_force": {"ax_m_per_s2": 1.2, "ay_m_per_s2": 0.75},  # x strength
-        "internal_damping": {"bending_rate_damping_m4_per_s": 2e-4},  # x strength
-        "rest_curvature": {"kappa1_per_m": 3.0, "kappa2_per_m": 0.0},
-        "actuation_delay": {"delay_frames": 3.0},
-    },
-    "stiff": {
-        **_COMMON,
-        "external_force": {"ax_m_per_s2": 3.2, "ay_m_per_s2": 2.0},
-        "internal_damping": {"bending_rate_damping_m4_per_s": 1e-3},
-    },
-    "medium": {  # between the light and stiff rods' sizes (not measured before the benchmark ran)
-        **_COMMON,
-        "external_force": {"ax_m_per_s2": 2.0, "ay_m_per_s2": 1.25},
-        "internal_damping": {"bending_rate_damping_m4_per_s": 5e-4},
-        "rest_curvature": {"kappa1_per_m": 2.5, "kappa2_per_m": 0.0},
-    },
-}
+DEFAULTS = elastica.DEFAULTS
 
 
 def _mujoco():
