@@ -194,12 +194,12 @@ def choose(rows: list[dict], per_param: float = PER_PARAM, parsimony: bool = Tru
         return RoundChoice(None)
     best = max(sig, key=lambda r: r["improvement"])
     within = [r for r in rows if not beyond_material_level(r["name"], r.get("params", {}))]
-    if parsimony and within:
+    pick = (best["improvement"], best["n_params"])
+    if parsimony and material_level_suffices(
+        pick, [(r["improvement"], r["n_params"]) for r in within], per_param
+    ):
         held = max(within, key=lambda r: penalised(r["improvement"], r["n_params"], per_param))
-        if material_level_suffices(
-            (best["improvement"], best["n_params"]), [(held["improvement"], held["n_params"])], per_param
-        ):
-            return RoundChoice(best, held)
+        return RoundChoice(best, held)
     return RoundChoice(best)
 
 

@@ -360,9 +360,6 @@ def diagnose(
                     "growing_windows": tb.final_horizon is not None,
                 }
             )
-        sig = [r for r in results if r.nameable]
-        if not sig:
-            break
         choice = choose([c for c in candidates_out if c["round"] == rnd + 1])
         if choice.held_by is not None:  # rule v9: the rope's own material physics does as well
             pick, held = choice.best, choice.held_by
@@ -371,7 +368,9 @@ def diagnose(
                 "term_penalised": penalised(held["improvement"], held["n_params"]),
                 "pick_penalised": penalised(pick["improvement"], pick["n_params"]),
             }
+        if choice.named is None:
             break
+        sig = [r for r in results if r.nameable]
         best = next(r for r in sig if r.name == choice.named["name"])
         name = best.name
         cls = equivalence_class(
