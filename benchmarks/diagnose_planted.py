@@ -101,8 +101,11 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # terms (internal damping) and a reference of their own fitted on windows growing to the one-second
 # scoring windows (DiagnoseBudget.grow_slow_terms, on by default); rows of v6 run with
 # --grow-slow-terms (config "grow_slow_terms": true) are v7 rows and were relabelled as such. v9: the
-# nominal model fits a clamp length past the gripped markers (deform.diagnose.simulator.clamped).
-TOOL_VERSION = 9
+# nominal model fits a clamp length past the gripped markers (deform.diagnose.simulator.clamped). v10:
+# the wind term is fitted as log strength and azimuth from a grid of directions and strengths
+# (terms.ExternalForce); before, its two components started from no wind and reached at most about
+# 0.75 m/s^2 per axis.
+TOOL_VERSION = 10
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0
@@ -157,6 +160,50 @@ def finished(key: str, done: dict, runs_path: Path, args) -> bool:
 def append_run(path: Path, row: dict) -> None:
     with path.open("a") as f:
         f.write(json.dumps(row) + "\n")
+
+
+def previous_row(key: str, runs_path: Path, args) -> dict | None:
+    """With ``--refit``: the row ``key`` of the previous fits version, which today's refitted
+    candidates are spliced into (:func:`spliced_row`), or None (then the dataset is run in full)."""
+    if not getattr(args, "refit", None):
+        return None
+    return load_runs(runs_path, {**_config(args), "tool": TOOL_VERSION - 1}).get(key)
+
+
+def refit_budget(args) -> DiagnoseBudget:
+    """The tool's budget restricted to the ``--refit`` candidates and one round."""
+    return dataclasses.replace(tool_budget(args), candidates=tuple(args.refit), max_rounds=1)
+
+
+def spliced_row(old: dict, rep: dict, config: dict, seconds: float) -> dict:
+    """Today's row made from the previous version's: the round-1 candidates that changed between
+    the versions (``rep``, a diagnosis restricted to them, one round) replace theirs; every other
+    round-1 candidate is kept. Exact for round 1, hence for the first name: each round-1 candidate
+    is fitted on its own from the same nominal fit (``spliced.nominal_check_delta_m`` checks that the
+    nominal fit came out the same). Later rounds are those run with the previous fits (the re-derived
+    decision ignores them when the first pick changed, see :func:`reselect`)."""
+    fresh = {c["name"]: c for c in rep["candidates"] if c["round"] == 1}
+    cands = [fresh.pop(c["name"]) if c["round"] == 1 and c["name"] in fresh else c for c in old["candidates"]]
+    cands += list(fresh.values())
+    tool = reselect(cands, old["nominal_check_l1_m"], MIN_GAIN, PER_PARAM)
+    first_same = tool["selected"][:1] == old["selected"][:1]
+    effect = old.get("effect")  # real rods have none
+    found = next((c["params"] for c in cands if c["name"] == effect and c["round"] == 1), {})
+    return {
+        **old,
+        "config": config,
+        "selected": tool["selected"],
+        "final_check_l1_m": tool["final_check_l1_m"],
+        "equivalence_class": old.get("equivalence_class", []) if first_same else tool["selected"][:1],
+        "found_round1": found,
+        "candidates": cands,
+        "spliced": {
+            "from_tool": old["config"]["tool"],
+            "refitted": sorted({c["name"] for c in rep["candidates"]}),
+            "nominal_check_delta_m": rep["nominal"]["check_l1_m"] - old["nominal_check_l1_m"],
+            "seconds": seconds,
+        },
+    }
 
 
 def marker_edge(recs) -> float:
@@ -271,6 +318,7 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
         src = seeded_sources(sources, seed, args.fit + args.check)
         if finished(key, done, runs_path, args):
             continue
+        old = previous_row(key, runs_path, args)
         t0 = time.perf_counter()
         try:
             recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
@@ -278,7 +326,7 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
             if effect is None:
                 controls[(kind, seed)] = recs
             pair = controls.get((kind, seed))
-            if pair is None and effect is not None:
+            if pair is None and effect is not None and old is None:
                 pair, _ = generate(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
                 controls[(kind, seed)] = pair
         except RuntimeError as exc:  # the simulator's own step diverged: no dataset, stated as such
@@ -300,6 +348,15 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
             print(json.dumps({k: row[k] for k in ("key", "reason")}), flush=True)
             continue
         inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
+        if old is not None:
+            rep = diagnose(inputs, refit_budget(args)).report
+            row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
+            append_run(runs_path, row)
+            done[key] = row
+            print(
+                json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True
+            )
+            continue
         rep = diagnose(inputs, tool_budget(args)).report
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
         row = {
@@ -494,6 +551,18 @@ def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
         t0 = time.perf_counter()
         recs, truth = generate_planted(effect, src, spec, n_frames=args.frames, seed=seed)
         inputs = Inputs(spec=spec, fit=recs[: args.fit], check=recs[args.fit :])
+        old = previous_row(key, runs_path, args)
+        if old is not None:
+            rep = diagnose(inputs, refit_budget(args)).report
+            row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
+            if effect in row["spliced"]["refitted"]:
+                row["param_rel_error"] = param_error(row["found_round1"], truth, marker_edge(inputs.fit))
+            append_run(runs_path, row)
+            done[key] = row
+            print(
+                json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True
+            )
+            continue
         rep = diagnose(inputs, tool_budget(args)).report
         t_diag = time.perf_counter() - t0
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
@@ -554,6 +623,17 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
         held = load_recordings(data / rod / "eval")[: args.check] if (data / rod / "eval").is_dir() else []
         inputs = as_user_inputs(spec, recs[: args.fit], held or recs[args.fit : args.fit + args.check])
         t0 = time.perf_counter()
+        old = previous_row(key, runs_path, args)
+        if old is not None:
+            rep = diagnose(inputs, refit_budget(args)).report
+            row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
+            del row["found_round1"]
+            append_run(runs_path, row)
+            done[key] = row
+            print(
+                json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True
+            )
+            continue
         rep = diagnose(inputs, tool_budget(args)).report
         row = {
             "key": key,
@@ -1117,6 +1197,14 @@ def main() -> None:
         default=None,
         help=f"rows of this version of the fits (default {TOOL_VERSION}, today's); with --summary-only, "
         "re-decides stored rows of an older version with today's rule",
+    )
+    p.add_argument(
+        "--refit",
+        nargs="*",
+        default=None,
+        metavar="TERM",
+        help="rows of the previous fits version: refit only these round-1 candidates (the ones today's "
+        "fits changed) and keep the rest (exact for the first name); datasets without such a row run in full",
     )
     p.add_argument(
         "--stem",

@@ -109,7 +109,7 @@ def _truth_terms(effect, truth, n_sim, s_sim, marker_ids, refine, mean_marker_ed
             term.raw_w.fill_(math.log((w - 0.05) / 0.9 / (1 - (w - 0.05) / 0.9)))
             term.log_ratio.fill_(0.5 * math.log(truth["stiffness_ratio"]))
         elif effect == "external_force":
-            term.raw.copy_(torch.tensor([truth["ax_m_per_s2"], truth["ay_m_per_s2"]]) / 0.5)
+            term.set_field(truth["ax_m_per_s2"], truth["ay_m_per_s2"])
         elif effect == "rest_curvature":  # per-vertex turning = curvature x edge length
             edge = mean_marker_edge / refine
             term.raw.copy_(torch.tensor([truth["kappa1_per_m"] * edge, truth["kappa2_per_m"] * edge]) / 0.05)

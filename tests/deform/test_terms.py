@@ -16,8 +16,17 @@ from deform.train import TrainConfig, train
 def _wind(model: DeformModel, ax: float) -> DeformModel:
     attach(model, ["external_force"])
     with torch.no_grad():
-        model.extensions[0].raw.copy_(torch.tensor([2 * ax, 0.0]))  # ax = raw / 2
+        model.extensions[0].set_field(ax, 0.0)
     return model
+
+
+def test_a_wind_saved_by_an_older_version_loads_with_the_same_field():
+    # before tool v10 the wind was stored as its components (a = raw / 2); such checkpoints still load
+    model = _wind(DeformModel(load_rod_config("DLO2")), 0.0)
+    state = {k: v for k, v in model.state_dict().items() if "extensions.0." not in k or k.endswith(".s")}
+    state["extensions.0.raw"] = torch.tensor([-1.2, 0.8], dtype=torch.float64)
+    model.load_state_dict(state)
+    assert model.extensions[0].params() == pytest.approx({"ax_m_per_s2": -0.6, "ay_m_per_s2": 0.4})
 
 
 def test_unknown_and_untrainable_terms_are_refused_with_the_reason():
