@@ -104,7 +104,8 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # nominal model fits a clamp length past the gripped markers (deform.diagnose.simulator.clamped). v10:
 # the wind term is fitted as log strength and azimuth from a grid of directions and strengths
 # (terms.ExternalForce); before, its two components started from no wind and reached at most about
-# 0.75 m/s^2 per axis.
+# 0.75 m/s^2 per axis; and a clip's mass is fitted as its log from three masses (terms.PointMass):
+# before, its fits stopped at about 10.5 g.
 TOOL_VERSION = 10
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level

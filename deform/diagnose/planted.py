@@ -101,7 +101,7 @@ def _truth_terms(effect, truth, n_sim, s_sim, marker_ids, refine, mean_marker_ed
             term.raw_mu.fill_(math.log(truth["friction"] / (1 - truth["friction"])))
         elif effect == "point_mass":
             term.raw_pos.fill_(math.log(0.35 / 0.65))
-            term.raw_g.fill_(math.log(math.expm1(truth["mass_kg"] / 5e-3)))
+            term.log_mass.fill_(math.log(truth["mass_kg"]))
             term.sigma = 0.25 / (n_sim - 1)
         elif effect == "stiffness_variation":
             c, w = 0.425, 0.25

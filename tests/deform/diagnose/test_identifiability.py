@@ -45,5 +45,6 @@ def test_parameter_spread_is_none_where_the_fit_windows_do_not_determine_it(sour
     std = laplace_uncertainty(Simulator(SPEC, Nominal(), [table]), sources, budget, table)
     assert set(std) == set(table.params()) and all(v is None for v in std.values())
     wind = make_term("external_force", SPEC.n_vertices, s, {})
+    wind.set_field(1.0, 0.5)  # a wind's direction is felt only at some strength (its raw is polar)
     std = laplace_uncertainty(Simulator(SPEC, Nominal(), [wind]), sources, budget, wind)
     assert all(v is not None and 0 < v < 9.81 for v in std.values()), std  # (an unfitted model: wide)

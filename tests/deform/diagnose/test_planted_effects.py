@@ -62,13 +62,25 @@ def test_drag_grid_trades_nominal_damping_for_drag(sources):
     assert abs(math.log(term.params()["quadratic_1_per_m"] / truth["quadratic_1_per_m"])) < math.log(3.5)
 
 
-def _wind_fit(recs, grid: bool) -> np.ndarray:
-    sim = Simulator(
-        SPEC, Nominal(3e-3, 2e-3, 1.0), [make_term("external_force", SPEC.n_vertices, arclength_of(recs))]
+def _own_model_recordings(sources, name: str, setup) -> list[Recording]:
+    """Recordings made by the tool's own model with the term ``name`` (set by ``setup``), so the
+    truth is in the model class."""
+    maker = Simulator(
+        SPEC, Nominal(3e-3, 2e-3, 1.0), [make_term(name, SPEC.n_vertices, arclength_of(sources))]
     )
+    with torch.no_grad():
+        setup(maker.terms[0])
+    starts = [Recording(r.name, r.positions[:60]) for r in sources[:3]]
+    return [
+        Recording(r.name, np.concatenate([r.positions[:2], p])) for r, p in zip(starts, maker.predict(starts))
+    ]
+
+
+def _fitted(name: str, recs, grid: bool) -> dict:
+    sim = Simulator(SPEC, Nominal(3e-3, 2e-3, 1.0), [make_term(name, SPEC.n_vertices, arclength_of(recs))])
     term = sim.terms[0]
     if not grid:
-        term.grid = list  # no starting points: the descent starts from the default (almost no wind)
+        term.grid = list  # no starting points: the descent starts from the term's default
     fit(
         sim,
         recs,
@@ -76,28 +88,36 @@ def _wind_fit(recs, grid: bool) -> np.ndarray:
         new_term=term,
         fit_nominal=False,
     )
-    return np.array([term.params()["ax_m_per_s2"], term.params()["ay_m_per_s2"]])
+    return term.params()
 
 
 def test_a_strong_wind_is_fitted_from_the_grid_within_the_quick_budget(sources):
-    # recordings made by the tool's own model with a wind of 3.2 m/s^2 at 144 degrees (so the truth is
-    # in its model class): fitted in Cartesian components from no wind, Adam's steps times the
-    # iterations capped the wind at about 0.75 m/s^2 per axis
+    # a wind of 3.2 m/s^2 at 144 degrees: fitted in Cartesian components from no wind (tools before
+    # v10), Adam's steps times the iterations capped the wind at about 0.75 m/s^2 per axis
     truth = np.array([-2.6, 1.9])
-    maker = Simulator(
-        SPEC, Nominal(3e-3, 2e-3, 1.0), [make_term("external_force", SPEC.n_vertices, arclength_of(sources))]
-    )
-    maker.terms[0].set_field(*truth)
-    recs = [
-        Recording(r.name, np.concatenate([r.positions[:2], p]))
-        for r, p in zip(
-            sources[:3], maker.predict([Recording(r.name, r.positions[:60]) for r in sources[:3]])
-        )
-    ]
-    gridded = _wind_fit(recs, grid=True)  # about (-2.53, 1.91)
+    recs = _own_model_recordings(sources, "external_force", lambda t: t.set_field(*truth))
+
+    def wind(p):
+        return np.array([p["ax_m_per_s2"], p["ay_m_per_s2"]])
+
+    gridded = wind(_fitted("external_force", recs, grid=True))  # about (-2.53, 1.91)
     assert np.linalg.norm(gridded - truth) < 0.1 * np.linalg.norm(truth)
-    plain = _wind_fit(recs, grid=False)  # from the default start alone: about (0.01, 0.09)
+    plain = wind(_fitted("external_force", recs, grid=False))  # about (0.01, 0.09)
     assert np.linalg.norm(plain - truth) > 0.2 * np.linalg.norm(truth)
+
+
+def test_a_heavy_clip_is_fitted_from_the_grid_within_the_quick_budget(sources):
+    # 25 g at 0.35 of the rope: fitted on a softplus of the mass (tools before v10), the fits
+    # stopped at about 10.5 g; from the default start (2.5 g) the log alone does not get there
+    def clip(t):
+        t.raw_pos.fill_(math.log(0.35 / 0.65))
+        t.log_mass.fill_(math.log(0.025))
+
+    recs = _own_model_recordings(sources, "point_mass", clip)
+    gridded = _fitted("point_mass", recs, grid=True)
+    assert gridded["mass_kg"] == pytest.approx(0.025, rel=0.15)
+    assert gridded["position_s"] == pytest.approx(0.35, abs=0.05)
+    assert _fitted("point_mass", recs, grid=False)["mass_kg"] < 0.8 * 0.025
 
 
 def _straight(lengths):
