@@ -188,15 +188,12 @@ def spliced_row(old: dict, rep: dict, config: dict, seconds: float) -> dict:
     cands += list(fresh.values())
     tool = reselect(cands, old["nominal_check_l1_m"], MIN_GAIN, PER_PARAM)
     first_same = tool["selected"][:1] == old["selected"][:1]
-    effect = old.get("effect")  # real rods have none
-    found = next((c["params"] for c in cands if c["name"] == effect and c["round"] == 1), {})
-    return {
+    row = {
         **old,
         "config": config,
         "selected": tool["selected"],
         "final_check_l1_m": tool["final_check_l1_m"],
         "equivalence_class": old.get("equivalence_class", []) if first_same else tool["selected"][:1],
-        "found_round1": found,
         "candidates": cands,
         "spliced": {
             "from_tool": old["config"]["tool"],
@@ -205,6 +202,26 @@ def spliced_row(old: dict, rep: dict, config: dict, seconds: float) -> dict:
             "seconds": seconds,
         },
     }
+    if "found_round1" in old:  # planted rows (real rods have no effect to find)
+        row["found_round1"] = next(
+            (c["params"] for c in cands if c["name"] == old["effect"] and c["round"] == 1), {}
+        )
+    return row
+
+
+def run_spliced(
+    old: dict, inputs: Inputs, args, key: str, runs_path: Path, done: dict, t0: float, amend=None
+):
+    """Refit the ``--refit`` candidates on ``inputs``, splice them into ``old`` (:func:`spliced_row`),
+    let ``amend(row)`` add what only the caller knows (a planted truth's parameter error), and store
+    the row."""
+    rep = diagnose(inputs, refit_budget(args)).report
+    row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
+    if amend is not None:
+        amend(row)
+    append_run(runs_path, row)
+    done[key] = row
+    print(json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True)
 
 
 def marker_edge(recs) -> float:
@@ -350,13 +367,7 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
             continue
         inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
         if old is not None:
-            rep = diagnose(inputs, refit_budget(args)).report
-            row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
-            append_run(runs_path, row)
-            done[key] = row
-            print(
-                json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True
-            )
+            run_spliced(old, inputs, args, key, runs_path, done, t0)
             continue
         rep = diagnose(inputs, tool_budget(args)).report
         found = next((c["params"] for c in rep["candidates"] if c["name"] == effect and c["round"] == 1), {})
@@ -554,15 +565,12 @@ def run_planted(jobs, args, runs_path: Path, done: dict) -> None:
         inputs = Inputs(spec=spec, fit=recs[: args.fit], check=recs[args.fit :])
         old = previous_row(key, runs_path, args)
         if old is not None:
-            rep = diagnose(inputs, refit_budget(args)).report
-            row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
-            if effect in row["spliced"]["refitted"]:
-                row["param_rel_error"] = param_error(row["found_round1"], truth, marker_edge(inputs.fit))
-            append_run(runs_path, row)
-            done[key] = row
-            print(
-                json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True
-            )
+
+            def refitted_error(row, effect=effect, truth=truth, inputs=inputs):
+                if effect in row["spliced"]["refitted"]:
+                    row["param_rel_error"] = param_error(row["found_round1"], truth, marker_edge(inputs.fit))
+
+            run_spliced(old, inputs, args, key, runs_path, done, t0, refitted_error)
             continue
         rep = diagnose(inputs, tool_budget(args)).report
         t_diag = time.perf_counter() - t0
@@ -626,14 +634,7 @@ def run_real(rods, args, runs_path: Path, done: dict) -> None:
         t0 = time.perf_counter()
         old = previous_row(key, runs_path, args)
         if old is not None:
-            rep = diagnose(inputs, refit_budget(args)).report
-            row = spliced_row(old, rep, _config(args), time.perf_counter() - t0)
-            del row["found_round1"]
-            append_run(runs_path, row)
-            done[key] = row
-            print(
-                json.dumps({"key": key, "selected": row["selected"], "spliced": row["spliced"]}), flush=True
-            )
+            run_spliced(old, inputs, args, key, runs_path, done, t0)
             continue
         rep = diagnose(inputs, tool_budget(args)).report
         row = {

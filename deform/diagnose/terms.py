@@ -417,18 +417,25 @@ class ExternalForce(Term):
         """(2,) horizontal acceleration [m/s^2]."""
         return self.log_strength.exp() * torch.stack([self.azimuth.cos(), self.azimuth.sin()])
 
+    @staticmethod
+    def _polar(ax: float, ay: float) -> dict[str, Tensor]:
+        """The raw parameters of the field with components ``ax``, ``ay`` [m/s^2]."""
+        return {
+            "log_strength": torch.tensor(math.log(max(math.hypot(ax, ay), 1e-9)), dtype=torch.float64),
+            "azimuth": torch.tensor(math.atan2(ay, ax), dtype=torch.float64),
+        }
+
     @torch.no_grad()
     def set_field(self, ax: float, ay: float) -> None:
         """Set the field from its components [m/s^2] (a planted truth)."""
-        self.log_strength.fill_(math.log(max(math.hypot(ax, ay), 1e-9)))
-        self.azimuth.fill_(math.atan2(ay, ax))
+        for name, value in self._polar(ax, ay).items():
+            getattr(self, name).copy_(value)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         raw = state_dict.pop(prefix + "raw", None)
         if raw is not None:  # a model saved with the field's components (tools before v10): a = raw / 2
             ax, ay = (0.5 * raw).tolist()
-            state_dict[prefix + "log_strength"] = torch.tensor(math.log(max(math.hypot(ax, ay), 1e-9)))
-            state_dict[prefix + "azimuth"] = torch.tensor(math.atan2(ay, ax))
+            state_dict.update({prefix + k: v for k, v in self._polar(ax, ay).items()})
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def acceleration(self, x, v, mass, rest):
