@@ -34,7 +34,7 @@ from deform.diagnose.selection import DiagnoseBudget, diagnose
 from deform.diagnose.simulator import CHECK_HORIZON
 from deform.diagnose.spec import Inputs, RodSpec
 from deform.diagnose.terms import LIBRARY
-from deform.io.recordings import find_data_root, load_recordings
+from deform.io.recordings import Recording, find_data_root, load_recordings
 from deform.model import gripped_indices
 
 ROOT = Path(__file__).resolve().parent
@@ -136,7 +136,19 @@ def _config(args) -> dict:
     }
     if getattr(args, "simulator", "own") != "own":
         cfg["simulator"] = args.simulator
+    if getattr(args, "frame_step", 1) != 1:
+        cfg["frame_step"] = args.frame_step
     return cfg
+
+
+def at_frame_step(spec: RodSpec, recs: list, step: int) -> tuple[RodSpec, list]:
+    """Every ``step``-th frame of the simulated recordings, as a camera or motion-capture system at
+    ``100 / step`` Hz records them, and ROD.json's frame period to match (the tool resamples them to
+    its 100 Hz, ``deform.diagnose.resample``)."""
+    if step == 1:
+        return spec, recs
+    sub = [Recording(name=r.name, positions=r.positions[::step], dt=r.dt * step) for r in recs]
+    return spec.model_copy(update={"dt": spec.dt * step}), sub
 
 
 def load_runs(path: Path, config: dict) -> dict[str, dict]:
@@ -365,7 +377,8 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
             done[key] = row
             print(json.dumps({k: row[k] for k in ("key", "reason")}), flush=True)
             continue
-        inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
+        user_spec, user_recs = at_frame_step(spec, recs, args.frame_step)
+        inputs = as_user_inputs(user_spec, user_recs[: args.fit], user_recs[args.fit :])
         if old is not None:
             run_spliced(old, inputs, args, key, runs_path, done, t0)
             continue
@@ -1129,6 +1142,13 @@ def main() -> None:
     p.add_argument("--fit", type=int, default=8)
     p.add_argument("--check", type=int, default=4)
     p.add_argument("--frames", type=int, default=500)
+    p.add_argument(
+        "--frame-step",
+        type=int,
+        default=1,
+        help="independent simulators: give the tool every K-th frame (recordings at 100/K Hz; "
+        "marker L1 and the rows' frames stay at 100 Hz)",
+    )
     p.add_argument(
         "--alpha", type=float, default=0.05, help="family-wise false-positive rate of the calibrated rule"
     )

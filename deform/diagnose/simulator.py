@@ -28,6 +28,13 @@ NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
 MATERIAL_DAMPING_MAX = MATERIAL_DAMPING_LEVEL  # the nominal fit's bound (see terms.MATERIAL_DAMPING_LEVEL)
 CLAMP_MAX_M = 0.05  # the longest clamp past a gripped marker the nominal fit considers
 CLAMP_UNIT_M = 0.1  # the clamp parameter's unit: Adam's nominal step (0.03) then moves it 3 mm
+# The longest model step [s]. Recordings with a longer frame period are stepped in equal substeps
+# with the grippers interpolated linearly between frames. Why: the step's bending forces are
+# explicit, and on a stiff rope at marker resolution a 20 ms step is past their stability limit
+# (PyElastica's stiff control recorded at 50 Hz: nominal check error 1.12 cm and a false clip,
+# against 0.38 cm and none at 100 Hz); 10 ms is the DEFORM dataset's frame period, the one the
+# tool's fits were calibrated at.
+MAX_STEP_S = 0.01
 
 
 def clamp_bound(spec: RodSpec) -> float:
@@ -215,6 +222,19 @@ def clamped(grip: Tensor, clamp: Tensor) -> Tensor:
     )
 
 
+def frame_substeps(dt: float) -> int:
+    """Model steps per recorded frame of period ``dt`` [s]: the fewest that keep each at most
+    :data:`MAX_STEP_S` (1 at 100 Hz and above; 2 at 50 Hz; 4 at 30 Hz).
+
+    Args:
+        dt: the recordings' frame period [s].
+
+    Returns:
+        Substeps per frame.
+    """
+    return max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
+
+
 def roll_directors(d1: Tensor, t: Tensor, roll: Tensor) -> Tensor:
     """Directors ``d1`` (B, m, 3) turned by ``roll`` (B,) [rad] about their unit tangents ``t``:
     the whole material frame rolled, twist unchanged (rotation about the tangent commutes with
@@ -229,11 +249,13 @@ class Simulator:
     ``hidden``: unobserved nodes simulated in every free marker interval (0: nodes only at the
     markers), stepped at ``dt / (hidden + 1)``. Why: at marker resolution a mass on every marker is
     the same as a uniform mass factor, which the fitted stiffness absorbs; with mass between the
-    markers the two differ. Terms are then built on the node arc length (:meth:`node_arclength`)."""
+    markers the two differ. Terms are then built on the node arc length (:meth:`node_arclength`).
+    A frame period longer than :data:`MAX_STEP_S` is stepped in ``ceil(dt / MAX_STEP_S)`` substeps
+    as well (:func:`frame_substeps`)."""
 
     def __init__(self, spec: RodSpec, nominal: Nominal, terms: list[Term] | None = None, hidden: int = 0):
         self.hidden = hidden
-        self.substeps = hidden + 1
+        self.substeps = (hidden + 1) * frame_substeps(spec.dt)
         self.n_markers = spec.n_vertices
         self.markers = marker_nodes(spec.n_vertices, hidden)
         n = self.markers[-1] + 1
@@ -340,7 +362,7 @@ class Simulator:
     ) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
         frames, grippers from the recorded frames (shifted by a delay term if any; linearly
-        interpolated between frames for the substeps of hidden nodes). ``d1`` (B, n-1, 3): reference
+        interpolated between frames for the substeps of hidden nodes or long frame periods). ``d1`` (B, n-1, 3): reference
         directors of the marker edges at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`;
         default: a fresh space-parallel frame, right for a rollout from a recording's first frame).
         The gripped markers of the output are the recorded inputs, also under a delay term.

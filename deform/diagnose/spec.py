@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from deform.diagnose.resample import TOOL_DT, resample
 from deform.io.recordings import Recording, RecordingError, load_recordings
 
+MIN_FRAMES = 40  # at the tool's 100 Hz: a recording shorter than 0.4 s cannot be diagnosed
 LENGTH_TOLERANCE = 0.10  # a rope shorter than its markers' polyline by more than this is an error
 
 
@@ -156,12 +158,23 @@ def load_inputs(
         raise RecordingError(
             f"{check_dir}: {len(check)} recording(s); at least {min_check} are needed for a held-out check"
         )
-    short = [r.name for r in fit + check if r.n_frames < 40]
+    warnings: list[str] = []
+    # a DEFORM pickle holds positions only: the frame period is ROD.json's, and the tool works at
+    # its calibrated 100 Hz (deform.diagnose.resample)
+    if not math.isclose(spec.dt, TOOL_DT, rel_tol=1e-9):
+        fit = [resample(r, spec.dt) for r in fit]
+        check = [resample(r, spec.dt) for r in check]
+        warnings.append(
+            f"recordings at {1 / spec.dt:.4g} Hz (ROD.json dt={spec.dt}) resampled to the tool's "
+            f"{1 / TOOL_DT:.0f} Hz by cubic splines; frames and delays in the report are {TOOL_DT * 1e3:.0f} ms frames"
+        )
+        spec = spec.model_copy(update={"dt": TOOL_DT})
+    short = [r.name for r in fit + check if r.n_frames < MIN_FRAMES]
     if short:
         raise RecordingError(
-            f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} have fewer than 40 frames"
+            f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} are "
+            f"shorter than {MIN_FRAMES} frames at {1 / TOOL_DT:.0f} Hz ({MIN_FRAMES * TOOL_DT:.1f} s)"
         )
-    warnings: list[str] = []
     lengths = np.array([polyline_length(r) for r in fit + check])
     spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
     if note:
@@ -184,6 +197,4 @@ def load_inputs(
             jumps.append(r.name)
     if jumps:
         warnings.append(f"marker speeds above 20 m/s (tracking glitches?) in {jumps}")
-    if any(not math.isclose(r.dt, spec.dt) for r in fit + check):
-        warnings.append(f"ROD.json dt={spec.dt} differs from the recordings' frame period")
     return Inputs(spec=spec, fit=fit, check=check, warnings=warnings)

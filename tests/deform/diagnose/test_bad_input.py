@@ -10,7 +10,7 @@ from deform.diagnose.spec import load_inputs
 from deform.io import save_recording
 
 
-def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=False):
+def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=False, dt=0.01):
     rng = np.random.default_rng(0)
     fit, check = tmp_path / "fit", tmp_path / "check"
     fit.mkdir()
@@ -28,7 +28,7 @@ def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=Fals
             x[10, 3, 2] = np.nan
         save_recording(check / f"{i}.pkl", x)
     rod = tmp_path / "rod.json"
-    rod.write_text(json.dumps({"length_m": length, "mass_kg": 0.04, "n_vertices": n, "dt": 0.01}))
+    rod.write_text(json.dumps({"length_m": length, "mass_kg": 0.04, "n_vertices": n, "dt": dt}))
     return rod, fit, check
 
 
@@ -64,6 +64,7 @@ def _budgets_asked(monkeypatch, tmp_path, *option_lists) -> list:
         ({"nan": True}, "NaN"),
         ({"n_fit": 1}, "at least"),
         ({"length": 0.5}, "length_m"),  # a rope shorter than its markers' span
+        ({"dt": 0.005}, "shorter than 40 frames at 100 Hz"),  # 50 frames at 200 Hz: 0.25 s
     ],
 )
 def test_bad_input_is_one_error_line_and_nothing_written(tmp_path, capsys, kwargs, needle):
