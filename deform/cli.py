@@ -250,7 +250,11 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser(
         "diagnose", help="locate and name the physics a simulation leaves out (see deform.diagnose)"
     )
-    g.add_argument("--rod", required=True, help="ROD.json: length_m, mass_kg, n_vertices, dt")
+    g.add_argument(
+        "--rod",
+        required=True,
+        help="ROD.json: length_m, mass_kg, n_vertices, dt (the frame period [s]; not 0.01: resampled to 100 Hz)",
+    )
     g.add_argument("--fit", required=True, help="directory of recordings to fit")
     g.add_argument("--check", required=True, help="directory of held-out recordings")
     g.add_argument("--out", required=True, help="output directory (report.json, report.md, plots)")
