@@ -28,12 +28,12 @@ NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
 MATERIAL_DAMPING_MAX = MATERIAL_DAMPING_LEVEL  # the nominal fit's bound (see terms.MATERIAL_DAMPING_LEVEL)
 CLAMP_MAX_M = 0.05  # the longest clamp past a gripped marker the nominal fit considers
 CLAMP_UNIT_M = 0.1  # the clamp parameter's unit: Adam's nominal step (0.03) then moves it 3 mm
-# The longest model step [s]. Recordings with a longer frame period are stepped in equal substeps
-# with the grippers interpolated linearly between frames. Why: the step's bending forces are
-# explicit, and on a stiff rope at marker resolution a 20 ms step is past their stability limit
-# (PyElastica's stiff control recorded at 50 Hz: nominal check error 1.12 cm and a false clip,
-# against 0.38 cm and none at 100 Hz); 10 ms is the DEFORM dataset's frame period, the one the
-# tool's fits were calibrated at.
+# The longest model step [s]. A longer frame period is stepped in equal substeps with the grippers
+# interpolated linearly between frames. Why: the step's bending forces are explicit; seen at 50 Hz,
+# one 20 ms step per frame left the tool's own rod's 100 Hz motion by 1.2 cm, two 10 ms substeps
+# within 1 mm (tests/deform/diagnose/test_frame_rate.py). 10 ms is the DEFORM dataset's frame
+# period, the one the tool was calibrated at (``diagnose`` resamples recordings to it anyway,
+# deform.diagnose.resample; this keeps a Simulator built for another period sound).
 MAX_STEP_S = 0.01
 
 
@@ -362,7 +362,8 @@ class Simulator:
     ) -> Tensor:
         """Open-loop prediction from ``frames[:, margin]`` and ``frames[:, margin+1]`` for ``steps``
         frames, grippers from the recorded frames (shifted by a delay term if any; linearly
-        interpolated between frames for the substeps of hidden nodes or long frame periods). ``d1`` (B, n-1, 3): reference
+        interpolated between frames for the substeps of hidden nodes or long frame periods).
+        ``d1`` (B, n-1, 3): reference
         directors of the marker edges at ``frames[:, margin+1]`` (see :attr:`Recording.reference_frames`;
         default: a fresh space-parallel frame, right for a rollout from a recording's first frame).
         The gripped markers of the output are the recorded inputs, also under a delay term.
