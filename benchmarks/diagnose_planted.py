@@ -138,6 +138,8 @@ def _config(args) -> dict:
         cfg["simulator"] = args.simulator
     if getattr(args, "frame_step", 1) != 1:
         cfg["frame_step"] = args.frame_step
+    if getattr(args, "noise_mm", None) is not None:
+        cfg["noise_mm"] = args.noise_mm
     return cfg
 
 
@@ -351,13 +353,14 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
         old = previous_row(key, runs_path, args)
         t0 = time.perf_counter()
         try:
-            recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+            noise = {"noise_m": args.noise_mm * 1e-3} if args.noise_mm is not None else {}
+            recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed, **noise)
             t_sim = time.perf_counter() - t0
             if effect is None:
                 controls[(kind, seed)] = recs
             pair = controls.get((kind, seed))
             if pair is None and effect is not None and old is None:
-                pair, _ = generate(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+                pair, _ = generate(None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed, **noise)
                 controls[(kind, seed)] = pair
         except RuntimeError as exc:  # the simulator's own step diverged: no dataset, stated as such
             if "diverged" not in str(exc):
@@ -1142,6 +1145,12 @@ def main() -> None:
     p.add_argument("--fit", type=int, default=8)
     p.add_argument("--check", type=int, default=4)
     p.add_argument("--frames", type=int, default=500)
+    p.add_argument(
+        "--noise-mm",
+        type=float,
+        default=None,
+        help="independent simulators: marker noise (sd per coordinate) [mm] instead of the generator's 0.3",
+    )
     p.add_argument(
         "--frame-step",
         type=int,
