@@ -158,9 +158,15 @@ def load_inputs(
         raise RecordingError(
             f"{check_dir}: {len(check)} recording(s); at least {min_check} are needed for a held-out check"
         )
-    warnings: list[str] = []
     # a DEFORM pickle holds positions only: the frame period is ROD.json's, and the tool works at
-    # its calibrated 100 Hz (deform.diagnose.resample)
+    # its calibrated 100 Hz (deform.diagnose.resample); a recording must span 40 frames of it
+    short = [r.name for r in fit + check if (r.n_frames - 1) * spec.dt < (MIN_FRAMES - 1) * TOOL_DT - 1e-9]
+    if short:
+        raise RecordingError(
+            f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} are "
+            f"shorter than {MIN_FRAMES} frames at {1 / TOOL_DT:.0f} Hz ({(MIN_FRAMES - 1) * TOOL_DT:.2f} s)"
+        )
+    warnings: list[str] = []
     if not math.isclose(spec.dt, TOOL_DT, rel_tol=1e-9):
         fit = [resample(r, spec.dt) for r in fit]
         check = [resample(r, spec.dt) for r in check]
@@ -169,12 +175,6 @@ def load_inputs(
             f"{1 / TOOL_DT:.0f} Hz by cubic splines; frames and delays in the report are {TOOL_DT * 1e3:.0f} ms frames"
         )
         spec = spec.model_copy(update={"dt": TOOL_DT})
-    short = [r.name for r in fit + check if r.n_frames < MIN_FRAMES]
-    if short:
-        raise RecordingError(
-            f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} are "
-            f"shorter than {MIN_FRAMES} frames at {1 / TOOL_DT:.0f} Hz ({MIN_FRAMES * TOOL_DT:.1f} s)"
-        )
     lengths = np.array([polyline_length(r) for r in fit + check])
     spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
     if note:
