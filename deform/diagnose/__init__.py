@@ -3,7 +3,8 @@
 ``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]
 [--budget full|quick] [--clamp fit|METRES]``
 
-Modules: :mod:`.spec` (inputs and their checks), :mod:`.simulator` (bound DER model),
+Modules: :mod:`.spec` (inputs and their checks), :mod:`.resample` (other frame rates to 100 Hz),
+:mod:`.simulator` (bound DER model),
 :mod:`.terms` (candidate library), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
 :mod:`.scoring` (bootstrap + parameter penalty), :mod:`.selection` (forward selection),
 :mod:`.report`, :mod:`.planted` (benchmark data with planted effects).

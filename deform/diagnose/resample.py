@@ -21,9 +21,9 @@ import math
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from deform.io.recordings import Recording
+from deform.io.recordings import DT, Recording
 
-TOOL_DT = 0.01  # [s] the frame period the tool works at (the DEFORM dataset's)
+TOOL_DT = DT  # [s] the frame period the tool works at: the DEFORM dataset's
 
 
 def resample(rec: Recording, dt: float, to_dt: float = TOOL_DT) -> Recording:
