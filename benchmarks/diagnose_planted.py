@@ -140,6 +140,8 @@ def _config(args) -> dict:
         cfg["frame_step"] = args.frame_step
     if getattr(args, "noise_mm", None) is not None:
         cfg["noise_mm"] = args.noise_mm
+    if getattr(args, "denoise", "auto") != "auto":
+        cfg["denoise"] = args.denoise
     return cfg
 
 
@@ -277,10 +279,11 @@ ELASTICA_SOURCES = {"light": "DLO1", "stiff": "DLO3", "medium": "DLO2"}
 DEFAULT_ROD_KINDS = ("light", "stiff")
 
 
-def as_user_inputs(spec: RodSpec, fit: list, check: list) -> Inputs:
+def as_user_inputs(spec: RodSpec, fit: list, check: list, smooth_noise: bool = True) -> Inputs:
     """The recordings written to files and read back with ROD.json as a user gives them
-    (`deform diagnose --rod --fit --check`): the tool's own input checks and conventions apply
-    (a rope longer than its marker span is simulated over the span, with a warning)."""
+    (`deform diagnose --rod --fit --check [--denoise off]`): the tool's own input checks and
+    conventions apply (a rope longer than its marker span is simulated over the span, with a
+    warning; recordings far noisier than the calibrated 0.3 mm are smoothed)."""
     import tempfile
 
     from deform.diagnose.spec import load_inputs
@@ -293,7 +296,7 @@ def as_user_inputs(spec: RodSpec, fit: list, check: list) -> Inputs:
             for i, r in enumerate(recs):
                 save_recording(tmp / name / f"{i:02d}.pkl", r.positions)
         (tmp / "rod.json").write_text(json.dumps(spec.model_dump()))
-        return load_inputs(tmp / "rod.json", tmp / "fit", tmp / "check")
+        return load_inputs(tmp / "rod.json", tmp / "fit", tmp / "check", smooth_noise=smooth_noise)
 
 
 def equivalence_of(rep: dict) -> list[str]:
@@ -381,7 +384,9 @@ def run_independent(jobs, args, runs_path: Path, done: dict, simulator: str = "e
             print(json.dumps({k: row[k] for k in ("key", "reason")}), flush=True)
             continue
         user_spec, user_recs = at_frame_step(spec, recs, args.frame_step)
-        inputs = as_user_inputs(user_spec, user_recs[: args.fit], user_recs[args.fit :])
+        inputs = as_user_inputs(
+            user_spec, user_recs[: args.fit], user_recs[args.fit :], smooth_noise=args.denoise != "off"
+        )
         if old is not None:
             run_spliced(old, inputs, args, key, runs_path, done, t0)
             continue
@@ -1150,6 +1155,12 @@ def main() -> None:
         type=float,
         default=None,
         help="independent simulators: marker noise (sd per coordinate) [mm] instead of the generator's 0.3",
+    )
+    p.add_argument(
+        "--denoise",
+        choices=("auto", "off"),
+        default="auto",
+        help="independent simulators: the tool's --denoise (off: recordings are never smoothed)",
     )
     p.add_argument(
         "--frame-step",

@@ -272,6 +272,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="how far past the gripped markers the grippers hold the rope: fit (default, fitted with "
         "the nominal model), or a known length in metres held fixed (0: the rope is free at the markers)",
     )
+    g.add_argument(
+        "--denoise",
+        choices=("auto", "off"),
+        default="auto",
+        help="auto (default): recordings at 100 Hz or faster with marker noise above 0.5 mm are smoothed "
+        "(Savitzky-Golay, stated in the report); off: never",
+    )
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 

@@ -1,9 +1,10 @@
 """Discrepancy tool: locate where the plain DER model and recordings differ, name the missing physics.
 
 ``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]
-[--budget full|quick] [--clamp fit|METRES]``
+[--budget full|quick] [--clamp fit|METRES] [--denoise auto|off]``
 
 Modules: :mod:`.spec` (inputs and their checks), :mod:`.resample` (other frame rates to 100 Hz),
+:mod:`.denoise` (marker noise measured; smoothing far above the calibrated level),
 :mod:`.simulator` (bound DER model),
 :mod:`.terms` (candidate library), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
 :mod:`.scoring` (bootstrap + parameter penalty), :mod:`.selection` (forward selection),
@@ -62,7 +63,9 @@ def run_cli(args) -> int:
         raise UsageError(f"{out}: --out exists and is not a directory")
     if getattr(args, "model", None) and not Path(args.model).is_file():
         raise UsageError(f"{args.model}: --model: no such file")
-    inputs = load_inputs(args.rod, args.fit, args.check)
+    inputs = load_inputs(
+        args.rod, args.fit, args.check, smooth_noise=getattr(args, "denoise", "auto") != "off"
+    )
     budget = DiagnoseBudget.quick() if getattr(args, "budget", "full") == "quick" else DiagnoseBudget()
     clamp = given_clamp(getattr(args, "clamp", "fit"), inputs.spec)
     if clamp is not None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from deform.diagnose.denoise import denoise
 from deform.diagnose.resample import TOOL_DT, resample
 from deform.io.recordings import Recording, RecordingError, load_recordings
 
@@ -128,7 +129,12 @@ def marker_span_spec(
 
 
 def load_inputs(
-    rod: str | Path, fit_dir: str | Path, check_dir: str | Path, min_fit: int = 2, min_check: int = 1
+    rod: str | Path,
+    fit_dir: str | Path,
+    check_dir: str | Path,
+    min_fit: int = 2,
+    min_check: int = 1,
+    smooth_noise: bool = True,
 ) -> Inputs:
     """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed.
 
@@ -138,6 +144,9 @@ def load_inputs(
         check_dir: held-out recordings.
         min_fit: fit recordings needed.
         min_check: check recordings needed.
+        smooth_noise: smooth recordings whose marker noise is far above the calibrated level
+            (:func:`deform.diagnose.denoise.denoise`; only at 100 Hz or faster, where the noise can
+            be told from the rope's motion).
 
     Returns:
         The :class:`Inputs` (spec, fit, check, warnings).
@@ -167,6 +176,7 @@ def load_inputs(
             f"shorter than {MIN_FRAMES} frames at {1 / TOOL_DT:.0f} Hz ({(MIN_FRAMES - 1) * TOOL_DT:.2f} s)"
         )
     warnings: list[str] = []
+    given_dt = spec.dt
     if not math.isclose(spec.dt, TOOL_DT, rel_tol=1e-9):
         fit = [resample(r, spec.dt) for r in fit]
         check = [resample(r, spec.dt) for r in check]
@@ -175,6 +185,12 @@ def load_inputs(
             f"{1 / TOOL_DT:.0f} Hz by cubic splines; frames and delays in the report are {TOOL_DT * 1e3:.0f} ms frames"
         )
         spec = spec.model_copy(update={"dt": TOOL_DT})
+    # below 100 Hz a rope's own motion fills the 4th difference the noise is measured from
+    if smooth_noise and given_dt <= TOOL_DT * (1 + 1e-9):
+        smoothed, note = denoise(fit + check)
+        if note:
+            fit, check = smoothed[: len(fit)], smoothed[len(fit) :]
+            warnings.append(note)
     lengths = np.array([polyline_length(r) for r in fit + check])
     spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
     if note:
