@@ -135,3 +135,23 @@ def test_recordings_slower_than_100_hz_are_not_smoothed(tmp_path):
     rod = _write(tmp_path, noisy, 0.02)
     inputs = load_inputs(rod, tmp_path / "fit", tmp_path / "check")
     assert not any("Savitzky-Golay" in w for w in inputs.warnings)
+
+
+def test_the_cli_smooths_by_default_and_not_with_denoise_off(tmp_path, monkeypatch):
+    import deform.diagnose.selection as selection
+    from deform.cli import main
+
+    _, noisy = recordings(1e-3)
+    rod = _write(tmp_path, noisy, DT)
+    seen = []
+
+    def fake_diagnose(inputs, budget, start_model=None):  # stop before any fitting
+        seen.append(inputs.warnings)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(selection, "diagnose", fake_diagnose)
+    for extra in ([], ["--denoise", "off"]):
+        with pytest.raises(SystemExit):
+            main(["diagnose", "--rod", str(rod), "--fit", str(tmp_path / "fit"), "--check", str(tmp_path / "check"),
+                  "--out", str(tmp_path / "out"), *extra])  # fmt: skip
+    assert [any("Savitzky-Golay" in w for w in ws) for ws in seen] == [True, False]
