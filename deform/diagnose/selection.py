@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deform.diagnose.fitting import FitBudget, coarse_nominal, fit, laplace_uncertainty
+from deform.diagnose.fitting import FitBudget, fit, fit_nominal, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
 from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
@@ -24,6 +24,7 @@ from deform.diagnose.simulator import (
     Nominal,
     Simulator,
     arclength_of,
+    clamp_bound,
     per_recording_l1,
     per_recording_window_l1,
 )
@@ -277,9 +278,13 @@ def diagnose(
     nominal = _nominal_from_model(start_model) if start_model else Nominal()
     nominal.set_clamp(budget.clamp_m, fitted=budget.fit_clamp)
     sim = Simulator(spec, nominal)
-    coarse = None if start_model else coarse_nominal(sim, inputs.fit)
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
-    fit(sim, inputs.fit, nb, desc="nominal fit")
+    if start_model:
+        coarse, clamp_restart = None, None
+        fit(sim, inputs.fit, nb, desc="nominal fit")
+    else:
+        started = fit_nominal(sim, inputs.fit, nb, 0.5 * clamp_bound(spec) if budget.fit_clamp else None)
+        coarse, clamp_restart = started["coarse"], started.get("clamp_restart")
     c_nom = CheckErrors.of(sim, inputs.check)
     e_nom = c_nom.rollout
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[
@@ -413,6 +418,7 @@ def diagnose(
             "check_l1_by_recording_m": dict(zip([r.name for r in inputs.check], e_nom.tolist())),
             "coarse_identification": coarse,
             "clamp_fitted": budget.fit_clamp,
+            "clamp_restart": clamp_restart,
             "warnings": list(inputs.warnings),
         },
         "localization": loc,

@@ -52,3 +52,36 @@ def test_a_given_clamp_is_held_by_the_fit(sources):
     fit(sim, recs, budget)
     assert sim.nominal.params()["clamp_m"] == pytest.approx(0.01, abs=1e-12)
     assert sim.nominal.params()["bend_stiffness_Nm2"] != ei
+
+
+def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end_kept(sources, monkeypatch):
+    """A second start from a longer clamp runs when the first ends under CLAMP_RESTART_M (forced
+    here by raising it), and the simulator keeps whichever end scores lower on the held-out fit
+    windows; without a restart clamp there is no second start."""
+    import random
+
+    import deform.diagnose.fitting as fitting
+
+    recs = _recordings_with_clamp(sources, 0.0)
+    budget = dataclasses.replace(tiny_budget([]).candidate, iterations=15)
+    held_out = fitting.make_windows(
+        recs,
+        max(budget.batch, 16),
+        fitting.longest_horizon(budget, recs),
+        budget.margin,
+        random.Random(budget.seed + 2),
+        budget.transported,
+    )
+
+    sim = Simulator(SPEC, Nominal())
+    assert "clamp_restart" not in fitting.fit_nominal(sim, recs, budget, None)
+
+    monkeypatch.setattr(fitting, "CLAMP_RESTART_M", 1.0)
+    sim = Simulator(SPEC, Nominal())
+    info = fitting.fit_nominal(sim, recs, budget, 0.02)["clamp_restart"]
+    losses = info["held_out_loss_m"]
+    assert info["clamp_start_m"] == 0.02 and losses["clamp_0"] != losses["clamp_restart"]
+    assert info["kept"] == min(losses, key=losses.get)
+    with torch.no_grad():
+        now = fitting._forward_loss(sim, held_out, budget)
+    assert now == pytest.approx(min(losses.values()), rel=1e-9)
