@@ -11,7 +11,7 @@ most accurate.
 
 Noise estimate: the k-th difference of white noise has variance :math:`\binom{2k}{k}\sigma^2`, while
 a rope's motion under gripper control, sampled at 100 Hz, contributes little to the 4th difference
-(about 0.05-0.1 mm on noise-free simulated ropes). With a median absolute deviation, rare tracking
+(0.01-0.08 mm on noise-free simulated ropes, benchmarks/marker_noise.py). With a median absolute deviation, rare tracking
 spikes do not count:
 
 .. math:: \hat\sigma = 1.4826\,\mathrm{MAD}(\Delta^4 x) / \sqrt{70} .
