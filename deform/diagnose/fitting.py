@@ -376,8 +376,9 @@ def coarse_nominal(
 
 CLAMP_RESTART_M = 1e-3  # a fitted clamp shorter than this ended at its lower bound, 0
 # the second start replaces the first only when it is this much lower on held-out windows: two ends
-# within it are one basin as far as the data tell (they differed by 0.02-1.4 % on 12 such benchmark
-# fits, the basin that hid a stiff stretch by 14 %), and a flip between them would be noise
+# within it are one basin as far as the data tell (on 16 such benchmark fits the second was 0.02-1.4 %
+# lower or 0.03-3.6 % higher; the basin that hid a stiff stretch was 14 % worse), and a flip
+# between them would be noise
 RESTART_MIN_GAIN = 0.02
 
 
