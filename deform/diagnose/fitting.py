@@ -245,14 +245,7 @@ def fit(
         if ranked:
             apply_point(sim, new_term, ranked[0][1])
         return _descend(sim, recordings, budget, desc, fit_nominal)
-    held_out = make_windows(
-        recordings,
-        max(budget.batch, 16),
-        longest_horizon(budget, recordings),
-        budget.margin,
-        random.Random(budget.seed + 2),
-        budget.transported,
-    )
+    held_out = held_out_windows(recordings, budget)
     origin, best, starts = _snapshot(sim), None, []
     for k, (_, point) in enumerate(ranked[: budget.starts]):
         _restore(sim, origin)
@@ -265,6 +258,28 @@ def fit(
             best = (loss, _snapshot(sim), out)
     _restore(sim, best[1])
     return {**best[2], "starts": starts}
+
+
+def held_out_windows(recordings: list[Recording], budget: FitBudget):
+    """A fixed batch of windows of the fit recordings, other than the descent's (its own seed), on
+    which the end points of several starts are compared: at least 16 windows of
+    :func:`longest_horizon` steps.
+
+    Args:
+        recordings: fit recordings.
+        budget: the fit's budget.
+
+    Returns:
+        Windows as :func:`make_windows` gives them.
+    """
+    return make_windows(
+        recordings,
+        max(budget.batch, 16),
+        longest_horizon(budget, recordings),
+        budget.margin,
+        random.Random(budget.seed + 2),
+        budget.transported,
+    )
 
 
 def longest_horizon(budget: FitBudget, recordings: list[Recording]) -> int:
@@ -417,14 +432,7 @@ def fit_nominal(
         or float(nom.clamp_length().detach()) >= CLAMP_RESTART_M
     ):
         return {"coarse": coarse}
-    held_out = make_windows(
-        recordings,
-        max(budget.batch, 16),
-        longest_horizon(budget, recordings),
-        budget.margin,
-        random.Random(budget.seed + 2),
-        budget.transported,
-    )
+    held_out = held_out_windows(recordings, budget)
     sim.sync()
     first_loss, first = _forward_loss(sim, held_out, budget), _snapshot(sim)
     nom.set_clamp(clamp_restart_m, fitted=True)

@@ -283,7 +283,7 @@ def diagnose(
         coarse, clamp_restart = None, None
         fit(sim, inputs.fit, nb, desc="nominal fit")
     else:
-        started = fit_nominal(sim, inputs.fit, nb, 0.5 * clamp_bound(spec) if budget.fit_clamp else None)
+        started = fit_nominal(sim, inputs.fit, nb, 0.5 * clamp_bound(spec))  # a held clamp is not restarted
         coarse, clamp_restart = started["coarse"], started.get("clamp_restart")
     c_nom = CheckErrors.of(sim, inputs.check)
     e_nom = c_nom.rollout

@@ -59,20 +59,11 @@ def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end
     here by raising it), and the simulator keeps the second end only when it scores lower on the
     held-out fit windows by more than RESTART_MIN_GAIN; without a restart clamp there is no second
     start."""
-    import random
-
     import deform.diagnose.fitting as fitting
 
     recs = _recordings_with_clamp(sources, 0.0)
     budget = dataclasses.replace(tiny_budget([]).candidate, iterations=15)
-    held_out = fitting.make_windows(
-        recs,
-        max(budget.batch, 16),
-        fitting.longest_horizon(budget, recs),
-        budget.margin,
-        random.Random(budget.seed + 2),
-        budget.transported,
-    )
+    held_out = fitting.held_out_windows(recs, budget)
 
     sim = Simulator(SPEC, Nominal())
     assert "clamp_restart" not in fitting.fit_nominal(sim, recs, budget, None)
