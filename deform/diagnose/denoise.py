@@ -94,12 +94,12 @@ def smoothing_risk(recordings: list[Recording], sigma: float, window: int) -> fl
     Returns:
         Bias squared plus noise variance.
     """
-    k = _difference_kernel(window)
     if window == 1:
         return 2.0 * sigma**2
+    k = _difference_kernel(window)
     m = window // 2
     raw = np.zeros_like(k)
-    raw[m], raw[m + 1] = -1.0, 1.0
+    raw[m : m + 2] = _difference_kernel(1)  # the raw difference, aligned with k
     mse = []
     for r in recordings:
         x = r.positions[:, 2:-2]
