@@ -11,6 +11,9 @@ finished variant is not trained again.
 
 import argparse
 import json
+import os
+import platform
+import sys
 from pathlib import Path
 
 import torch
@@ -87,7 +90,15 @@ def main():
             rows.append(row)
     results = Path(__file__).parent / "results"
     results.mkdir(exist_ok=True)
-    (results / "ablations.json").write_text(json.dumps(rows, indent=2))
+    from deform.bench import source_commit
+
+    payload = {
+        "command": "python benchmarks/ablations.py " + " ".join(sys.argv[1:]),
+        "commit": source_commit(),
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+        "rows": rows,
+    }
+    (results / "ablations.json").write_text(json.dumps(payload, indent=2) + "\n")
     table = {}
     for r in rows:
         table.setdefault(r["variant"], {})[r["rod"]] = r["l1_m"] * 100

@@ -238,12 +238,15 @@ def main(argv=None):
         "python": platform.python_version(),
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
-        "note": "2 cores shared with other jobs (model training running)",
+        "load_average_1_min_at_end": round(os.getloadavg()[0], 2),  # what else ran beside the timing
         "timing_runs": args.timing_runs,
         "batch": 1,
     }
+    from deform.bench import source_commit
+
     payload = {
         "command": "python benchmarks/baselines.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "commit": source_commit(),
         "machine": machine,
         "seconds": time.perf_counter() - t_start,
         "training": training,

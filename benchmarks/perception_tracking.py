@@ -153,7 +153,11 @@ def main(argv=None):
     summary = {}
     for r in rows:
         summary.setdefault((r["occlusion"], r["tracker"], r["fps"]), []).append(r["l1_cm"])
+    from deform.bench import source_commit
+
     result = dict(
+        command="python benchmarks/perception_tracking.py " + " ".join(sys.argv[1:]),
+        commit=source_commit(),
         machine=dict(
             cpus=os.cpu_count(),
             platform=platform.platform(),
