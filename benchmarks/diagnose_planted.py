@@ -168,15 +168,57 @@ def load_runs(path: Path, config: dict) -> dict[str, dict]:
 
 
 def finished(key: str, done: dict, runs_path: Path, args) -> bool:
-    """Whether the row ``key`` is already computed, by this process or by another one appending to
-    the same runs file (parallel runs then share the work instead of repeating it)."""
+    """Whether the row ``key`` needs no work from this process: computed already (by this process
+    or by another one appending to the same runs file), or being computed by another live process
+    (:func:`claim`). Parallel runs then share the work instead of repeating it."""
     done.update(load_runs(runs_path, _config(args)))
-    return key in done
+    return key in done or not claim(key, runs_path)
+
+
+def _claim_path(key: str, runs_path: Path) -> Path:
+    import hashlib
+
+    return runs_path.with_name(runs_path.name + ".claims") / hashlib.sha1(key.encode()).hexdigest()
+
+
+def claim(key: str, runs_path: Path) -> bool:
+    """Take the dataset ``key`` of ``runs_path`` for this process: False while another live process
+    on this machine holds it. A claim is a file holding its process id, created atomically and
+    removed when the row is appended (:func:`append_run`); one left by a process that died is taken
+    over. Why: rows are appended only when a dataset is done (minutes), so two processes that
+    checked the runs file before either finished used to run the same dataset twice."""
+    path = _claim_path(key, runs_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        try:
+            holder = int(path.read_text() or 0)
+        except (OSError, ValueError):
+            holder = 0
+        if holder == os.getpid():
+            return True
+        if holder <= 0:
+            return False  # just created, its process id not yet written
+        try:
+            os.kill(holder, 0)
+            return False  # alive: its dataset
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            return False  # alive, another user's
+        path.write_text(str(os.getpid()))  # left by a process that died: taken over
+        return True
+    with os.fdopen(fd, "w") as f:
+        f.write(str(os.getpid()))
+    return True
 
 
 def append_run(path: Path, row: dict) -> None:
+    """Append ``row`` to the runs file and release its claim (:func:`claim`)."""
     with path.open("a") as f:
         f.write(json.dumps(row) + "\n")
+    _claim_path(row["key"], path).unlink(missing_ok=True)
 
 
 def previous_row(key: str, runs_path: Path, args) -> dict | None:
