@@ -218,7 +218,12 @@ def append_run(path: Path, row: dict) -> None:
     """Append ``row`` to the runs file and release its claim (:func:`claim`)."""
     with path.open("a") as f:
         f.write(json.dumps(row) + "\n")
-    _claim_path(row["key"], path).unlink(missing_ok=True)
+    claim_file = _claim_path(row["key"], path)
+    claim_file.unlink(missing_ok=True)
+    try:
+        claim_file.parent.rmdir()  # the last claim: no empty directory left beside the results
+    except OSError:
+        pass  # other claims still held
 
 
 def previous_row(key: str, runs_path: Path, args) -> dict | None:
