@@ -25,7 +25,10 @@ def test_a_dataset_claimed_by_a_live_process_is_skipped_and_released_when_its_ro
     assert claim("a:1", runs)
     append_run(runs, {"key": "a:1", "config": {}})
     assert json.loads(runs.read_text())["key"] == "a:1"
-    assert not (runs.parent / (runs.name + ".claims")).exists()
+    claims = runs.parent / (runs.name + ".claims")
+    assert not (claims / path.name).exists() and claims.exists()  # b:1 is still held
+    append_run(runs, {"key": "b:1", "config": {}})
+    assert not claims.exists()  # the last claim took its directory with it
 
 
 def test_a_claim_being_written_counts_as_held(tmp_path):
