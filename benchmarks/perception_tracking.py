@@ -156,7 +156,8 @@ def main(argv=None):
     from deform.bench import source_commit
 
     result = dict(
-        command="python benchmarks/perception_tracking.py " + " ".join(sys.argv[1:]),
+        command="python benchmarks/perception_tracking.py "
+        + " ".join(sys.argv[1:] if argv is None else argv),
         commit=source_commit(),
         machine=dict(
             cpus=os.cpu_count(),

@@ -390,9 +390,9 @@ def render_baselines(d: dict) -> list[str]:
     return out + table(["method"] + [f"{r} L1 [cm]" for r in rods] + ["step p50 [ms]"], rows)
 
 
-def render_ablations(d: dict | list) -> list[str]:
+def render_ablations(d: dict) -> list[str]:
     rods, variants, cells, budget = [], [], {}, {}
-    for r in d["rows"] if isinstance(d, dict) else d:  # (a bare list: files written before provenance)
+    for r in d["rows"]:
         rods += [r["rod"]] if r["rod"] not in rods else []
         variants += [r["variant"]] if r["variant"] not in variants else []
         cells[(r["variant"], r["rod"])] = r["l1_m"] * 100
