@@ -38,7 +38,7 @@ from diagnose_planted import provenance  # noqa: E402
 from deform.evaluate import evaluate  # noqa: E402
 from deform.io.recordings import find_data_root, load_recordings  # noqa: E402
 from deform.model import MODEL_DIR, DeformModel, load_model  # noqa: E402
-from deform.terms import ADDED, BUILT_IN, describe  # noqa: E402
+from deform.terms import ADDED, BUILT_IN, attached_names, describe  # noqa: E402
 from deform.train import TrainConfig, split_validation, train, validation_l1  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -121,7 +121,9 @@ def main() -> int:
             for arm in ("with", "without"):
                 model = load_model(rod)
                 terms = (name,) if (arm == "with" and name in ADDED) else ()
-                removed = (name,) if (arm == "without" and name in BUILT_IN) else ()
+                # a built-in term, or an added one the shipped model already carries (trained with it)
+                removable = name in BUILT_IN or name in attached_names(model)
+                removed = (name,) if (arm == "without" and removable) else ()
                 cfg = TrainConfig(
                     iterations=args.iterations,
                     batch=args.batch,

@@ -221,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="NAME",
         help="ablation: train without a built-in term (aerodynamic_drag, stiffness_variation, "
-        "rest_curvature, point_mass)",
+        "rest_curvature, point_mass) or an added term the starting model carries",
     )
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
     t.add_argument("--lr-physics", type=float, default=2e-2)

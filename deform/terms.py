@@ -185,7 +185,8 @@ def without(model, names: list[str] | tuple[str, ...]) -> list[torch.nn.Paramete
 
     Drag goes to its floor, extra masses back to the configured marker mass, the rest curvature to
     zero; all frozen. Stiffness becomes uniform (the mean over vertices); :func:`tie` keeps it so
-    after every optimiser step, so it is not frozen.
+    after every optimiser step, so it is not frozen. An added term the model carries (a shipped
+    model trained with it) is detached; one it does not carry is refused (leave it out instead).
 
     Args:
         model: a :class:`deform.model.DeformModel`.
@@ -211,8 +212,11 @@ def without(model, names: list[str] | tuple[str, ...]) -> list[torch.nn.Paramete
                 frozen.append(model.wbar)
             elif name == "stiffness_variation":
                 tie(model, names)
+            elif name in ADDED and name in attached_names(model):
+                kept = [ext for ext in model.extensions if getattr(ext, "name", None) != name]
+                model.extensions = torch.nn.ModuleList(kept)
             elif name in ADDED:
-                raise UsageError(f"term {name!r} is not part of DEFORM: leave it out instead")
+                raise UsageError(f"term {name!r} is not part of this model: leave it out instead")
     for p in frozen:
         p.requires_grad_(False)
     return frozen

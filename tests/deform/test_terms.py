@@ -80,8 +80,30 @@ def test_ablation_keeps_stiffness_uniform_and_drag_at_its_floor(tmp_path):
     assert float(model.log_gamma.max() - model.log_gamma.min()) == 0.0
     assert math.isclose(float(model.log_drag), math.log(1e-4), rel_tol=1e-6)
     assert not model.log_drag.requires_grad
-    with pytest.raises(UsageError, match="not part of DEFORM"):
+    with pytest.raises(UsageError, match="not part of this model"):
         without(DeformModel(cfg), ["external_force"])
+
+
+def test_without_an_added_term_the_model_carries_detaches_it_and_steps_as_the_plain_model():
+    cfg = load_rod_config("DLO2")
+    plain = DeformModel(cfg)
+    carrying = DeformModel(cfg)
+    carrying.load_state_dict(plain.state_dict())
+    attach(carrying, ["internal_damping", "external_force"])
+    with torch.no_grad():
+        carrying.extensions[1].set_field(0.7, 0.0)  # a wind that moves the rod
+    without(carrying, ["external_force"])
+    assert attached_names(carrying) == ["internal_damping"]
+    without(carrying, ["internal_damping"])
+    assert attached_names(carrying) == []
+    rec = generate_recording(plain, n_frames=20, seed=0)
+    x = torch.tensor(rec.positions, dtype=torch.float64)
+    grips = x[None, 2:, [0, 1, -2, -1]]
+    for m in (plain, carrying):
+        m.options.residual = False
+    a, _ = plain.rollout(plain.initial_state(x[None, 0], x[None, 1]), grips)
+    b, _ = carrying.rollout(carrying.initial_state(x[None, 0], x[None, 1]), grips)
+    assert torch.equal(a, b)
 
 
 @pytest.mark.slow
