@@ -39,7 +39,7 @@ KNOWN = {
     ),
     "service_soak.json": (
         "Service: 30-minute soak",
-        "python benchmarks/service_bench.py --json benchmarks/results/service_soak.json",
+        "python benchmarks/service_bench.py --loop-s 30 --soak-s 1800 --predict-n 20 --json benchmarks/results/service_soak.json",
     ),
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
