@@ -11,9 +11,6 @@ finished variant is not trained again.
 
 import argparse
 import json
-import os
-import platform
-import sys
 from pathlib import Path
 
 import torch
@@ -90,14 +87,9 @@ def main():
             rows.append(row)
     results = Path(__file__).parent / "results"
     results.mkdir(exist_ok=True)
-    from deform.bench import source_commit
+    from deform.bench import provenance
 
-    payload = {
-        "command": "python benchmarks/ablations.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
-        "rows": rows,
-    }
+    payload = {**provenance("benchmarks/ablations.py"), "rows": rows}
     (results / "ablations.json").write_text(json.dumps(payload, indent=2) + "\n")
     table = {}
     for r in rows:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -176,8 +177,6 @@ def finished(key: str, done: dict, runs_path: Path, args) -> bool:
 
 
 def _claim_path(key: str, runs_path: Path) -> Path:
-    import hashlib
-
     return runs_path.with_name(runs_path.name + ".claims") / hashlib.sha1(key.encode()).hexdigest()
 
 

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -39,19 +37,14 @@ def main() -> int:
     from deform.io.recordings import find_data_root, load_recordings
 
     torch.set_num_threads(1)
-    from deform.bench import source_commit
+    from deform.bench import provenance
     from deform.nn import precision
 
     # the bfloat16 network's accuracy at every batch size (predict uses it from 512 rods on; the
     # recordings here are a batch of 14)
     precision.BFLOAT16_MIN_BATCH = 1
 
-    out = {
-        "command": "python benchmarks/float32_accuracy.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
-        "rods": {},
-    }
+    out = {**provenance("benchmarks/float32_accuracy.py"), "rods": {}}
     root = find_data_root()
     if root is None:
         raise SystemExit("no DEFORM data: set DEFORM_DATA")

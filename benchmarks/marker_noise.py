@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
@@ -24,9 +22,8 @@ def main() -> None:
     args = p.parse_args()
 
     import diagnose_planted as dp
-    import torch
 
-    from deform.bench import source_commit
+    from deform.bench import provenance
     from deform.diagnose.denoise import SMOOTH_ABOVE_M, marker_noise, smoothing_window
     from deform.io.recordings import find_data_root, load_recordings
 
@@ -64,9 +61,7 @@ def main() -> None:
                     )
                     print(rows[-1], flush=True)
     out = {
-        "command": "python benchmarks/marker_noise.py",
-        "commit": source_commit(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+        **provenance("benchmarks/marker_noise.py"),
         "smooth_above_mm": SMOOTH_ABOVE_M * 1e3,
         "rows": rows,
     }

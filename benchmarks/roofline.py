@@ -33,8 +33,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from collections import defaultdict
@@ -278,12 +276,10 @@ def main() -> int:
     if batched.get("batch") == B:
         predict32 = float(batched["rod_steps_per_s"]["predict_aot_2_2_float32"]["median"])
     profile = kernel_profile(model, B, args.profile_steps)
-    from deform.bench import source_commit
+    from deform.bench import provenance
 
     result = {
-        "command": "python benchmarks/roofline.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+        **provenance("benchmarks/roofline.py"),
         "rod": args.rod,
         "n_vertices": model.n,
         "batch": B,

@@ -41,6 +41,25 @@ def source_commit() -> str:
     return out.stdout.strip()
 
 
+def provenance(script: str) -> dict:
+    """What a stored result names: the command that wrote it (this process's arguments), the
+    commit and the machine.
+
+    Args:
+        script: the script's path in the repository, e.g. ``benchmarks/roofline.py``.
+
+    Returns:
+        ``{"command", "commit", "machine": {"cpus", "platform", "torch"}}``.
+    """
+    import sys
+
+    return {
+        "command": " ".join(["python", script, *sys.argv[1:]]),
+        "commit": source_commit(),
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
+    }
+
+
 def _trajectory(model: DeformModel, frames: int = 500) -> np.ndarray:
     root = find_data_root()
     if root is not None and (root / model.cfg.name / "train").is_dir():
