@@ -29,6 +29,8 @@ def vertex_major(t: Tensor, event_dims: int, batch: tuple[int, ...] | None = Non
     event = t.shape[t.dim() - event_dims :]
     if batch is not None:
         t = t.expand(*batch, *event)
+    if t.dim() == event_dims + 1 and t.shape[0] == 1 and t.is_contiguous():
+        return t.view(*event, 1)  # one rod: the same memory either way (the 100 Hz loop's step)
     return t.reshape(-1, *event).movedim(0, -1).contiguous()
 
 
@@ -42,4 +44,6 @@ def batch_major(t: Tensor, batch: tuple[int, ...]) -> Tensor:
     Returns:
         (*batch, *event), contiguous.
     """
+    if t.shape[-1] == 1 and t.is_contiguous():
+        return t.view(*batch, *t.shape[:-1])
     return t.movedim(-1, 0).reshape(*batch, *t.shape[:-1]).contiguous()
