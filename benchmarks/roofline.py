@@ -132,9 +132,9 @@ def count_step(model, batch: int) -> tuple[dict, dict, dict]:
     """(ops, bytes, calls) per phase for one branch-free step of ``batch`` rods (float64)."""
     import deform.model as dm
     from deform.compiled import LOOP_BRANCH_FREE
-    from deform.step_graph import branch_free_step, rod_at_rest
+    from deform.step_graph import branch_free_step, rod_at_rest_vertex_major
 
-    state, grip = rod_at_rest(model, batch, torch.float64)
+    state, grip = rod_at_rest_vertex_major(model, batch, torch.float64)
     state = branch_free_step(model, state, grip + 0.01, LOOP_BRANCH_FREE)[0]  # not at rest: a real step
     counter = Counter()
     patched = {
@@ -189,12 +189,12 @@ def kernel_profile(model, batch: int, steps: int) -> dict:
     import torch._inductor.config as inductor_config
 
     from deform.compiled import PREDICT_BRANCH_FREE
-    from deform.step_graph import branch_free_step, rod_at_rest
+    from deform.step_graph import branch_free_step, rod_at_rest_vertex_major
 
     inductor_config.cpp.enable_kernel_profile = True  # each generated kernel a profiler record
-    state, grip = rod_at_rest(model, batch, torch.float32)
+    state, grip = rod_at_rest_vertex_major(model, batch, torch.float32)
     grip = grip.clone()
-    grip[:, 2:, 2] += 0.002  # moving grippers: a real step, not a rod at rest
+    grip[2:, 2] += 0.002  # moving grippers: a real step, not a rod at rest
     fn = torch.compile(lambda s, g: branch_free_step(model, s, g, PREDICT_BRANCH_FREE), dynamic=False)
     with torch.no_grad():
         for _ in range(3):
@@ -240,9 +240,9 @@ def kernel_profile(model, batch: int, steps: int) -> dict:
 def eager_rate(model, batch: int, steps: int = 10) -> float:
     """Rod-steps per second of the eager branch-free step (2 threads)."""
     from deform.compiled import LOOP_BRANCH_FREE
-    from deform.step_graph import branch_free_step, rod_at_rest
+    from deform.step_graph import branch_free_step, rod_at_rest_vertex_major
 
-    state, grip = rod_at_rest(model, batch, torch.float64)
+    state, grip = rod_at_rest_vertex_major(model, batch, torch.float64)
     with torch.no_grad():
         state = branch_free_step(model, state, grip, LOOP_BRANCH_FREE)[0]
         t = time.perf_counter()

@@ -29,9 +29,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from deform.model import DeformModel, RodState
+from deform.model import DeformModel, VertexMajorState
 from deform.rod.convergence import loops_when_exported
-from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
+from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest_vertex_major
 
 log = logging.getLogger("deform.aot")
 
@@ -118,7 +118,7 @@ class _BranchFreeStep(torch.nn.Module):
 
     def forward(self, x: Tensor, v: Tensor, d1: Tensor, theta: Tensor, rest: Tensor, grip: Tensor):
         new, unconverged = branch_free_step(
-            self.model, RodState(x, v, d1, theta, rest), grip, self.branch_free, self.network_dtype
+            self.model, VertexMajorState(x, v, d1, theta, rest), grip, self.branch_free, self.network_dtype
         )
         return new.x, new.v, new.d1, new.theta, new.rest, unconverged
 
@@ -132,8 +132,8 @@ def _build(
     network_dtype: torch.dtype | None = None,
 ) -> None:
     """Export the step for a rod at rest (shapes and dtype are all that matter) and compile it."""
-    state, grip = rod_at_rest(model, batch, dtype)
-    args = tuple(t.contiguous() for t in (state.x, state.v, state.d1, state.theta, state.rest, grip))
+    state, grip = rod_at_rest_vertex_major(model, batch, dtype)
+    args = (state.x, state.v, state.d1, state.theta, state.rest, grip)
     t0 = time.perf_counter()
     loops = exports_loops(batch)
     options = {**AOT_OPTIONS, "memory_planning": False} if loops else AOT_OPTIONS
@@ -251,10 +251,11 @@ class AheadOfTimeStep:
     def _current_versions(self) -> tuple[int, ...]:
         return tuple(t._version for t in self._tensors)
 
-    def __call__(self, state: RodState, grip_next: Tensor) -> tuple[RodState, Tensor]:
+    def __call__(self, state: VertexMajorState, grip_next: Tensor) -> tuple[VertexMajorState, Tensor]:
+        """Vertex-major in and out (:class:`deform.model.VertexMajorState`, grip (4, 3, B))."""
         if self._current_versions() != self._versions or torch.get_num_threads() != self.threads:
             self.load()  # parameters changed in place, or threads: not this package
         x, v, d1, theta, rest, unconverged = self._run_flat(
             [state.x, state.v, state.d1, state.theta, state.rest, grip_next]
         )
-        return RodState(x, v, d1, theta, rest), unconverged
+        return VertexMajorState(x, v, d1, theta, rest), unconverged

@@ -22,8 +22,9 @@ import torch
 from torch import Tensor
 
 from deform.aot import AheadOfTimeStep
-from deform.model import DeformModel, RodState, overstretched
+from deform.model import DeformModel, RodState, VertexMajorState, overstretched
 from deform.nn import precision
+from deform.rod.layout import batch_major, vertex_major
 from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest
 
 log = logging.getLogger("deform.compiled")
@@ -68,6 +69,13 @@ def _pad(t: Tensor, size: int) -> Tensor:
     if t.shape[0] == size:
         return t.contiguous()
     return torch.cat([t, t[:1].expand(size - t.shape[0], *t.shape[1:])], dim=0)
+
+
+def _pad_last(t: Tensor, size: int) -> Tensor:
+    """:func:`_pad` along the last axis (vertex-major arrays, the batch last)."""
+    if t.shape[-1] == size:
+        return t.contiguous()
+    return torch.cat([t, t[..., :1].expand(*t.shape[:-1], size - t.shape[-1])], dim=-1)
 
 
 def _with_rods(state: RodState, rods: Tensor, part: RodState) -> RodState:
@@ -139,9 +147,15 @@ class CompiledStep:
         """True while the compiled path is in use (False after a fallback to eager)."""
         return self.enabled and not self._failed
 
-    def _checked_step(self, state: RodState, grip_next: Tensor | None) -> tuple[RodState, Tensor | None]:
+    def _one_graph(self) -> bool:
+        """Whether the step is the one-graph step checked by the solvers' report, which runs
+        vertex-major: its inputs are converted before the call, outside the graph."""
+        return self.branch_free is not None and self.check == ConvergenceCheck.REPORT
+
+    def _checked_step(self, state, grip_next: Tensor | None) -> tuple:
         """With ``branch_free``: the step with fixed iteration counts and which rods it left
-        unconverged, one graph. Without: the step with its checked loops (a graph per iteration)."""
+        unconverged, one graph (vertex-major in and out with the report's check, see
+        :meth:`_one_graph`). Without: the step with its checked loops (a graph per iteration)."""
         if self.branch_free is None:
             return self.eager(state, grip_next), None
         if self.check == ConvergenceCheck.RECOMPUTE:
@@ -190,18 +204,59 @@ class CompiledStep:
         """The compiled step alone: ``(new state, unconverged)``, ``unconverged`` a (B,) bool tensor
         with ``branch_free`` (rods outside the solver tolerances, see ``model.unconverged``), else
         None. Eager (and None) when compilation is off or failed, or with gradients."""
+        if self._one_graph():  # vertex-major: converted here, outside the graph (deform.rod.layout)
+            grip = None if grip_next is None else vertex_major(grip_next, 2)
+            out, unconverged = self.attempt_vertex_major(state.vertex_major(), grip)
+            return out.batch_major(), unconverged
         if not self.active or (torch.is_grad_enabled() and state.x.requires_grad):
             return self.eager(state, grip_next), None
         batch = state.x.shape[0]
         size = bucket_size(batch, self.buckets)
         padded = RodState(*(_pad(t, size) for t in (state.x, state.v, state.d1, state.theta, state.rest)))
         grip = None if grip_next is None else _pad(grip_next, size)
+        ran = self._run(padded, grip, size, state.x.dtype)
+        if ran is None:
+            with torch.no_grad():
+                return self.eager(state, grip_next), None
+        out, unconverged = ran
+        if size != batch:
+            out = RodState(*(t[:batch] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
+        return out, None if unconverged is None else unconverged[:batch]
+
+    def attempt_vertex_major(
+        self, state: VertexMajorState, grip_next: Tensor | None
+    ) -> tuple[VertexMajorState, Tensor | None]:
+        """:meth:`attempt` of the one-graph step on a vertex-major state and grip (4, 3, B), with no
+        conversion on the way: what a rollout calls step after step (converting 1024 rods to and
+        from the batch-first layout took 0.5 ms a step, a fifth of the step)."""
+        if not self.active or (torch.is_grad_enabled() and state.x.requires_grad):
+            return self._eager_vertex_major(state, grip_next), None
+        batch = state.x.shape[-1]
+        size = bucket_size(batch, self.buckets)
+        padded = state.padded(size)
+        grip = None if grip_next is None else _pad_last(grip_next, size)
+        ran = self._run(padded, grip, size, state.x.dtype)
+        if ran is None:
+            return self._eager_vertex_major(state, grip_next), None
+        out, unconverged = ran
+        if size != batch:
+            out = out.index(slice(0, batch))
+        return out, None if unconverged is None else unconverged[:batch]
+
+    def _eager_vertex_major(self, state: VertexMajorState, grip_next: Tensor | None) -> VertexMajorState:
+        grip = None if grip_next is None else batch_major(grip_next, state.x.shape[-1:])
+        with torch.no_grad():
+            return self.eager(state.batch_major(), grip).vertex_major()
+
+    def _run(self, padded, grip: Tensor | None, size: int, dtype: torch.dtype):
+        """The compiled step on a padded batch: ahead of time if it can be had, else torch.compile;
+        None when compilation failed (the caller steps eagerly; later calls too)."""
         try:
             with torch.no_grad(), self._lock:
-                fn = self._aot_fn(size, state.x.dtype) if grip is not None else None
+                fn = self._aot_fn(size, dtype) if grip is not None else None
                 if fn is not None:
                     try:
-                        out, unconverged = fn(padded, grip)
+                        return fn(padded, grip)
                     except Exception as exc:
                         # torch.compile step of the same graph is still good, so only this path goes
                         self.ahead_of_time, fn = False, None
@@ -209,18 +264,13 @@ class CompiledStep:
                         log.warning(
                             "ahead-of-time step failed (%s: %s); using torch.compile", type(exc).__name__, exc
                         )
-                if fn is None and not self.compile_fallback:
+                if not self.compile_fallback:
                     raise RuntimeError("no ahead-of-time step, and no torch.compile fallback")
-                if fn is None:
-                    out, unconverged = self._step_fn()(padded, grip)
+                return self._step_fn()(padded, grip)
         except Exception as exc:
             self._failed = True
             log.warning("compiled step unavailable (%s: %s); using the eager step", type(exc).__name__, exc)
-            with torch.no_grad():
-                return self.eager(state, grip_next), None
-        if size != batch:
-            out = RodState(*(t[:batch] for t in (out.x, out.v, out.d1, out.theta, out.rest)))
-        return out, None if unconverged is None else unconverged[:batch]
+            return None
 
     def __call__(self, state: RodState, grip_next: Tensor | None) -> RodState:
         out, unconverged = self.attempt(state, grip_next)
@@ -331,16 +381,21 @@ class RolloutStep:
         self.rescue_ready = True
 
     def rollout(self, state: RodState, grips: Tensor) -> Tensor:
-        out = torch.empty(grips.shape[0], grips.shape[1], state.x.shape[1], 3, dtype=state.x.dtype)
+        """Positions (B, T, n, 3) for grips (B, T, 4, 3). The state is carried vertex-major from
+        step to step (the fast graph's layout), converted only for the rare redone rods."""
+        n_steps = grips.shape[1]
+        vm = state.vertex_major()
+        grips_vm = grips.permute(1, 2, 3, 0).contiguous()  # (T, 4, 3, B): each step's grip contiguous
+        out = torch.empty(n_steps, *vm.x.shape, dtype=state.x.dtype)
         misses, retry_at = 0, 0  # mostly-missed steps in a row; the next step the fast graph is tried at
         with torch.no_grad():
             # an overstretched rod cannot converge: not a miss (rest lengths do not change in a
             # rollout, so all steps at once: one tensor operation instead of one per step)
             reachable = ~overstretched(grips, state.rest.unsqueeze(-2))  # (B, T)
-            for k in range(grips.shape[1]):
+            for k in range(n_steps):
                 new = None
                 if k >= retry_at:
-                    new, unconverged = self.fast.attempt(state, grips[:, k])
+                    new, unconverged = self.fast.attempt_vertex_major(vm, grips_vm[k])
                     bad = [] if unconverged is None else (unconverged & reachable[:, k]).nonzero().squeeze(-1)
                     # most of the fast result would be thrown away (and more rods than one rescue
                     # call takes, which costs less than the whole batch's checked step)
@@ -354,32 +409,43 @@ class RolloutStep:
                     else:
                         misses = 0
                         if len(bad):
-                            new = self._redo(state, grips[:, k], new, bad)
-                state = self.checked(state, grips[:, k]) if new is None else new
-                out[:, k] = state.x
-        return out
+                            new = self._redo(vm, grips[:, k], new, bad)
+                if new is None:
+                    new = self.checked(vm.batch_major(), grips[:, k]).vertex_major()
+                vm = new
+                out[k] = vm.x
+        return out.permute(3, 0, 1, 2)
 
     def _rescues(self) -> bool:
         """Whether unconverged rods go through the rescue graph (else the checked eager loops)."""
         return self.rescue.active and self.rescue_ready
 
-    def _redo(self, state: RodState, grip: Tensor, new: RodState, bad: Tensor) -> RodState:
-        """``new`` with the rods ``bad`` stepped again from ``state``: by the rescue graph (the
+    def _redo(
+        self, state: VertexMajorState, grip: Tensor, new: VertexMajorState, bad: Tensor
+    ) -> VertexMajorState:
+        """``new`` with the rods ``bad`` stepped again from ``state`` (both vertex-major; ``grip``
+        (B, 4, 3)): by the rescue graph (the
         checked solvers' limits as one graph, :data:`RESCUE_BATCH` rods a call) and the few it
         leaves unconverged by the checked eager loops, or by those alone without the rescue graph.
         Why the rescue graph: an eager step of a few rods cost about 1.3 ms whatever their number
         (interpreter-bound), two thirds of the fast graph's step of 512 rods; a rescue call 0.5 ms.
         Not the checked compiled step: a subset size warm-up did not see would be compiled in the
         middle of a request."""
+        redo = state.index(bad).batch_major()
         if not self._rescues():
-            part = self.checked.eager(state.index(bad), grip[bad])
+            part = self.checked.eager(redo, grip[bad])
         else:  # the rescue step redoes what its graph leaves unconverged with the same eager loops
-            groups = [self.rescue(state.index(g), grip[g]) for g in bad.split(RESCUE_BATCH)]
+            rods = torch.arange(len(bad))
+            groups = [self.rescue(redo.index(g), grip[bad[g]]) for g in rods.split(RESCUE_BATCH)]
             part = RodState(
                 *(torch.cat(ts) for ts in zip(*((o.x, o.v, o.d1, o.theta, o.rest) for o in groups)))
             )
         self.redone += len(bad)
-        return _with_rods(new, bad, part)
+        part = part.vertex_major()
+        out = VertexMajorState(*(t.clone() for t in (new.x, new.v, new.d1, new.theta, new.rest)))
+        for t, p in zip((out.x, out.v, out.d1, out.theta), (part.x, part.v, part.d1, part.theta)):
+            t[..., bad] = p
+        return out
 
 
 def rollout(step: RolloutStep | CompiledStep | DeformModel, state: RodState, grips: Tensor) -> Tensor:

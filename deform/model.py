@@ -36,6 +36,7 @@ from deform.rod.inextensibility import (
     max_relative_error,
     unweighted_inv_mass,
 )
+from deform.rod.layout import batch_major, vertex_major
 from deform.rod.tridiagonal import solve_tridiagonal_pd
 from deform.rod.twist_solver import gradient_and_hessian, solve_theta
 
@@ -86,15 +87,15 @@ def rest_within_reach(rest: Tensor, grip: Tensor, slack: float = 1e-3) -> Tensor
     recordings never come within 1 % of it.
 
     Args:
-        rest: (..., n-1) rest lengths [m].
-        grip: (..., 4, 3) gripped vertices [m].
+        rest: (n-1, B) rest lengths [m], vertex-major (:mod:`deform.rod.layout`).
+        grip: (4, 3, B) gripped vertices [m].
         slack: relative extra length over what reaching takes.
 
     Returns:
-        (..., n-1) rest lengths to project to.
+        (n-1, B) rest lengths to project to.
     """
-    scale = (_reach_ratio(grip, rest) * (1.0 + slack)).clamp_min(1.0)
-    return torch.cat([rest[..., :1], rest[..., 1:-1] * scale.unsqueeze(-1), rest[..., -1:]], dim=-1)
+    scale = (_reach_ratio(grip.movedim(-1, 0), rest.movedim(-1, 0)) * (1.0 + slack)).clamp_min(1.0)
+    return torch.cat([rest[:1], rest[1:-1] * scale, rest[-1:]])
 
 
 @dataclass
@@ -113,6 +114,47 @@ class RodState:
 
     def index(self, idx) -> RodState:
         return RodState(*(t[idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
+
+    def vertex_major(self) -> VertexMajorState:
+        """The same rods with the batch as the last axis, the layout the physics runs in."""
+        return VertexMajorState(
+            vertex_major(self.x, 2),
+            vertex_major(self.v, 2),
+            vertex_major(self.d1, 2),
+            vertex_major(self.theta, 1),
+            vertex_major(self.rest, 1),
+        )
+
+
+@dataclass
+class VertexMajorState:
+    """:class:`RodState` with the batch last (:mod:`deform.rod.layout`): ``x``, ``v`` (n, 3, B);
+    ``d1`` (m, 3, B); ``theta``, ``rest`` (m, B). What the step computes on and the compiled step
+    takes, so that its loops run over the rods innermost."""
+
+    x: Tensor
+    v: Tensor
+    d1: Tensor
+    theta: Tensor
+    rest: Tensor
+
+    def index(self, idx) -> VertexMajorState:
+        """The rods ``idx`` (an index into the last axis)."""
+        return VertexMajorState(*(t[..., idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
+
+    def padded(self, size: int) -> VertexMajorState:
+        """``size`` rods: these, then copies of the first (a compiled step's fixed batch), contiguous."""
+        pad = size - self.x.shape[-1]
+
+        def fill(t: Tensor) -> Tensor:
+            return t.contiguous() if pad == 0 else torch.cat([t, t[..., :1].expand(*t.shape[:-1], pad)], -1)
+
+        return VertexMajorState(*(fill(t) for t in (self.x, self.v, self.d1, self.theta, self.rest)))
+
+    def batch_major(self) -> RodState:
+        """Back to a :class:`RodState` (B, ...)."""
+        batch = (self.x.shape[-1],)
+        return RodState(*(batch_major(t, batch) for t in (self.x, self.v, self.d1, self.theta, self.rest)))
 
 
 class ThetaSolver(str, enum.Enum):
@@ -218,22 +260,24 @@ class DeformModel(nn.Module):
         return params, mass
 
     def vertex_mass(self, rest: Tensor) -> Tensor:
-        """(B, n): the rod's mass spread by Voronoi length, plus the extra point masses."""
+        """(n, B): the rod's mass spread by Voronoi length, plus the extra point masses; ``rest``
+        (m, B), vertex-major."""
         half = 0.5 * rest
-        vor = torch.cat([half[..., :1], half[..., :-1] + half[..., 1:], half[..., -1:]], dim=-1)
-        rod = self.cfg.mass_kg * vor / rest.sum(-1, keepdim=True)
-        mass = rod + nn.functional.softplus(self.extra_mass_raw).to(rest.dtype) * 1e-3
+        vor = torch.cat([half[:1], half[:-1] + half[1:], half[-1:]])
+        rod = self.cfg.mass_kg * vor / rest.sum(0, keepdim=True)
+        mass = rod + nn.functional.softplus(self.extra_mass_raw).to(rest.dtype)[:, None] * 1e-3
         for ext in self.extensions:
-            if hasattr(ext, "mass"):
-                mass = ext.mass(mass)
+            if hasattr(ext, "mass"):  # terms take and give (B, n)
+                mass = ext.mass(mass.T).T
         return mass
 
     def elastic_params(self, rest: Tensor) -> ElasticParams:
+        """Vertex-major :class:`ElasticParams` for rest lengths ``rest`` (m, B)."""
         dtype = rest.dtype
         return ElasticParams(
-            beta=self.log_beta.exp().to(dtype),
-            gamma=self.log_gamma.exp().to(dtype),
-            wbar=self.wbar.to(dtype),
+            beta=self.log_beta.exp().to(dtype)[:, None],
+            gamma=self.log_gamma.exp().to(dtype)[:, None],
+            wbar=self.wbar.to(dtype)[..., None],
             rest_vor=G.voronoi_lengths(rest),
         )
 
@@ -247,9 +291,10 @@ class DeformModel(nn.Module):
 
     def drag_acceleration(self, x: Tensor, v: Tensor) -> Tensor:
         """Air drag: linear damping ``-c v`` plus quadratic drag on the normal velocity
-        ``-k |v_n| v_n`` (``v_n`` = velocity across the rod; a rope whipping at a few m/s feels it)."""
+        ``-k |v_n| v_n`` (``v_n`` = velocity across the rod; a rope whipping at a few m/s feels it).
+        ``x``, ``v``: (n, 3, B)."""
         v_n = G.normal_velocity(x, v)
-        return -self.damping.to(x.dtype) * v - self.drag.to(x.dtype) * v_n.norm(dim=-1, keepdim=True) * v_n
+        return -self.damping.to(x.dtype) * v - self.drag.to(x.dtype) * G.norm(v_n, keepdim=True) * v_n
 
     # ----- state ------------------------------------------------------------------------------
     def initial_state(
@@ -264,27 +309,31 @@ class DeformModel(nn.Module):
         x0, x1 = torch.as_tensor(x0), torch.as_tensor(x1)
         if x1.dim() == 2:
             x0, x1 = x0.unsqueeze(0), x1.unsqueeze(0)
-        t = G.normalize(G.edges(x1))
+        batch = x1.shape[:-2]
+        t = G.normalize(G.edges(vertex_major(x1, 2)))
         d1 = (
             G.space_parallel_frame(t)
             if d1 is None
-            else G.time_transport(torch.as_tensor(d1, dtype=x1.dtype), t, t)
+            else G.time_transport(vertex_major(torch.as_tensor(d1, dtype=x1.dtype), 2, batch), t, t)
         )
-        theta = torch.zeros(t.shape[:-1], dtype=x1.dtype)
-        rest = G.edges(x0).norm(dim=-1)
-        return RodState(x=x1, v=(x1 - x0) / dt, d1=d1, theta=theta, rest=rest)
+        theta = torch.zeros(*batch, self.n - 1, dtype=x1.dtype)
+        rest = G.norm(G.edges(vertex_major(x0, 2, batch)))
+        return RodState(
+            x=x1, v=(x1 - x0) / dt, d1=batch_major(d1, batch), theta=theta, rest=batch_major(rest, batch)
+        )
 
     def static_state(self, x: Tensor, rest: Tensor | None = None) -> RodState:
         """State at rest at positions ``x`` (B, n, 3), e.g. a guess to be relaxed by :meth:`settle`."""
         if x.dim() == 2:
             x = x.unsqueeze(0)
-        t = G.normalize(G.edges(x))
-        rest = G.edges(x).norm(dim=-1) if rest is None else rest
+        batch = x.shape[:-2]
+        e = G.edges(vertex_major(x, 2))
+        rest = batch_major(G.norm(e), batch) if rest is None else rest
         return RodState(
             x=x,
             v=torch.zeros_like(x),
-            d1=G.space_parallel_frame(t),
-            theta=torch.zeros(t.shape[:-1], dtype=x.dtype),
+            d1=batch_major(G.space_parallel_frame(G.normalize(e)), batch),
+            theta=torch.zeros(*batch, self.n - 1, dtype=x.dtype),
             rest=rest,
         )
 
@@ -310,41 +359,47 @@ class DeformModel(nn.Module):
         re-solved for the new shape (ends kept): a corrected shape can turn a naturally curved
         rod's material frame by radians; solved here, the next step's solve starts converged
         instead of taking tens of iterations."""
-        x = x.to(state.x.dtype)
+        batch = state.x.shape[:-2]
+        vm = state.vertex_major()
+        x = vertex_major(x.to(state.x.dtype), 2, batch)
         with torch.no_grad():
-            inv_mass = self._projection_inv_mass(self.vertex_mass(state.rest), held=True)
+            inv_mass = self._projection_inv_mass(self.vertex_mass(vm.rest), held=True)
             x = enforce_inextensibility(
                 x,
                 inv_mass,
-                state.rest,
+                vm.rest,
                 self.options.pbd_tol,
                 self.options.pbd_max_sweeps,
                 self.options.pbd_method,
             )
-        d1 = G.time_transport(state.d1, G.normalize(G.edges(state.x)), G.normalize(G.edges(x)))
-        moved = RodState(
-            x=x, v=state.v if v is None else v.to(state.x.dtype), d1=d1, theta=state.theta, rest=state.rest
-        )
+        d1 = G.time_transport(vm.d1, G.normalize(G.edges(vm.x)), G.normalize(G.edges(x)))
+        v = vm.v if v is None else vertex_major(v.to(state.x.dtype), 2, batch)
+        moved = VertexMajorState(x=x, v=v, d1=d1, theta=vm.theta, rest=vm.rest)
         with torch.no_grad():
-            _, theta = self.forces(moved)
-        return RodState(moved.x, moved.v, moved.d1, theta, moved.rest)
+            params, mass = self._physical(moved.rest, False)
+            _, theta, _ = self._forces(moved, params, mass, None, False)
+        return VertexMajorState(moved.x, moved.v, moved.d1, theta, moved.rest).batch_major()
 
     # ----- dynamics ---------------------------------------------------------------------------
     def forces(
         self, state: RodState, theta_ends: Tensor | None = None, create_graph: bool = False
     ) -> tuple[Tensor, Tensor]:
-        """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles.
+        """Conservative forces ``-dE/dx`` (B, n, 3) at the energy-minimising angles, and those angles
+        (B, m); ``theta_ends`` (B, 2) the end edges' angles (None: the state's).
 
         Closed form (:mod:`deform.rod.forces`); differentiable with first-order autograd when
         ``create_graph`` (training), the angles then carrying implicit-function-theorem gradients.
         """
-        params, mass = self._physical(state.rest, create_graph)
-        force, theta, _ = self._forces(state, params, mass, theta_ends, create_graph)
-        return force, theta
+        vm = state.vertex_major()
+        params, mass = self._physical(vm.rest, create_graph)
+        ends = None if theta_ends is None else vertex_major(theta_ends, 1)
+        force, theta, _ = self._forces(vm, params, mass, ends, create_graph)
+        batch = state.x.shape[:-2]
+        return batch_major(force, batch), batch_major(theta, batch)
 
     def _forces(
         self,
-        state: RodState,
+        state: VertexMajorState,
         params: ElasticParams,
         mass: Tensor,
         theta_ends: Tensor | None,
@@ -352,9 +407,10 @@ class DeformModel(nn.Module):
         branch_free: int = 0,
         report: ConvergenceReport | None = None,
     ):
+        """(forces (n, 3, B), angles (m, B), tangents (m, 3, B)) of a vertex-major state."""
         x = state.x if create_graph else state.x.detach()
         if theta_ends is None:
-            theta_ends = state.theta[..., [0, -1]].detach()
+            theta_ends = state.theta[[0, -1]].detach()
         # the frame is carried along by parallel transport: identity at x, but it moves with x
         geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
         a, b = curvature_projections(geo)
@@ -404,31 +460,70 @@ class DeformModel(nn.Module):
         network_dtype: torch.dtype | None = None,
     ) -> RodState:
         """Advance one ``dt``. ``grip_next`` (B, 4, 3): vertices 0, 1, n-2, n-1 at the new time
-        (``None``: nothing is held, e.g. a dropped rope). ``branch_free``: iterations of the twist
+        (``None``: nothing is held, e.g. a dropped rope). ``theta_ends`` (B, 2): the end edges'
+        angles (None: the state's). ``branch_free``: iterations of the twist
         solve and sweeps of the projection done without host synchronisation before the checked
         loops (for compiled code; same result per rod, see :func:`newton_theta`). ``report``: a
         :class:`ConvergenceReport` that receives the solvers' per-rod convergence after those iterations (``twist_unconverged``,
         ``length_error``; see :meth:`unconverged_from_report`). ``network_dtype``: the residual
-        network's arithmetic (None: float32; bfloat16 in batched rollouts, :mod:`deform.nn.precision`)."""
+        network's arithmetic (None: float32; bfloat16 in batched rollouts, :mod:`deform.nn.precision`).
+        The physics runs vertex-major (:meth:`step_vertex_major`)."""
+        grip = None if grip_next is None else vertex_major(grip_next, 2)
+        ends = None if theta_ends is None else vertex_major(theta_ends, 1)
+        new = self.step_vertex_major(
+            self._vertex_major(state), grip, ends, create_graph, branch_free, report, network_dtype
+        )
+        batch = state.x.shape[:-2]
+        return RodState(*(batch_major(t, batch) for t in (new.x, new.v, new.d1, new.theta)), state.rest)
+
+    def _vertex_major(self, state: RodState) -> VertexMajorState:
+        """``state.vertex_major()``, the rest lengths' conversion kept while the same tensor comes
+        back (a rollout passes its rest lengths on unchanged), so that the parameters cached on it
+        (:meth:`_physical`) stay valid from step to step."""
+        cached = getattr(self, "_rest_vertex_major", None)
+        if cached is not None and cached[0] is state.rest and cached[1] == state.rest._version:
+            rest = cached[2]
+        else:
+            rest = vertex_major(state.rest, 1)
+            self._rest_vertex_major = (state.rest, state.rest._version, rest)
+        x, v, d1, theta = (
+            vertex_major(t, e) for t, e in ((state.x, 2), (state.v, 2), (state.d1, 2), (state.theta, 1))
+        )
+        return VertexMajorState(x, v, d1, theta, rest)
+
+    def step_vertex_major(
+        self,
+        state: VertexMajorState,
+        grip_next: Tensor | None,
+        theta_ends: Tensor | None = None,
+        create_graph: bool = False,
+        branch_free: tuple[int, int] = (0, 0),
+        report: ConvergenceReport | None = None,
+        network_dtype: torch.dtype | None = None,
+    ) -> VertexMajorState:
+        """:meth:`step` on a :class:`VertexMajorState`, ``grip_next`` (4, 3, B) and ``theta_ends``
+        (2, B): what compiled steps trace (their callers convert outside the graph)."""
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
         force, theta, t_old = self._forces(
             state, params, mass, theta_ends, create_graph, branch_free[0], report
         )
-        accel = force / mass.unsqueeze(-1) + self.drag_acceleration(x, v)
+        accel = force / mass.unsqueeze(-2) + self.drag_acceleration(x, v)
         for ext in self.extensions:
-            if hasattr(ext, "acceleration"):
-                accel = accel + ext.acceleration(x, v, mass, state.rest)
+            if hasattr(ext, "acceleration"):  # terms take and give (B, n, 3)
+                a = ext.acceleration(x.movedim(-1, 0), v.movedim(-1, 0), mass.T, state.rest.T)
+                accel = accel + a.movedim(0, -1)
         v_pred = v + dt * accel
-        if self.options.residual:
-            v_pred = v_pred + self.residual(x.to(torch.float32), v.to(torch.float32), network_dtype).to(
-                x.dtype
+        if self.options.residual:  # the network is batch-first
+            r = self.residual(
+                x.movedim(-1, 0).to(torch.float32), v.movedim(-1, 0).to(torch.float32), network_dtype
             )
+            v_pred = v_pred + r.movedim(0, -1).to(x.dtype)
         x_pred = x + dt * v_pred
         if grip_next is not None:
             x_pred = x_pred.clone()
-            x_pred[..., gripped_indices(self.n), :] = grip_next.to(x_pred.dtype)
+            x_pred[gripped_indices(self.n)] = grip_next.to(x_pred.dtype)
         inv_mass = self._projection_inv_mass(mass, held=grip_next is not None)
         rest = state.rest if grip_next is None else rest_within_reach(state.rest, grip_next.to(x_pred.dtype))
         x_new = enforce_inextensibility(
@@ -444,16 +539,17 @@ class DeformModel(nn.Module):
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))
         d1_new = G.time_transport(state.d1, t_old, t_new)
+        new = VertexMajorState(x_new, v_new, d1_new, theta, state.rest)
         if not create_graph:
-            return RodState(x_new.detach(), v_new.detach(), d1_new.detach(), theta.detach(), state.rest)
-        return RodState(x_new, v_new, d1_new, theta, state.rest)
+            return VertexMajorState(*(t.detach() for t in (x_new, v_new, d1_new, theta)), state.rest)
+        return new
 
     def _projection_inv_mass(self, mass: Tensor, held: bool) -> Tensor:
-        """Inverse masses for the inextensibility projection: 0 at the gripped vertices when ``held``
-        (infinitely heavy), all free vertices equal for the 'original inextensibility' ablation."""
+        """Inverse masses (n, B) for the inextensibility projection: 0 at the gripped vertices when
+        ``held`` (infinitely heavy), all free vertices equal for the 'original inextensibility' ablation."""
         inv_mass = 1.0 / mass
         if held:
-            inv_mass = inv_mass * (1.0 - self.gripped.to(mass.dtype))
+            inv_mass = inv_mass * (1.0 - self.gripped.to(mass.dtype))[:, None]
         return inv_mass if self.options.weighted_pbd else unweighted_inv_mass(inv_mass)
 
     def unconverged(self, before: RodState, after: RodState, held: bool = True) -> Tensor:
@@ -462,18 +558,17 @@ class DeformModel(nn.Module):
         ``sqrt(theta_tol)`` rad (the solver's own stopping rule), or an edge that can move is off its
         rest length by more than ``pbd_tol``. Compiled steps, which cannot loop on data, use it to
         verify their fixed iteration counts (``held``: the grippers held vertices 0, 1, n-2, n-1)."""
+        before, after = before.vertex_major(), after.vertex_major()
         params, mass = self._physical(before.rest, False)
         geo = rod_geometry(before.x, before.d1)
         a, b = curvature_projections(geo)
         grad, diag, off = gradient_and_hessian(
             after.theta, a, b, geo.m_ref, params.beta, params.gamma, params.rest_vor, params.wbar
         )
-        step, pd = solve_tridiagonal_pd(diag, off, grad)
-        twist_bad = ~pd | ~(step.abs().amax(-1) < max(self.options.theta_tol, 1e-12) ** 0.5)
+        step, pd = solve_tridiagonal_pd(diag, off, grad, dim=0)
+        twist_bad = ~pd | ~(step.abs().amax(0) < max(self.options.theta_tol, 1e-12) ** 0.5)
         inv_mass = self._projection_inv_mass(mass, held)  # only which vertices can move matters here
-        rest = (
-            rest_within_reach(before.rest, after.x[..., gripped_indices(self.n), :]) if held else before.rest
-        )
+        rest = rest_within_reach(before.rest, after.x[gripped_indices(self.n)]) if held else before.rest
         length_bad = ~(max_relative_error(after.x, rest, inv_mass, per_rod=True) < self.options.pbd_tol)
         if self.options.theta_solver == ThetaSolver.THESEUS:
             twist_bad = torch.zeros_like(twist_bad)

@@ -20,6 +20,7 @@ from deform.diagnose.terms import MATERIAL_DAMPING_LEVEL, Term
 from deform.evaluate import batches_by_horizon, paper_l1
 from deform.model import DeformModel, ModelOptions, gripped_indices
 from deform.rod import geometry as G
+from deform.rod.layout import batch_major, vertex_major
 
 NEGLIGIBLE_MASS_RAW = -12.0  # softplus(-12) g: no marker mass in the plain model
 NEGLIGIBLE_LOG_DRAG = math.log(1e-7)
@@ -214,8 +215,8 @@ def clamped(grip: Tensor, clamp: Tensor) -> Tensor:
     Returns:
         (..., 4, 3).
     """
-    a = G.normalize(grip[..., 1, :] - grip[..., 0, :])
-    b = G.normalize(grip[..., 2, :] - grip[..., 3, :])
+    a = torch.nn.functional.normalize(grip[..., 1, :] - grip[..., 0, :], dim=-1, eps=1e-12)
+    b = torch.nn.functional.normalize(grip[..., 2, :] - grip[..., 3, :], dim=-1, eps=1e-12)
     c = clamp.to(grip.dtype)
     return torch.stack(
         [grip[..., 0, :], grip[..., 1, :] + c * a, grip[..., 2, :] + c * b, grip[..., 3, :]], -2
@@ -399,18 +400,21 @@ class Simulator:
         if d1 is None and origin is None:
             origin = frames[:, margin : margin + 2 + ROLL_FRAMES]
         rolls = any(getattr(t, "rolls_material_frame", False) for t in self.terms)
-        t_rec = G.normalize(G.edges(frames[:, margin + 1]))  # the recorded tangents at the start
+        batch = frames.shape[:1]
+        # the recorded tangents at the start, vertex-major (m, 3, B) as the geometry takes them
+        t_rec = G.normalize(G.edges(vertex_major(frames[:, margin + 1], 2)))
         if origin is not None and origin.shape[1] > 2 and rolls:
             if d1 is None:
-                d1 = G.space_parallel_frame(t_rec)
-            d1 = roll_directors(d1.to(t_rec.dtype), t_rec, self.initial_roll(origin))
+                d1 = batch_major(G.space_parallel_frame(t_rec), batch)
+            d1 = roll_directors(d1.to(t_rec.dtype), batch_major(t_rec, batch), self.initial_roll(origin))
         if d1 is not None:
             emap = self._edge_of_node_edge
             d1 = G.time_transport(
-                d1[:, emap].to(state.d1.dtype),
-                t_rec[:, emap].to(state.d1.dtype),
-                G.normalize(G.edges(state.x)),
+                vertex_major(d1, 2)[emap].to(state.d1.dtype),
+                t_rec[emap].to(state.d1.dtype),
+                G.normalize(G.edges(vertex_major(state.x, 2))),
             )
+            d1 = batch_major(d1, batch)
             state = type(state)(x=state.x, v=state.v, d1=d1, theta=state.theta, rest=state.rest)
         out = []
         for k in range(steps):
@@ -460,8 +464,11 @@ class Simulator:
         step = 2 * math.pi / n_angles
         angles = torch.arange(n_angles, dtype=torch.float64) * step
         frames = U.repeat_interleave(n_angles, 0)
-        t1 = G.normalize(G.edges(frames[:, 1]))
-        d1 = roll_directors(G.space_parallel_frame(t1), t1, angles.repeat(len(U)))
+        t1 = G.normalize(G.edges(vertex_major(frames[:, 1], 2)))
+        batch = frames.shape[:1]
+        d1 = roll_directors(
+            batch_major(G.space_parallel_frame(t1), batch), batch_major(t1, batch), angles.repeat(len(U))
+        )
         pred = self.rollout(frames, k - 2, 0, d1=d1)  # directors given, no origin: not rolled again
         free = [j for j in range(n) if j not in set(gripped_indices(n))]
         err = (pred[:, :, free] - frames[:, 2:, free]).abs().mean((1, 2, 3)).reshape(len(U), n_angles)

@@ -25,6 +25,7 @@ from torch.nn.functional import softplus
 
 from deform.model import inv_softplus
 from deform.rod.geometry import normal_velocity
+from deform.rod.layout import batch_major, vertex_major
 
 # The most linear velocity damping the nominal model may hold [1/s]: what a nominal fit gives when
 # nothing but a rope's own material damping (and the model's discretisation) dissipates. A damping of
@@ -120,7 +121,7 @@ class AerodynamicDrag(Term):
         self.log_quad = nn.Parameter(torch.tensor(math.log(0.02), dtype=torch.float64))
 
     def acceleration(self, x, v, mass, rest):
-        vn = normal_velocity(x, v)
+        vn = batch_major(normal_velocity(vertex_major(x, 2), vertex_major(v, 2)), x.shape[:-2])
         return -(self.log_lin.exp() + self.log_quad.exp() * vn.norm(dim=-1, keepdim=True)) * vn
 
     def grid(self):
@@ -234,7 +235,9 @@ class InternalDamping(Term):
             rate = -torch.expm1(-self.dt * self.nu * self.fixed_lam) / self.dt  # (n,)
             U, si = self.fixed_U, self.fixed_si
             op = si[:, None] * ((U * rate) @ U.T) / si[None, :]  # (n, n)
-            return -(op.to(v.dtype) @ v)
+            # one matrix product over every rod and axis (a step hands the term a view of
+            # vertex-major velocities, on which a batched product made a copy per rod)
+            return -torch.tensordot(v, op.to(v.dtype), dims=([-2], [1])).movedim(-1, -2)
         lam, U, si = self._modes(rest)
         rate = -torch.expm1(-self.dt * self.nu * lam) / self.dt  # (B, n)
         U, si = U.to(v.dtype), si.to(v.dtype)

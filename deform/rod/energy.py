@@ -12,7 +12,8 @@ With reference directors ``d1, d2 = t x d1`` and material angles ``theta``, the 
 twisting stiffness GJ [N m^2], ``wbar`` the rest (natural) curvature and ``m_ref`` the reference
 twist. Forces are ``-dE/dx`` at the energy-minimising ``theta`` (envelope theorem), in closed form in
 :mod:`deform.rod.forces`; this energy is their reference (tests compare them with its finite
-differences and its autograd gradient).
+differences and its autograd gradient). Arrays are vertex-major (:mod:`deform.rod.geometry`), the
+batch of rods last.
 """
 
 from __future__ import annotations
@@ -31,11 +32,11 @@ GRAVITY = 9.81
 class RodGeometry:
     """Everything the energy needs from the positions and last step's reference frame."""
 
-    t: Tensor  # (..., m, 3) unit tangents
-    d1: Tensor  # (..., m, 3) reference directors (time-parallel transported)
-    d2: Tensor  # (..., m, 3)
-    kb: Tensor  # (..., n-2, 3) curvature binormals
-    m_ref: Tensor  # (..., n-2) reference twist
+    t: Tensor  # (m, 3, B) unit tangents
+    d1: Tensor  # (m, 3, B) reference directors (time-parallel transported)
+    d2: Tensor  # (m, 3, B)
+    kb: Tensor  # (n-2, 3, B) curvature binormals
+    m_ref: Tensor  # (n-2, B) reference twist
 
 
 def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor | None = None) -> RodGeometry:
@@ -45,9 +46,9 @@ def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor | None = None) -> Ro
     by parallel transport (they move with ``x``) when ``x`` requires grad.
 
     Args:
-        x: (..., n, 3) vertices.
-        d1_prev: (..., m, 3) reference directors of the last step (or of ``x``).
-        t_prev: (..., m, 3) unit tangents of the last step, or None.
+        x: (n, 3, B) vertices.
+        d1_prev: (m, 3, B) reference directors of the last step (or of ``x``).
+        t_prev: (m, 3, B) unit tangents of the last step, or None.
 
     Returns:
         A :class:`RodGeometry` (tangents, directors, curvature binormals, reference twist).
@@ -60,7 +61,7 @@ def rod_geometry(x: Tensor, d1_prev: Tensor, t_prev: Tensor | None = None) -> Ro
         d1 = G.time_transport(d1_prev, t.detach(), t)
     else:
         d1 = d1_prev
-    d2 = torch.linalg.cross(t, d1, dim=-1)
+    d2 = G.cross(t, d1)
     return RodGeometry(t=t, d1=d1, d2=d2, kb=G.curvature_binormal(e), m_ref=G.reference_twist(d1, t))
 
 
@@ -71,11 +72,11 @@ def curvature_projections(geo: RodGeometry) -> tuple[Tensor, Tensor]:
         geo: from :func:`rod_geometry`.
 
     Returns:
-        ``(A, B)``, each (..., n-2, 2): ``kb_i . d1_j`` and ``kb_i . d2_j`` for j = left, right edge.
+        ``(A, B)``, each (n-2, 2, B): ``kb_i . d1_j`` and ``kb_i . d2_j`` for j = left, right edge.
     """
     kb = geo.kb
-    a = torch.stack([G.dot(kb, geo.d1[..., :-1, :]), G.dot(kb, geo.d1[..., 1:, :])], dim=-1)
-    b = torch.stack([G.dot(kb, geo.d2[..., :-1, :]), G.dot(kb, geo.d2[..., 1:, :])], dim=-1)
+    a = torch.stack([G.dot(kb, geo.d1[:-1]), G.dot(kb, geo.d1[1:])], dim=-2)
+    b = torch.stack([G.dot(kb, geo.d2[:-1]), G.dot(kb, geo.d2[1:])], dim=-2)
     return a, b
 
 
@@ -83,12 +84,12 @@ def material_curvature(a: Tensor, b: Tensor, theta_lr: Tensor) -> tuple[Tensor, 
     """``w1 = kb.m2 = -sin A + cos B`` and ``w2 = -kb.m1 = -(cos A + sin B)`` for each (vertex, side).
 
     Args:
-        a: (..., n-2, 2) ``kb . d1`` per vertex and side.
-        b: (..., n-2, 2) ``kb . d2``.
-        theta_lr: (..., n-2, 2) material angles of the left and right edge (:func:`left_right`).
+        a: (n-2, 2, B) ``kb . d1`` per vertex and side.
+        b: (n-2, 2, B) ``kb . d2``.
+        theta_lr: (n-2, 2, B) material angles of the left and right edge (:func:`left_right`).
 
     Returns:
-        ``(w1, w2)``, each (..., n-2, 2).
+        ``(w1, w2)``, each (n-2, 2, B).
     """
     c, s = torch.cos(theta_lr), torch.sin(theta_lr)
     return -s * a + c * b, -(c * a + s * b)
@@ -98,12 +99,12 @@ def left_right(theta: Tensor) -> Tensor:
     """The angles of the left and right edge of each interior vertex.
 
     Args:
-        theta: (..., m) edge angles [rad].
+        theta: (m, B) edge angles [rad].
 
     Returns:
-        (..., n-2, 2).
+        (n-2, 2, B).
     """
-    return torch.stack([theta[..., :-1], theta[..., 1:]], dim=-1)
+    return torch.stack([theta[:-1], theta[1:]], dim=-2)
 
 
 def bending_energy(
@@ -112,71 +113,71 @@ def bending_energy(
     """``E_bend = sum_i beta_i / (2 L_i) sum_j |w_ij - wbar_ij|^2`` (module docstring).
 
     Args:
-        a: (..., n-2, 2) ``kb . d1`` from :func:`curvature_projections`.
-        b: (..., n-2, 2) ``kb . d2``.
-        theta: (..., m) material angles [rad].
-        beta: (n-2,) bending stiffness EI [N m^2].
-        rest_vor: (..., n-2) rest Voronoi lengths (twice) [m].
-        wbar: (n-2, 2, 2) rest curvature (vertex, side, component).
+        a: (n-2, 2, B) ``kb . d1`` from :func:`curvature_projections`.
+        b: (n-2, 2, B) ``kb . d2``.
+        theta: (m, B) material angles [rad].
+        beta: (n-2, 1) bending stiffness EI [N m^2].
+        rest_vor: (n-2, B) rest Voronoi lengths (twice) [m].
+        wbar: (n-2, 2, 2, 1) rest curvature (vertex, side, component).
 
     Returns:
-        (...) energy [J].
+        (B,) energy [J].
     """
     w1, w2 = material_curvature(a, b, left_right(theta))
-    sq = (w1 - wbar[..., 0]) ** 2 + (w2 - wbar[..., 1]) ** 2  # (..., n-2, 2)
-    return (beta / (2.0 * rest_vor) * sq.sum(-1)).sum(-1)
+    sq = (w1 - wbar[:, :, 0]) ** 2 + (w2 - wbar[:, :, 1]) ** 2  # (n-2, 2, B)
+    return (beta / (2.0 * rest_vor) * sq.sum(1)).sum(0)
 
 
 def twist_of(theta: Tensor, m_ref: Tensor) -> Tensor:
     """Twist at each interior vertex: ``theta_i - theta_{i-1} + m_ref_i``.
 
     Args:
-        theta: (..., m) material angles [rad].
-        m_ref: (..., n-2) reference twist [rad].
+        theta: (m, B) material angles [rad].
+        m_ref: (n-2, B) reference twist [rad].
 
     Returns:
-        (..., n-2) [rad].
+        (n-2, B) [rad].
     """
-    return theta[..., 1:] - theta[..., :-1] + m_ref
+    return theta[1:] - theta[:-1] + m_ref
 
 
 def twisting_energy(theta: Tensor, m_ref: Tensor, gamma: Tensor, rest_vor: Tensor) -> Tensor:
     """``E_twist = sum_i gamma_i / L_i * twist_i^2`` (module docstring).
 
     Args:
-        theta: (..., m) material angles [rad].
-        m_ref: (..., n-2) reference twist [rad].
-        gamma: (n-2,) twisting stiffness GJ [N m^2].
-        rest_vor: (..., n-2) rest Voronoi lengths (twice) [m].
+        theta: (m, B) material angles [rad].
+        m_ref: (n-2, B) reference twist [rad].
+        gamma: (n-2, 1) twisting stiffness GJ [N m^2].
+        rest_vor: (n-2, B) rest Voronoi lengths (twice) [m].
 
     Returns:
-        (...) energy [J].
+        (B,) energy [J].
     """
-    return (gamma / rest_vor * twist_of(theta, m_ref) ** 2).sum(-1)
+    return (gamma / rest_vor * twist_of(theta, m_ref) ** 2).sum(0)
 
 
 def gravity_energy(x: Tensor, mass: Tensor, g: float = GRAVITY) -> Tensor:
     """``E_grav = sum_v mass_v g z_v``.
 
     Args:
-        x: (..., n, 3) vertices [m], z up.
-        mass: (..., n) vertex masses [kg].
+        x: (n, 3, B) vertices [m], z up.
+        mass: (n, B) vertex masses [kg].
         g: gravitational acceleration [m/s^2].
 
     Returns:
-        (...) energy [J].
+        (B,) energy [J].
     """
-    return (mass * g * x[..., 2]).sum(-1)
+    return (mass * g * x[:, 2]).sum(0)
 
 
 @dataclass
 class ElasticParams:
-    """Per-rod material parameters, broadcastable against the batch."""
+    """Per-rod material parameters, vertex-major, broadcastable against the batch (last axis)."""
 
-    beta: Tensor  # (n-2,) bending stiffness at interior vertices [N m^2]
-    gamma: Tensor  # (n-2,) twisting stiffness [N m^2]
-    wbar: Tensor  # (n-2, 2, 2) rest material curvature (vertex, side, component)
-    rest_vor: Tensor  # (..., n-2) rest Voronoi lengths [m]
+    beta: Tensor  # (n-2, 1) bending stiffness at interior vertices [N m^2]
+    gamma: Tensor  # (n-2, 1) twisting stiffness [N m^2]
+    wbar: Tensor  # (n-2, 2, 2, 1) rest material curvature (vertex, side, component)
+    rest_vor: Tensor  # (n-2, B) rest Voronoi lengths [m]
 
 
 def total_energy(
@@ -185,15 +186,15 @@ def total_energy(
     """Total potential energy at positions ``x`` and edge angles ``theta`` (ends included).
 
     Args:
-        x: (..., n, 3) vertices [m].
-        theta: (..., m) material angles [rad].
-        d1_prev: (..., m, 3) reference directors of the last step.
-        t_prev: (..., m, 3) unit tangents of the last step.
+        x: (n, 3, B) vertices [m].
+        theta: (m, B) material angles [rad].
+        d1_prev: (m, 3, B) reference directors of the last step.
+        t_prev: (m, 3, B) unit tangents of the last step.
         p: the rod's :class:`ElasticParams`.
-        mass: (..., n) vertex masses [kg].
+        mass: (n, B) vertex masses [kg].
 
     Returns:
-        (...) energy [J].
+        (B,) energy [J].
     """
     geo = rod_geometry(x, d1_prev, t_prev)
     a, b = curvature_projections(geo)

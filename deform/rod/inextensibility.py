@@ -13,7 +13,8 @@ Two ways to choose ``l``, both vectorised over vertices and batch:
 - ``"gauss_seidel"``: classic PBD, each pair solved exactly on its own, even and odd edges in turn
   (they share no vertex, so each half is one vectorised update). Converges slowly on long chains.
 
-Sweeps repeat until the largest relative edge error is below ``tol``.
+Sweeps repeat until the largest relative edge error is below ``tol``. Arrays are vertex-major
+(:mod:`deform.rod.geometry`).
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ import enum
 import torch
 from torch import Tensor
 
+from deform.rod import geometry as G
 from deform.rod.convergence import ConvergenceReport, masked_loop
-from deform.rod.geometry import dot
 from deform.rod.tridiagonal import solve_tridiagonal
 
 
@@ -33,61 +34,64 @@ def max_relative_error(
 ) -> Tensor:
     """Largest ``| |e_j| / L_j - 1 |`` over edges that can move (an edge between two fixed vertices,
     such as the one between the two markers of a gripper, is whatever the inputs make it); over
-    everything, or per rod (shape ``x.shape[:-2]``).
+    everything, or per rod.
 
     Args:
-        x: (..., n, 3) vertices.
-        rest: (..., m) rest lengths.
-        inv_mass: (..., n) inverse masses, 0 for vertices that cannot move.
+        x: (n, 3, B) vertices.
+        rest: (m, B) rest lengths.
+        inv_mass: (n, B) inverse masses, 0 for vertices that cannot move.
         per_rod: one value per rod instead of one for everything.
 
     Returns:
-        A scalar tensor, or (...) per rod.
+        A scalar tensor, or (B,) per rod.
     """
-    err = ((x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1) / rest - 1.0).abs()
+    err = (G.norm(G.edges(x)) / rest - 1.0).abs()
     if inv_mass is not None:
-        err = err * ((inv_mass[..., 1:] + inv_mass[..., :-1]) > 0)
-    return err.amax(-1) if per_rod else err.amax()
+        err = err * ((inv_mass[1:] + inv_mass[:-1]) > 0)
+    return err.amax(0) if per_rod else err.amax()
 
 
 def apply_pair_corrections(x: Tensor, inv_mass: Tensor, lam: Tensor, unit: Tensor) -> Tensor:
     """``x_j += w_j l_j u_j``, ``x_{j+1} -= w_{j+1} l_j u_j`` for every edge ``j`` at once.
 
     Args:
-        x: (..., n, 3) vertices.
-        inv_mass: (..., n) weights ``w`` (inverse masses).
-        lam: (..., m) correction length per edge [m].
-        unit: (..., m, 3) unit edge directions.
+        x: (n, 3, B) vertices.
+        inv_mass: (n, B) weights ``w`` (inverse masses).
+        lam: (m, B) correction length per edge [m].
+        unit: (m, 3, B) unit edge directions.
 
     Returns:
-        (..., n, 3) corrected vertices.
+        (n, 3, B) corrected vertices.
     """
-    push = lam.unsqueeze(-1) * unit  # (..., m, 3)
-    zero = torch.zeros_like(push[..., :1, :])
-    delta = torch.cat([push, zero], dim=-2) - torch.cat([zero, push], dim=-2)
-    return x + inv_mass.unsqueeze(-1) * delta
+    push = lam.unsqueeze(-2) * unit  # (m, 3, B)
+    zero = torch.zeros_like(push[:1])
+    delta = torch.cat([push, zero]) - torch.cat([zero, push])
+    return x + inv_mass.unsqueeze(-2) * delta
+
+
+def _unit_edges(x: Tensor) -> tuple[Tensor, Tensor]:
+    e = G.edges(x)
+    length = G.norm(e).clamp_min(1e-12)
+    return e / length.unsqueeze(-2), length
 
 
 def _projection_sweep(x: Tensor, inv_mass: Tensor, rest: Tensor) -> Tensor:
-    e = x[..., 1:, :] - x[..., :-1, :]
-    length = e.norm(dim=-1).clamp_min(1e-12)
-    unit = e / length.unsqueeze(-1)
-    w0, w1 = inv_mass[..., :-1], inv_mass[..., 1:]
+    unit, length = _unit_edges(x)
+    w0, w1 = inv_mass[:-1], inv_mass[1:]
     diag = (w0 + w1).clamp_min(1e-12)  # an edge between two gripped vertices keeps l = 0
-    off = -w1[..., :-1] * dot(unit[..., :-1, :], unit[..., 1:, :])
-    lam = solve_tridiagonal(diag, off, length - rest)
+    off = -w1[:-1] * G.dot(unit[:-1], unit[1:])
+    lam = solve_tridiagonal(diag, off, length - rest, dim=0)
     return apply_pair_corrections(x, inv_mass, lam, unit)
 
 
 def _gauss_seidel_sweep(x: Tensor, inv_mass: Tensor, rest: Tensor) -> Tensor:
     for start in (0, 1):
-        e = x[..., 1:, :] - x[..., :-1, :]
-        length = e.norm(dim=-1).clamp_min(1e-12)
-        wsum = (inv_mass[..., :-1] + inv_mass[..., 1:]).clamp_min(1e-12)
+        unit, length = _unit_edges(x)
+        wsum = (inv_mass[:-1] + inv_mass[1:]).clamp_min(1e-12)
         lam = (length - rest) / wsum
         mask = torch.zeros_like(lam)
-        mask[..., start::2] = 1.0
-        x = apply_pair_corrections(x, inv_mass, lam * mask, e / length.unsqueeze(-1))
+        mask[start::2] = 1.0
+        x = apply_pair_corrections(x, inv_mass, lam * mask, unit)
     return x
 
 
@@ -111,9 +115,9 @@ def enforce_inextensibility(
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
 ) -> Tensor:
-    """Project ``x`` (..., n, 3) so every edge has its rest length (..., m) within relative ``tol``.
+    """Project ``x`` (n, 3, B) so every edge has its rest length (m, B) within relative ``tol``.
 
-    ``inv_mass`` (..., n): 0 for vertices that must not move. Differentiable (plain tensor ops).
+    ``inv_mass`` (n, B): 0 for vertices that must not move. Differentiable (plain tensor ops).
     ``branch_free``: that many sweeps first run without a host synchronisation, each rod sweeping
     only while its own error is above ``tol`` (so compiled code holds the usual one or two sweeps
     in one graph); the checked loop then continues only if a rod is still above ``tol``.
@@ -121,9 +125,9 @@ def enforce_inextensibility(
     the branch-free sweeps (what a convergence check would measure, already computed).
 
     Args:
-        x: (..., n, 3) vertices after the unconstrained step.
-        inv_mass: (..., n) inverse masses, 0 for vertices that must not move.
-        rest: (..., m) rest lengths [m].
+        x: (n, 3, B) vertices after the unconstrained step.
+        inv_mass: (n, B) inverse masses, 0 for vertices that must not move.
+        rest: (m, B) rest lengths [m].
         tol: relative edge-length error to reach.
         max_sweeps: sweeps at most in the checked loop.
         method: :class:`PBDMethod` (or its string).
@@ -131,7 +135,7 @@ def enforce_inextensibility(
         report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
 
     Returns:
-        (..., n, 3) projected vertices.
+        (n, 3, B) projected vertices.
     """
     sweep = SWEEPS[method]  # a PBDMethod or its string: str enums hash and compare as their values
     if branch_free:
@@ -139,7 +143,7 @@ def enforce_inextensibility(
         def iteration(carry, active):
             x, err = carry
             swept, swept_err = _sweep_and_measure(sweep, x, inv_mass, rest, per_rod=True)
-            x = torch.where(active[..., None, None], swept, x)
+            x = torch.where(active, swept, x)
             err = torch.where(active, swept_err, err)
             return (x, err), err >= tol
 
@@ -172,9 +176,9 @@ def unweighted_inv_mass(inv_mass: Tensor) -> Tensor:
     """The 'original inextensibility' of the ablation: equal weights for every free vertex.
 
     Args:
-        inv_mass: (..., n) inverse masses, 0 where fixed.
+        inv_mass: (n, B) inverse masses, 0 where fixed.
 
     Returns:
-        (..., n) 1 for every free vertex, 0 where fixed.
+        (n, B) 1 for every free vertex, 0 where fixed.
     """
     return (inv_mass > 0).to(inv_mass.dtype)

@@ -30,64 +30,71 @@ def to_dense(diag: Tensor, off: Tensor) -> Tensor:
     return torch.diag_embed(diag) + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
 
 
-def thomas(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+def thomas(diag: Tensor, off: Tensor, rhs: Tensor, dim: int = -1) -> tuple[Tensor, Tensor]:
     """Thomas algorithm (Gaussian elimination without pivoting) for symmetric tridiagonal systems.
 
     Args:
         diag: (..., k) diagonal.
         off: (..., k-1) off-diagonal.
         rhs: (..., k) right-hand side.
+        dim: the axis of the unknowns (0 for vertex-major arrays, :mod:`deform.rod.layout`).
 
     Returns:
-        ``(x, ok)``: x (..., k), ok (...) bool, every pivot positive (the matrix is positive definite).
+        ``(x, ok)``: x shaped as ``rhs``; ok bool, one per system, every pivot positive (the
+        matrix is positive definite).
     """
-    k = diag.shape[-1]
+    k = diag.shape[dim]
+    diag_, off_, rhs_ = diag.unbind(dim), off.unbind(dim), rhs.unbind(dim)
     c: list = []  # modified super-diagonal
     d: list = []  # modified right-hand side
-    pivot = diag[..., 0]
+    pivot = diag_[0]
     ok = pivot > 0
-    c.append(off[..., 0] / pivot if k > 1 else None)
-    d.append(rhs[..., 0] / pivot)
+    c.append(off_[0] / pivot if k > 1 else None)
+    d.append(rhs_[0] / pivot)
     for i in range(1, k):
-        pivot = diag[..., i] - off[..., i - 1] * c[i - 1]
+        pivot = diag_[i] - off_[i - 1] * c[i - 1]
         ok = ok & (pivot > 0)
-        c.append(off[..., i] / pivot if i < k - 1 else None)
-        d.append((rhs[..., i] - off[..., i - 1] * d[i - 1]) / pivot)
+        c.append(off_[i] / pivot if i < k - 1 else None)
+        d.append((rhs_[i] - off_[i - 1] * d[i - 1]) / pivot)
     x = [None] * k
     x[-1] = d[-1]
     for i in range(k - 2, -1, -1):
         x[i] = d[i] - c[i] * x[i + 1]
-    return torch.stack(x, dim=-1), ok
+    return torch.stack(x, dim=dim), ok
 
 
-def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+def solve_tridiagonal_pd(diag: Tensor, off: Tensor, rhs: Tensor, dim: int = -1) -> tuple[Tensor, Tensor]:
     """Solve and report positive definiteness per system: ``(x, ok)``; ``x`` is meaningless where not ok.
 
     Args:
         diag: (..., k) diagonal.
         off: (..., k-1) off-diagonal (symmetric).
         rhs: (..., k) right-hand side.
+        dim: the axis of the unknowns (as for :func:`thomas`).
 
     Returns:
-        ``(x, ok)``: x (..., k), ok (...) bool.
+        ``(x, ok)``: x shaped as ``rhs``, ok bool per system.
     """
-    if diag.shape[-1] <= DENSE_MAX and not torch.compiler.is_compiling():
+    if diag.shape[dim] <= DENSE_MAX and not torch.compiler.is_compiling():
+        diag, off, rhs = (t.movedim(dim, -1) for t in (diag, off, rhs))
         chol, info = torch.linalg.cholesky_ex(to_dense(diag, off))
-        return torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1), info == 0
-    return thomas(diag, off, rhs)
+        return torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1).movedim(-1, dim), info == 0
+    return thomas(diag, off, rhs, dim)
 
 
-def solve_tridiagonal(diag: Tensor, off: Tensor, rhs: Tensor) -> Tensor:
+def solve_tridiagonal(diag: Tensor, off: Tensor, rhs: Tensor, dim: int = -1) -> Tensor:
     """Solve a system known to be non-singular (used for the implicit gradient).
 
     Args:
         diag: (..., k) diagonal.
         off: (..., k-1) off-diagonal (symmetric).
         rhs: (..., k) right-hand side.
+        dim: the axis of the unknowns (as for :func:`thomas`).
 
     Returns:
-        (..., k) the solution.
+        The solution, shaped as ``rhs``.
     """
-    if diag.shape[-1] <= DENSE_MAX and not torch.compiler.is_compiling():
-        return torch.linalg.solve(to_dense(diag, off), rhs.unsqueeze(-1)).squeeze(-1)
-    return thomas(diag, off, rhs)[0]
+    if diag.shape[dim] <= DENSE_MAX and not torch.compiler.is_compiling():
+        diag, off, rhs = (t.movedim(dim, -1) for t in (diag, off, rhs))
+        return torch.linalg.solve(to_dense(diag, off), rhs.unsqueeze(-1)).squeeze(-1).movedim(-1, dim)
+    return thomas(diag, off, rhs, dim)[0]

@@ -13,7 +13,8 @@ the Hessian is tridiagonal. Newton steps solve it in O(k).
 Gradients (implicit function theorem): at the minimiser ``g(theta*, p) = 0``, so
 ``dtheta*/dp = -H^{-1} dg/dp``. We get exactly that from autograd by returning
 ``theta* - H^{-1} g(theta*, p)`` with ``theta*`` and ``H`` detached: its value is ``theta*`` and its
-derivative is the IFT one. No iterations are unrolled.
+derivative is the IFT one. No iterations are unrolled. Arrays are vertex-major
+(:mod:`deform.rod.geometry`): angles (m, B), the batch of rods last.
 """
 
 from __future__ import annotations
@@ -36,38 +37,35 @@ def gradient_and_hessian(
     rest_vor: Tensor,
     wbar: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Gradient (..., k), Hessian diagonal (..., k) and off-diagonal (..., k-1) over the free edges.
+    """Gradient (k, B), Hessian diagonal (k, B) and off-diagonal (k-1, B) over the free edges.
 
     Args:
-        theta: (..., m) material angles, ends included [rad].
-        a: (..., n-2, 2) ``kb . d1`` (:func:`deform.rod.energy.curvature_projections`).
-        b: (..., n-2, 2) ``kb . d2``.
-        m_ref: (..., n-2) reference twist [rad].
-        beta: (n-2,) bending stiffness [N m^2].
-        gamma: (n-2,) twisting stiffness [N m^2].
-        rest_vor: (..., n-2) rest Voronoi lengths (twice) [m].
-        wbar: (n-2, 2, 2) rest curvature.
+        theta: (m, B) material angles, ends included [rad].
+        a: (n-2, 2, B) ``kb . d1`` (:func:`deform.rod.energy.curvature_projections`).
+        b: (n-2, 2, B) ``kb . d2``.
+        m_ref: (n-2, B) reference twist [rad].
+        beta: (n-2, 1) bending stiffness [N m^2].
+        gamma: (n-2, 1) twisting stiffness [N m^2].
+        rest_vor: (n-2, B) rest Voronoi lengths (twice) [m].
+        wbar: (n-2, 2, 2, 1) rest curvature.
 
     Returns:
         ``(g, diag, off)`` of the energy over the k = m - 2 free angles.
     """
-    # each side (the vertex's left and right edge) on its own: compiled, a trailing axis of 2 made
-    # the Newton iteration's loops 16 lanes wide over 2 values (sine and cosine included), and
-    # per side they run over the vertices (0.91x per predict step at 1024 rods, perf + A/B)
     cos, sin = torch.cos(theta), torch.sin(theta)
     scale = beta / rest_vor
     g_side, h_side = [], []
-    for side, edges in ((0, slice(None, -1)), (1, slice(1, None))):
-        c_j, s_j, a_j, b_j = cos[..., edges], sin[..., edges], a[..., side], b[..., side]
+    for side, edges in ((0, slice(None, -1)), (1, slice(1, None))):  # the vertex's left, right edge
+        c_j, s_j, a_j, b_j = cos[edges], sin[edges], a[:, side], b[:, side]
         w1, w2 = -s_j * a_j + c_j * b_j, -(c_j * a_j + s_j * b_j)  # material_curvature of this side
-        g_side.append(scale * (wbar[..., side, 1] * w1 - wbar[..., side, 0] * w2))
-        h_side.append(scale * (wbar[..., side, 0] * w1 + wbar[..., side, 1] * w2))
-    c = 2.0 * gamma / rest_vor  # (..., n-2) twist coupling at each interior vertex
+        g_side.append(scale * (wbar[:, side, 1] * w1 - wbar[:, side, 0] * w2))
+        h_side.append(scale * (wbar[:, side, 0] * w1 + wbar[:, side, 1] * w2))
+    c = 2.0 * gamma / rest_vor  # (n-2, B) twist coupling at each interior vertex
     tw = c * twist_of(theta, m_ref)
     # interior vertex k touches edge k (left side) and edge k+1 (right side); free edges are 1..m-2
-    grad = g_side[0][..., 1:] + g_side[1][..., :-1] + tw[..., :-1] - tw[..., 1:]
-    diag = h_side[0][..., 1:] + h_side[1][..., :-1] + c[..., :-1] + c[..., 1:]
-    off = -c[..., 1:-1]
+    grad = g_side[0][1:] + g_side[1][:-1] + tw[:-1] - tw[1:]
+    diag = h_side[0][1:] + h_side[1][:-1] + c[:-1] + c[1:]
+    off = -c[1:-1]
     return grad, diag, off
 
 
@@ -75,20 +73,20 @@ def twist_only_minimiser(m_ref: Tensor, theta_ends: Tensor) -> Tensor:
     """Free angles that spread the total twist evenly (the minimiser without rest curvature, equal weights).
 
     Args:
-        m_ref: (..., n-2) reference twist [rad].
-        theta_ends: (..., 2) angles of the first and last edge [rad].
+        m_ref: (n-2, B) reference twist [rad].
+        theta_ends: (2, B) angles of the first and last edge [rad].
 
     Returns:
-        (..., m-2) free angles.
+        (m-2, B) free angles.
     """
-    k = m_ref.shape[-1] - 1
-    frac = torch.linspace(0, 1, k + 2, dtype=m_ref.dtype, device=m_ref.device)[1:-1]
-    free = theta_ends[..., :1] + frac * (theta_ends[..., 1:] - theta_ends[..., :1])
-    return free - torch.cumsum(m_ref, -1)[..., :-1] + frac * m_ref.sum(-1, keepdim=True)
+    k = m_ref.shape[0] - 1
+    frac = torch.linspace(0, 1, k + 2, dtype=m_ref.dtype, device=m_ref.device)[1:-1, None]
+    free = theta_ends[:1] + frac * (theta_ends[1:] - theta_ends[:1])
+    return free - torch.cumsum(m_ref, 0)[:-1] + frac * m_ref.sum(0, keepdim=True)
 
 
 def _with_free(theta_ends: Tensor, free: Tensor) -> Tensor:
-    return torch.cat([theta_ends[..., :1], free, theta_ends[..., 1:]], dim=-1)
+    return torch.cat([theta_ends[:1], free, theta_ends[1:]])
 
 
 def newton_theta(
@@ -124,15 +122,15 @@ def newton_theta(
     iterations, by the same stopping rule), so compiled code checks convergence for free.
 
     Args:
-        a: (..., n-2, 2) and the other energy inputs as in :func:`gradient_and_hessian`.
-        b: (..., n-2, 2).
-        m_ref: (..., n-2).
-        theta_ends: (..., 2) the end edges' angles, held (from the grippers).
-        beta: (n-2,).
-        gamma: (n-2,).
-        rest_vor: (..., n-2).
-        wbar: (n-2, 2, 2).
-        theta_init: (..., m) warm start (last step's angles), or None.
+        a: (n-2, 2, B) and the other energy inputs as in :func:`gradient_and_hessian`.
+        b: (n-2, 2, B).
+        m_ref: (n-2, B).
+        theta_ends: (2, B) the end edges' angles, held (from the grippers).
+        beta: (n-2, 1).
+        gamma: (n-2, 1).
+        rest_vor: (n-2, B).
+        wbar: (n-2, 2, 2, 1).
+        theta_init: (m, B) warm start (last step's angles), or None.
         tol: target error [rad].
         max_iter: iterations at most.
         max_step: largest step [rad].
@@ -140,7 +138,7 @@ def newton_theta(
         report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
 
     Returns:
-        (..., m) angles [rad].
+        (m, B) angles [rad].
     """
     with torch.no_grad():
         a, b, m_ref, theta_ends = a.detach(), b.detach(), m_ref.detach(), theta_ends.detach()
@@ -149,7 +147,7 @@ def newton_theta(
         if theta_init is None:
             free = twist_only_minimiser(m_ref, theta_ends)
         else:
-            free = theta_init.detach()[..., 1:-1].clone()
+            free = theta_init.detach()[1:-1].clone()
         if branch_free:
 
             def iteration(carry, active):
@@ -157,10 +155,10 @@ def newton_theta(
                 new, size, exact = _newton_update(
                     free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step, per_rod=True
                 )
-                free = torch.where(active.unsqueeze(-1), new, free)
+                free = torch.where(active, new, free)
                 return (free,), active & ~((size < tol) | (exact & (size * size < tol)))
 
-            active = torch.ones(free.shape[:-1], dtype=torch.bool, device=free.device)
+            active = torch.ones(free.shape[1:], dtype=torch.bool, device=free.device)
             (free,), active = masked_loop(iteration, (free,), active, branch_free)
             # compiled code cannot branch on data: it returns here and its caller checks convergence
             # afterwards (deform.compiled); eager code goes on while a rod is unconverged
@@ -188,15 +186,15 @@ def _newton_update(
     exactness per rod, and no data-dependent branch (the safe step is always computed)."""
     theta = _with_free(theta_ends, free)
     grad, diag, off = gradient_and_hessian(theta, a, b, m_ref, beta, gamma, rest_vor, wbar)
-    step, ok = solve_tridiagonal_pd(diag, off, grad)
+    step, ok = solve_tridiagonal_pd(diag, off, grad, dim=0)
     if per_rod or not bool(ok.all()):
         c = 2.0 * gamma / rest_vor
-        twist_diag = c[..., :-1] + c[..., 1:]
+        twist_diag = c[:-1] + c[1:]
         safe = twist_diag + (diag - twist_diag).abs()
-        step = torch.where(ok.unsqueeze(-1), step, solve_tridiagonal(safe, off, grad))
+        step = torch.where(ok, step, solve_tridiagonal(safe, off, grad, dim=0))
     step = step.clamp(-max_step, max_step)
     if per_rod:
-        return free - step, step.abs().amax(-1), ok
+        return free - step, step.abs().amax(0), ok
     return free - step, step.abs().max(), ok.all()
 
 
@@ -218,25 +216,25 @@ def attach_implicit_gradient(
     not positive definite) keep ``theta*`` with no gradient rather than a meaningless one.
 
     Args:
-        theta_star: (..., m) converged angles [rad].
+        theta_star: (m, B) converged angles [rad].
         a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar: as for :func:`newton_theta`; the gradient
             flows to those that require it.
         converged_tol: largest Newton step [rad] that counts as converged.
 
     Returns:
-        (..., m) ``theta*`` carrying the implicit gradient.
+        (m, B) ``theta*`` carrying the implicit gradient.
     """
-    theta0 = _with_free(theta_ends, theta_star.detach()[..., 1:-1])
+    theta0 = _with_free(theta_ends, theta_star.detach()[1:-1])
     grad, diag, off = gradient_and_hessian(theta0, a, b, m_ref, beta, gamma, rest_vor, wbar)
     diag, off = diag.detach(), off.detach()
-    step, pd = solve_tridiagonal_pd(diag, off, grad)  # differentiable in grad
-    ok = pd & (step.detach().abs().amax(-1) < converged_tol)
+    step, pd = solve_tridiagonal_pd(diag, off, grad, dim=0)  # differentiable in grad
+    ok = pd & (step.detach().abs().amax(0) < converged_tol)
     if not bool(ok.all()):
         c = (2.0 * gamma / rest_vor).detach()
-        twist_diag = c[..., :-1] + c[..., 1:]
-        diag = torch.where(ok.unsqueeze(-1), diag, twist_diag + (diag - twist_diag).abs())
-        step = solve_tridiagonal(diag, off, grad * ok.unsqueeze(-1))
-    free = theta_star.detach()[..., 1:-1] - step
+        twist_diag = c[:-1] + c[1:]
+        diag = torch.where(ok, diag, twist_diag + (diag - twist_diag).abs())
+        step = solve_tridiagonal(diag, off, grad * ok, dim=0)
+    free = theta_star.detach()[1:-1] - step
     return _with_free(theta_ends, free)
 
 
@@ -262,7 +260,7 @@ def solve_theta(
         report: as for :func:`newton_theta`.
 
     Returns:
-        (..., m) energy-minimising angles [rad], differentiable when an input requires grad.
+        (m, B) energy-minimising angles [rad], differentiable when an input requires grad.
     """
     theta_star = newton_theta(
         a,

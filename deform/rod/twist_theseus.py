@@ -39,63 +39,65 @@ def theseus_theta(
     tol: float = 1e-20,
     backward_mode: str = "implicit",
 ) -> Tensor:
-    """Same contract as :func:`deform.rod.twist_solver.solve_theta` for a batch (B, ...).
+    """Same contract as :func:`deform.rod.twist_solver.solve_theta` (vertex-major inputs; Theseus
+    itself works batch-first, so the inputs are transposed here).
 
     Args:
-        a: (B, n-2, 2) and the other energy inputs as in :func:`deform.rod.twist_solver.newton_theta`.
-        b: (B, n-2, 2).
-        m_ref: (B, n-2).
-        theta_ends: (B, 2).
-        beta: (n-2,).
-        gamma: (n-2,).
-        rest_vor: (B, n-2).
-        wbar: (n-2, 2, 2).
-        theta_init: (B, m) warm start, or None.
+        a: (n-2, 2, B) and the other energy inputs as in :func:`deform.rod.twist_solver.newton_theta`.
+        b: (n-2, 2, B).
+        m_ref: (n-2, B).
+        theta_ends: (2, B).
+        beta: (n-2, 1).
+        gamma: (n-2, 1).
+        rest_vor: (n-2, B).
+        wbar: (n-2, 2, 2, 1).
+        theta_init: (m, B) warm start, or None.
         max_iterations: Gauss-Newton iterations at most.
         tol: absolute error tolerance of the objective.
         backward_mode: Theseus's backward mode (``"implicit"`` by default).
 
     Returns:
-        (B, m) angles [rad].
+        (m, B) angles [rad].
     """
     import theseus as th
 
-    batch = a.shape[0]
-    k = a.shape[-2] - 1
+    n_int, batch = a.shape[0], a.shape[-1]
+    k = n_int - 1
     dtype = a.dtype
-    bw = (beta / (2.0 * rest_vor)).expand(batch, -1)
-    tw = (gamma / rest_vor).expand(batch, -1).sqrt()
-    wb = wbar.expand(batch, -1, -1, -1).reshape(batch, -1)
+    bw = (beta / (2.0 * rest_vor)).expand(-1, batch).T
+    tw = (gamma / rest_vor).expand(-1, batch).T.sqrt()
+    wb = wbar[..., 0].expand(batch, -1, -1, -1).reshape(batch, -1)
     if theta_init is None:
-        init = twist_only_minimiser(m_ref.detach(), theta_ends.detach()).expand(batch, k).clone()
+        init = twist_only_minimiser(m_ref.detach(), theta_ends.detach()).expand(k, batch).T.clone()
     else:
-        init = theta_init[..., 1:-1].detach().clone()
+        init = theta_init[1:-1].detach().T.clone()
     theta_var = th.Vector(tensor=init, name="theta")
     aux = {
-        "a": th.Variable(a.reshape(batch, -1), name="a"),
-        "b": th.Variable(b.reshape(batch, -1), name="b"),
-        "m_ref": th.Variable(m_ref, name="m_ref"),
-        "ends": th.Variable(theta_ends, name="ends"),
+        "a": th.Variable(a.permute(2, 0, 1).reshape(batch, -1), name="a"),
+        "b": th.Variable(b.permute(2, 0, 1).reshape(batch, -1), name="b"),
+        "m_ref": th.Variable(m_ref.T, name="m_ref"),
+        "ends": th.Variable(theta_ends.T, name="ends"),
         "bw": th.Variable(bw, name="bw"),
         "tw": th.Variable(tw, name="tw"),
         "wbar": th.Variable(wb, name="wbar"),
     }
-    n_int = a.shape[-2]
 
     def residual(optim_vars, aux_vars):
         (free,) = optim_vars
         av, bv, mr, ends, bwv, twv, wbv = aux_vars
-        theta = torch.cat([ends.tensor[:, :1], free.tensor, ends.tensor[:, 1:]], dim=-1)
+        theta = torch.cat([ends.tensor[:, :1], free.tensor, ends.tensor[:, 1:]], dim=-1).T  # (m, B)
         w1, w2 = material_curvature(
-            av.tensor.view(-1, n_int, 2), bv.tensor.view(-1, n_int, 2), left_right(theta)
+            av.tensor.view(-1, n_int, 2).permute(1, 2, 0),
+            bv.tensor.view(-1, n_int, 2).permute(1, 2, 0),
+            left_right(theta),
         )
         wbr = wbv.tensor.view(-1, n_int, 2, 2)
-        w = torch.stack([w1, w2], dim=-1)
+        w = torch.stack([w1, w2], dim=-1).permute(2, 0, 1, 3)  # (B, n-2, side, component)
         w_norm = w.norm(dim=-1, keepdim=True)
         wb_norm = wbr.norm(dim=-1, keepdim=True)
         scale = (bwv.tensor[..., None, None] * w_norm * wb_norm).clamp_min(0).sqrt()
         r_bend = scale * (w / w_norm.clamp_min(1e-12) - wbr / wb_norm.clamp_min(1e-12))
-        r_twist = twv.tensor * twist_of(theta, mr.tensor)
+        r_twist = twv.tensor * twist_of(theta, mr.tensor.T).T
         return torch.cat([r_bend.reshape(free.tensor.shape[0], -1), r_twist], dim=-1)
 
     dim = n_int * 4 + n_int
@@ -122,5 +124,5 @@ def theseus_theta(
     solution, _ = layer.forward(
         inputs, optimizer_kwargs={"backward_mode": backward_mode, "track_best_solution": False}
     )
-    free = solution["theta"]
-    return torch.cat([theta_ends[..., :1], free, theta_ends[..., 1:]], dim=-1)
+    free = solution["theta"].T
+    return torch.cat([theta_ends[:1], free, theta_ends[1:]])

@@ -182,6 +182,7 @@ def test_unconverged_rods_are_redone_by_the_rescue_package(model, start, monkeyp
     out within the projection's tolerance; the other rods keep the one graph's result."""
     from deform.compiled import CompiledStep
     from deform.rod.inextensibility import max_relative_error
+    from deform.rod.layout import vertex_major
 
     state, grips = start
     state, grips = model.step(state, grips[:, 0]), grips[:, 1:]
@@ -199,7 +200,10 @@ def test_unconverged_rods_are_redone_by_the_rescue_package(model, start, monkeyp
     assert eager_calls == [], "no rod went through the checked step's eager loops"
     assert step.rescue.redone == 0, "the rescue package converged the jerked rod (no eager redo)"
     for k in range(out.shape[1]):
-        assert max_relative_error(out[:, k], state.rest).max() < model.options.pbd_tol
+        assert (
+            max_relative_error(vertex_major(out[:, k], 2), vertex_major(state.rest, 1))
+            < model.options.pbd_tol
+        )
     for r in (1, 2):  # untouched by the redo: what the one graph gives them
         assert torch.equal(out[r], rollout(RolloutStep(model, branch_free=BRANCH_FREE), state, jump)[r])
     ref = rollout(CompiledStep(model), state, jump)  # the checked step throughout

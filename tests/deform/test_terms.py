@@ -168,7 +168,7 @@ def test_internal_damping_on_fixed_rest_lengths_is_the_per_recording_operator_th
     x = torch.randn(3, model.n, 3, dtype=torch.float64)
     v = torch.randn(3, model.n, 3, dtype=torch.float64)
     rest = model.nominal_rest.expand(3, -1).clone()
-    mass = model.vertex_mass(rest)
+    mass = model.vertex_mass(rest.T).T  # the model's arrays are vertex-major, a term's batch-first
     fixed = term.acceleration(x, v, mass, rest)
     del term.fixed_lam, term.fixed_U, term.fixed_si
     per_recording = term.acceleration(x, v, mass, rest)
@@ -187,24 +187,24 @@ class _Step(torch.nn.Module):
         self.model = model
 
     def forward(self, x, v, d1, theta, rest, grip):
-        from deform.model import RodState
+        from deform.model import VertexMajorState
         from deform.step_graph import branch_free_step
 
-        new, _ = branch_free_step(self.model, RodState(x, v, d1, theta, rest), grip, (2, 2))
+        new, _ = branch_free_step(self.model, VertexMajorState(x, v, d1, theta, rest), grip, (2, 2))
         return new.x
 
 
 def test_a_model_with_internal_damping_exports_its_step(tmp_path):
     """The service runs a trained model's step ahead of time (torch.export): a term must not need
     Python state per call (a cache keyed on a tensor's address broke the export)."""
-    from deform.step_graph import rod_at_rest
+    from deform.step_graph import rod_at_rest_vertex_major
 
     model = _damped_model()
     model.save(tmp_path / "m.pt")
     model = DeformModel.load(tmp_path / "m.pt")  # the operator is fixed again after loading
-    state, grip = rod_at_rest(model, 2, torch.float64)
+    state, grip = rod_at_rest_vertex_major(model, 2, torch.float64)
     v = state.v.clone()  # a bending motion the damping acts on (~0.2 m/s^2), which the solvers converge on
-    v[..., 2] = 0.01 * torch.sin(torch.linspace(0, math.pi, model.n, dtype=torch.float64))
+    v[:, 2] = 0.01 * torch.sin(torch.linspace(0, math.pi, model.n, dtype=torch.float64))[:, None]
     args = (state.x, v, state.d1, state.theta, state.rest, grip)
     with torch.no_grad():
         exported = torch.export.export(_Step(model), args, strict=False)

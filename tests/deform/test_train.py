@@ -59,6 +59,7 @@ def test_training_windows_start_in_the_frames_evaluation_carries():
     import numpy as np
 
     from deform.rod import geometry as G
+    from deform.rod.layout import batch_major, vertex_major
     from deform.train import sample_windows
 
     cfg = load_rod_config("DLO2")
@@ -72,9 +73,9 @@ def test_training_windows_start_in_the_frames_evaluation_carries():
     model = DeformModel(cfg)
     x = torch.tensor(rec.positions)
     assert torch.allclose(frames[1], model.initial_state(x[0], x[1]).d1[0], atol=1e-12)
-    t = G.normalize(G.edges(x))
-    assert float(G.dot(frames[1:], t[1:]).abs().max()) < 1e-9
-    fresh = G.space_parallel_frame(t[-1])
+    t = torch.nn.functional.normalize(x[:, 1:] - x[:, :-1], dim=-1)
+    assert float((frames[1:] * t[1:]).sum(-1).abs().max()) < 1e-9
+    fresh = batch_major(G.space_parallel_frame(vertex_major(t[-1:], 2)), (1,))[0]
     assert float((fresh - frames[-1]).norm(dim=-1).max()) > 1e-3
     _, none = sample_windows([rec], 2, 20, random.Random(0), transported=False)
     assert none is None

@@ -10,8 +10,8 @@ def test_closed_form_forces_equal_minus_autograd_of_energy():
     x, gen = random_rod(4, 10, bend=0.5, seed=3)
     d1, t = twisted_frame(x, gen)
     p = random_params(4, 10, gen, wbar_scale=0.3)
-    theta = torch.randn(4, 9, generator=gen, dtype=torch.float64)
-    mass = torch.rand(4, 10, generator=gen, dtype=torch.float64)
+    theta = torch.randn(9, 4, generator=gen, dtype=torch.float64)
+    mass = torch.rand(10, 4, generator=gen, dtype=torch.float64)
     xa = x.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(total_energy(xa, theta, d1, t, p, mass).sum(), xa)
     geo = rod_geometry(x, d1, t)
@@ -25,8 +25,8 @@ def test_forces_at_minimising_angles_match_finite_differences_of_minimised_energ
     x, gen = random_rod(1, 9, bend=0.4, seed=5)
     d1, t = twisted_frame(x, gen)
     p = random_params(1, 9, gen, wbar_scale=0.2)
-    mass = torch.rand(1, 9, generator=gen, dtype=torch.float64)
-    ends = torch.tensor([[0.2, -0.4]], dtype=torch.float64)
+    mass = torch.rand(9, 1, generator=gen, dtype=torch.float64)
+    ends = torch.tensor([[0.2], [-0.4]], dtype=torch.float64)
 
     def min_energy(xx):
         geo = rod_geometry(xx, d1, t)  # frame carried along from t
@@ -41,8 +41,8 @@ def test_forces_at_minimising_angles_match_finite_differences_of_minimised_energ
     for i in range(9):
         for k in range(3):
             dx = torch.zeros_like(x)
-            dx[0, i, k] = h
-            fd[0, i, k] = -(min_energy(x + dx)[0] - min_energy(x - dx)[0]) / (2 * h)
+            dx[i, k, 0] = h
+            fd[i, k, 0] = -(min_energy(x + dx)[0] - min_energy(x - dx)[0]) / (2 * h)
     assert torch.allclose(force, fd, rtol=1e-5, atol=1e-6 * fd.abs().max())
 
 
@@ -50,12 +50,12 @@ def test_internal_forces_sum_to_zero_and_gravity_pulls_down():
     x, gen = random_rod(2, 8, seed=7)
     d1, t = twisted_frame(x, gen)
     p = random_params(2, 8, gen, wbar_scale=0.3)
-    mass = torch.full((2, 8), 0.003, dtype=torch.float64)
+    mass = torch.full((8, 2), 0.003, dtype=torch.float64)
     geo = rod_geometry(x, d1, t)
     a, b = curvature_projections(geo)
-    theta = torch.randn(2, 7, generator=gen, dtype=torch.float64)
+    theta = torch.randn(7, 2, generator=gen, dtype=torch.float64)
     force = rod_forces(x, geo, a, b, theta, p, mass)
-    total = force.sum(1)
+    total = force.sum(0)  # (3, rods)
     expected = torch.zeros_like(total)
-    expected[:, 2] = -9.81 * mass.sum(1)
+    expected[2] = -9.81 * mass.sum(0)
     assert torch.allclose(total, expected, atol=1e-10)

@@ -16,3 +16,16 @@ def test_thomas_and_dense_cholesky_agree_and_detect_indefinite_systems():
     diag[2, 7] = -1.0
     assert not solve_tridiagonal_pd(diag, off, rhs)[1][2] and not thomas(diag, off, rhs)[1][2]
     assert solve_tridiagonal_pd(diag, off, rhs)[1][[0, 1, 3, 4]].all()
+
+
+def test_unknowns_along_the_first_axis_give_the_same_solution():
+    """Vertex-major arrays (the systems' batch last, dim=0) solve to the same values."""
+    gen = torch.Generator().manual_seed(1)
+    off = torch.randn(4, 11, generator=gen, dtype=torch.float64)
+    diag = 2.5 * (off.abs().max() + 1) + torch.rand(4, 12, generator=gen, dtype=torch.float64)
+    rhs = torch.randn(4, 12, generator=gen, dtype=torch.float64)
+    x, ok = thomas(diag, off, rhs)
+    x0, ok0 = thomas(diag.T, off.T, rhs.T, dim=0)
+    assert torch.equal(x0, x.T) and torch.equal(ok0, ok)
+    xd, okd = solve_tridiagonal_pd(diag.T, off.T, rhs.T, dim=0)
+    assert torch.allclose(xd, x.T, atol=1e-12) and okd.all()

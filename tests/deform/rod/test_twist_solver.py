@@ -15,22 +15,22 @@ def _problem(seed, batch=4, n=11, wbar=0.15):
     geo = rod_geometry(x, d1, t)
     a, b = curvature_projections(geo)
     p = random_params(batch, n, gen, wbar_scale=wbar)
-    ends = torch.randn(batch, 2, generator=gen, dtype=torch.float64)
+    ends = torch.randn(2, batch, generator=gen, dtype=torch.float64)
     return a, b, geo.m_ref, ends, p
 
 
 def test_analytic_theta_gradient_and_hessian_match_autograd():
     a, b, m_ref, _ends, p = _problem(0, batch=2)
-    theta = torch.randn(2, a.shape[1] + 1, dtype=torch.float64, requires_grad=True)
+    theta = torch.randn(a.shape[0] + 1, 2, dtype=torch.float64, requires_grad=True)
     energy = bending_energy(a, b, theta, p.beta, p.rest_vor, p.wbar) + twisting_energy(
         theta, m_ref, p.gamma, p.rest_vor
     )
     (g_auto,) = torch.autograd.grad(energy.sum(), theta, create_graph=True)
     g, diag, off = gradient_and_hessian(theta, a, b, m_ref, p.beta, p.gamma, p.rest_vor, p.wbar)
-    assert torch.allclose(g, g_auto[:, 1:-1], atol=1e-12)
-    hess_row = torch.autograd.grad(g_auto[:, 3].sum(), theta)[0]
-    assert torch.allclose(hess_row[:, 3], diag[:, 2], atol=1e-12)
-    assert torch.allclose(hess_row[:, 4], off[:, 2], atol=1e-12)
+    assert torch.allclose(g, g_auto[1:-1], atol=1e-12)
+    hess_row = torch.autograd.grad(g_auto[3].sum(), theta)[0]
+    assert torch.allclose(hess_row[3], diag[2], atol=1e-12)
+    assert torch.allclose(hess_row[4], off[2], atol=1e-12)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -41,7 +41,7 @@ def test_newton_and_theseus_agree(seed):
     assert (fast - ref).abs().max() < 1e-6
     g, _, _ = gradient_and_hessian(fast, a, b, m_ref, p.beta, p.gamma, p.rest_vor, p.wbar)
     assert g.abs().max() < 1e-9
-    assert torch.equal(fast[:, [0, -1]], ends)
+    assert torch.equal(fast[[0, -1]], ends)
 
 
 def test_implicit_gradients_match_finite_differences_and_theseus():
@@ -50,7 +50,7 @@ def test_implicit_gradients_match_finite_differences_and_theseus():
     approximate for this energy (non-zero residuals at the minimum), so it is not the reference."""
     a, b, m_ref, ends, p = _problem(4, batch=2, n=8)
     theseus_unrolled = functools.partial(theseus_theta, backward_mode="unroll", max_iterations=80)
-    w = torch.randn(2, a.shape[1] + 1, dtype=torch.float64)
+    w = torch.randn(a.shape[0] + 1, 2, dtype=torch.float64)
 
     def objective(beta, m, solver):
         th = solver(a, b, m, ends, beta, p.gamma, p.rest_vor, p.wbar)
@@ -66,17 +66,17 @@ def test_implicit_gradients_match_finite_differences_and_theseus():
     with torch.no_grad():
         for i in range(3):
             dm = torch.zeros_like(m_ref)
-            dm[1, i] = h
+            dm[i, 1] = h
             fd = (objective(p.beta, m_ref + dm, solve_theta) - objective(p.beta, m_ref - dm, solve_theta)) / (
                 2 * h
             )
-            assert abs(float(fd) - float(gm_fast[1, i])) < 1e-5 * max(1.0, abs(float(fd)))
+            assert abs(float(fd) - float(gm_fast[i, 1])) < 1e-5 * max(1.0, abs(float(fd)))
             db = torch.zeros_like(p.beta)
-            db[i + 2] = h * 1e-3
+            db[i + 2, 0] = h * 1e-3
             fd = (objective(p.beta + db, m_ref, solve_theta) - objective(p.beta - db, m_ref, solve_theta)) / (
                 2 * h * 1e-3
             )
-            assert abs(float(fd) - float(gb_fast[i + 2])) < 1e-4 * max(1.0, abs(float(fd)))
+            assert abs(float(fd) - float(gb_fast[i + 2, 0])) < 1e-4 * max(1.0, abs(float(fd)))
 
 
 def test_branch_free_iterations_stop_each_rod_by_the_checked_rule():
@@ -87,19 +87,20 @@ def test_branch_free_iterations_stop_each_rod_by_the_checked_rule():
     args = (m_ref, ends, p.beta, p.gamma, p.rest_vor, p.wbar)
     exact = solve_theta(a, b, *args, tol=1e-13, max_iter=200)
     noise = torch.randn(exact.shape, generator=torch.Generator().manual_seed(0), dtype=exact.dtype)
-    noise[0] *= 1e-3  # one rod much closer than the others: it stops earlier
+    noise[:, 0] *= 1e-3  # one rod much closer than the others: it stops earlier
     warm = exact + 1e-3 * noise
     batch = solve_theta(a, b, *args, theta_init=warm, branch_free=6)
-    for r in range(a.shape[0]):
+    for r in range(a.shape[-1]):
+        rod = slice(r, r + 1)
         one = (
-            m_ref[r : r + 1],
-            ends[r : r + 1],
+            m_ref[:, rod],
+            ends[:, rod],
             p.beta,
             p.gamma,
-            p.rest_vor[r : r + 1],
+            p.rest_vor[:, rod],
             p.wbar,
         )  # beta, gamma, wbar shared
-        alone = solve_theta(a[r : r + 1], b[r : r + 1], *one, theta_init=warm[r : r + 1])
-        assert torch.equal(batch[r : r + 1], alone)
+        alone = solve_theta(a[..., rod], b[..., rod], *one, theta_init=warm[:, rod])
+        assert torch.equal(batch[:, rod], alone)
     plain = solve_theta(a, b, *args, theta_init=warm)
     assert torch.equal(solve_theta(a, b, *args, theta_init=warm, branch_free=1), plain)
