@@ -61,6 +61,10 @@ def cross(a: Tensor, b: Tensor) -> Tensor:
 def norm(u: Tensor, keepdim: bool = False) -> Tensor:
     """Euclidean length over the x, y, z axis (-2).
 
+    The square root of a sum, not ``torch.linalg.vector_norm``: eager, that reduction over a
+    middle axis took 10x as long (a quarter of an eager step of 32 rods). The floor under the
+    square makes the gradient of a zero vector's length 0 (as the norm's subgradient), not NaN.
+
     Args:
         u: (..., 3, B) vectors.
         keepdim: keep the axis (as size 1).
@@ -68,7 +72,7 @@ def norm(u: Tensor, keepdim: bool = False) -> Tensor:
     Returns:
         (..., B), or (..., 1, B) with ``keepdim``.
     """
-    return torch.linalg.vector_norm(u, dim=-2, keepdim=keepdim)
+    return (u * u).sum(-2, keepdim=keepdim).clamp_min(1e-30).sqrt()
 
 
 def normal_velocity(x: Tensor, v: Tensor) -> Tensor:

@@ -1,0 +1,151 @@
+"""Today's step against an earlier commit's, in the same run: processes of both checkouts alternated.
+
+Why: this VM's speed drifts by tens of percent within minutes, so a speed-up is only measured
+against its baseline in one run. Each measurement is a fresh process importing ``deform`` from one
+checkout (the earlier commit checked out as a git worktree in a temporary directory), the two
+checkouts taking turns ``--rounds`` times. Measured, on one thread (what each predict process runs):
+
+* ``predict_step``: predict's one-graph step (2 twist iterations, 2 sweeps, ahead of time, float32
+  state) called step after step on 1024 rods, rod-steps per second (median of 7 timings of 50 steps);
+* ``rollout_512``: ``benchmarks/predict_rollout.py --plans 512 --settings 2,2:aot`` of that
+  checkout, the median rollout time [ms] over its start states;
+* ``loop_step``: the 100 Hz loop's step (one rod, float64, ahead of time) over a DLO1 recording,
+  p50 and p99 [ms].
+
+    python benchmarks/ab_commits.py [--base 233b390] [--rounds 2] -> benchmarks/results/ab_commits.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+# run inside the checkout under test (its own deform): prints one JSON line
+_STEP = """
+import json, statistics, sys, torch
+sys.path.insert(0, {root!r})
+torch.set_num_threads(1)
+from deform import load_model
+from deform.bench import _trajectory, throughput
+from deform.compiled import PREDICT_BRANCH_FREE, CompiledStep
+model = load_model("DLO1")
+pos = _trajectory(model)
+step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, ahead_of_time=True)
+throughput(model, pos, 1024, 3, step, torch.float32)  # build or load the package
+rates = [throughput(model, pos, 1024, 50, step, torch.float32) for _ in range(7)]
+print(json.dumps({{"rod_steps_per_s": statistics.median(rates)}}))
+"""
+
+_LOOP = """
+import json, sys, time, torch
+sys.path.insert(0, {root!r})
+torch.set_num_threads(1)
+from deform import load_model
+from deform.bench import _percentiles, _trajectory
+from deform.compiled import LOOP_BRANCH_FREE, CompiledStep
+from deform.model import gripped_indices
+model = load_model("DLO1")
+pos = torch.tensor(_trajectory(model))
+step = CompiledStep(model, branch_free=LOOP_BRANCH_FREE, ahead_of_time=True)
+idx = gripped_indices(model.n)
+seconds = []
+with torch.no_grad():
+    for rep in range(3):
+        s = model.initial_state(pos[0:1], pos[1:2])
+        for k in range(len(pos) - 2):
+            t = time.perf_counter()
+            s = step(s, pos[2 + k : 3 + k, idx])
+            if k >= 20:
+                seconds.append(time.perf_counter() - t)
+print(json.dumps(_percentiles(seconds)))
+"""
+
+
+def _run(code: str, cwd: Path) -> dict:
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, check=True
+    ).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _rollout(root: Path) -> float:
+    out = subprocess.run(
+        [
+            sys.executable,
+            "benchmarks/predict_rollout.py",
+            "--plans",
+            "512",
+            "--settings",
+            "2,2:aot",
+            "--recordings",
+            "3",
+            "--repeats",
+            "2",
+        ],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return json.loads([line for line in out.splitlines() if line.startswith("{")][-1])["median_ms"]
+
+
+def measure(root: Path) -> dict:
+    """One round of every measurement in the checkout at ``root``."""
+    return {
+        "predict_step_rod_steps_per_s": _run(_STEP.format(root=str(root)), root)["rod_steps_per_s"],
+        "rollout_512_median_ms": _rollout(root),
+        "loop_step": _run(_LOOP.format(root=str(root)), root),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument(
+        "--base", default="233b390", help="the earlier commit (default: before the vertex-major layout)"
+    )
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/ab_commits.json"))
+    args = ap.parse_args()
+    from deform.bench import provenance
+
+    rows: dict[str, list] = {"base": [], "head": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp) / "base"
+        subprocess.run(
+            ["git", "worktree", "add", "-q", "--detach", str(base), args.base], cwd=ROOT, check=True
+        )
+        try:
+            for r in range(args.rounds):
+                for name, root in (("base", base), ("head", ROOT)):
+                    rows[name].append(measure(root))
+                    print(name, r, json.dumps(rows[name][-1]), flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, check=False)
+
+    def med(name, key, sub=None):
+        vals = [r[key][sub] if sub else r[key] for r in rows[name]]
+        return statistics.median(vals)
+
+    summary = {
+        "predict_step_ratio": med("head", "predict_step_rod_steps_per_s")
+        / med("base", "predict_step_rod_steps_per_s"),
+        "rollout_512_ratio": med("base", "rollout_512_median_ms") / med("head", "rollout_512_median_ms"),
+        "loop_step_p50_ratio": med("base", "loop_step", "p50_ms") / med("head", "loop_step", "p50_ms"),
+    }
+    result = {**provenance("benchmarks/ab_commits.py"), "base": args.base, "rounds": rows, "speedup": summary}
+    Path(args.json).write_text(json.dumps(result, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
