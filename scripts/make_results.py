@@ -65,6 +65,10 @@ KNOWN = {
         "Planning-scale predict in the service",
         "python benchmarks/predict_planning.py --n 30 --rounds 3 --compare predict_network_dtype=auto",
     ),
+    "ab_commits.json": (
+        "Today's step against an earlier commit's, same run",
+        "python benchmarks/ab_commits.py",
+    ),
 }
 
 
@@ -612,6 +616,29 @@ def render_batched_throughput(d: dict) -> list[str]:
     ] + table(["step", "rod-steps/s", "ratio to compiled_checked", "min", "max"], rows)
 
 
+def render_ab_commits(d: dict) -> list[str]:
+    rounds = d.get("rounds", {})
+
+    def med(name, key, sub=None):
+        vals = [r[key][sub] if sub else r[key] for r in rounds.get(name, [])]
+        return sorted(vals)[len(vals) // 2] if vals else None
+
+    rows = [
+        ["predict's step, 1024 rods, float32, 1 thread [rod-steps/s]", "predict_step_rod_steps_per_s", None],
+        ["predict's rollout, 512 plans x 100 steps, 1 thread, median [ms]", "rollout_512_median_ms", None],
+        ["the 100 Hz loop's step, one rod, p50 [ms]", "loop_step", "p50_ms"],
+        ["the 100 Hz loop's step, one rod, p99 [ms]", "loop_step", "p99_ms"],
+    ]
+    body = [[label, med("base", key, sub), med("head", key, sub)] for label, key, sub in rows]
+    speed = d.get("speedup", {})
+    return [
+        f"Processes of both checkouts alternated, {len(rounds.get('head', []))} rounds; medians over rounds. "
+        f"Base: {d.get('base')}. Speed-up (base time / today's): step {fmt(speed.get('predict_step_ratio'))}x, "
+        f"rollout {fmt(speed.get('rollout_512_ratio'))}x, loop step {fmt(speed.get('loop_step_p50_ratio'))}x.",
+        "",
+    ] + table(["measure", "base", "today"], body)
+
+
 def render_predict_planning(d: dict) -> list[str]:
     targets = d.get("targets_p50_ms", {})
     compared = d.get("compared", {})
@@ -669,6 +696,7 @@ RENDER = {
     "float32_accuracy.json": render_float32,
     "batched_throughput.json": render_batched_throughput,
     "predict_planning.json": render_predict_planning,
+    "ab_commits.json": render_ab_commits,
     "accuracy.json": render_accuracy,
     "speed.json": render_speed,
     "perception.json": render_perception,
