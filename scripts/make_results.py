@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -621,7 +622,7 @@ def render_ab_commits(d: dict) -> list[str]:
 
     def med(name, key, sub=None):
         vals = [r[key][sub] if sub else r[key] for r in rounds.get(name, [])]
-        return sorted(vals)[len(vals) // 2] if vals else None
+        return statistics.median(vals) if vals else None
 
     rows = [
         ["predict's step, 1024 rods, float32, 1 thread [rod-steps/s]", "predict_step_rod_steps_per_s", None],
@@ -629,7 +630,7 @@ def render_ab_commits(d: dict) -> list[str]:
         ["the 100 Hz loop's step, one rod, p50 [ms]", "loop_step", "p50_ms"],
         ["the 100 Hz loop's step, one rod, p99 [ms]", "loop_step", "p99_ms"],
     ]
-    body = [[label, med("base", key, sub), med("head", key, sub)] for label, key, sub in rows]
+    body = [[label, fmt(med("base", key, sub), 3), fmt(med("head", key, sub), 3)] for label, key, sub in rows]
     speed = d.get("speedup", {})
     return [
         f"Processes of both checkouts alternated, {len(rounds.get('head', []))} rounds; medians over rounds. "
