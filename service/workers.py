@@ -213,7 +213,13 @@ def _serve(conn, cfg, nice: int = 0, threads: int | None = None) -> None:
         return
     if op != "model":  # "stop" before any model, or a protocol error
         return
-    ctx = JobContext(DeformModel.load(args[0]), cfg)
+    try:
+        model = DeformModel.load(args[0])
+    except FileNotFoundError:
+        # the parent closed before this worker had started (a pool's late joiner at exit) and its
+        # temporary model file went with it; a parent still waiting sees the socket close
+        return
+    ctx = JobContext(model, cfg)
     # Long-lived objects (torch, the model, later the compiled code: ~600k objects) out of the
     # collector's reach: a full collection of them took 0.4 s, and JSON parsing triggers one every
     # few predict requests (measured: 3 of 20 requests took 0.4 s instead of 0.13 s).

@@ -242,3 +242,37 @@ def test_the_first_predict_process_defers_the_rescue_graph_to_the_second():
     alone = PredictPool([first], split_min_plans=128)
     alone.call("warmup", [64])
     assert log == [(first, "warmup", [64], True)]
+
+
+def test_a_worker_whose_model_file_is_gone_exits_quietly(tmp_path):
+    """A pool's late-starting worker can be sent the path of a model its parent has removed at exit
+    (``make demo`` printed that worker's traceback): it returns, and its end of the socket closes."""
+    import socket
+    import threading
+    from multiprocessing.connection import Connection
+
+    from service.workers import _serve
+
+    ours, theirs = socket.socketpair()
+    parent, child = Connection(ours.detach()), Connection(theirs.detach())
+    parent.send(("model", (str(tmp_path / "gone" / "model.pt"),)))
+    errors = []
+
+    def run():
+        try:
+            _serve(child, make_config(), 0, 1)
+        except Exception as exc:  # the behaviour under test: nothing escapes
+            errors.append(exc)
+        finally:
+            child.close()
+
+    import torch
+
+    threads = torch.get_num_threads()  # _serve sets this process's (it is the child's own elsewhere)
+    worker = threading.Thread(target=run)
+    worker.start()
+    worker.join(timeout=120)
+    torch.set_num_threads(threads)
+    assert not worker.is_alive() and errors == []
+    with pytest.raises(EOFError):  # the parent sees the worker gone, as when a child exits
+        parent.recv()
