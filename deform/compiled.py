@@ -78,11 +78,13 @@ def _pad_last(t: Tensor, size: int) -> Tensor:
     return torch.cat([t, t[..., :1].expand(*t.shape[:-1], size - t.shape[-1])], dim=-1)
 
 
-def _with_rods(state: RodState, rods: Tensor, part: RodState) -> RodState:
-    """A copy of ``state`` whose rods ``rods`` are those of ``part`` (rest lengths kept)."""
-    out = RodState(*(t.clone() for t in (state.x, state.v, state.d1, state.theta, state.rest)))
+def _with_rods(state, rods: Tensor, part):
+    """A copy of ``state`` whose rods ``rods`` are those of ``part`` (rest lengths kept): both
+    :class:`RodState` (rods the first axis) or both :class:`VertexMajorState` (rods the last)."""
+    at = (rods,) if isinstance(state, RodState) else (..., rods)
+    out = type(state)(*(t.clone() for t in (state.x, state.v, state.d1, state.theta, state.rest)))
     for t, r in zip((out.x, out.v, out.d1, out.theta), (part.x, part.v, part.d1, part.theta)):
-        t[rods] = r
+        t[at] = r
     return out
 
 
@@ -233,7 +235,9 @@ class CompiledStep:
             return self._eager_vertex_major(state, grip_next), None
         batch = state.x.shape[-1]
         size = bucket_size(batch, self.buckets)
-        padded = state.padded(size)
+        padded = VertexMajorState(
+            *(_pad_last(t, size) for t in (state.x, state.v, state.d1, state.theta, state.rest))
+        )
         grip = None if grip_next is None else _pad_last(grip_next, size)
         ran = self._run(padded, grip, size, state.x.dtype)
         if ran is None:
@@ -441,11 +445,7 @@ class RolloutStep:
                 *(torch.cat(ts) for ts in zip(*((o.x, o.v, o.d1, o.theta, o.rest) for o in groups)))
             )
         self.redone += len(bad)
-        part = part.vertex_major()
-        out = VertexMajorState(*(t.clone() for t in (new.x, new.v, new.d1, new.theta, new.rest)))
-        for t, p in zip((out.x, out.v, out.d1, out.theta), (part.x, part.v, part.d1, part.theta)):
-            t[..., bad] = p
-        return out
+        return _with_rods(new, bad, part.vertex_major())
 
 
 def rollout(step: RolloutStep | CompiledStep | DeformModel, state: RodState, grips: Tensor) -> Tensor:

@@ -115,14 +115,15 @@ class RodState:
     def index(self, idx) -> RodState:
         return RodState(*(t[idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
 
-    def vertex_major(self) -> VertexMajorState:
-        """The same rods with the batch as the last axis, the layout the physics runs in."""
+    def vertex_major(self, rest: Tensor | None = None) -> VertexMajorState:
+        """The same rods with the batch as the last axis, the layout the physics runs in; ``rest``:
+        the rest lengths already converted (None: converted here)."""
         return VertexMajorState(
             vertex_major(self.x, 2),
             vertex_major(self.v, 2),
             vertex_major(self.d1, 2),
             vertex_major(self.theta, 1),
-            vertex_major(self.rest, 1),
+            vertex_major(self.rest, 1) if rest is None else rest,
         )
 
 
@@ -141,15 +142,6 @@ class VertexMajorState:
     def index(self, idx) -> VertexMajorState:
         """The rods ``idx`` (an index into the last axis)."""
         return VertexMajorState(*(t[..., idx] for t in (self.x, self.v, self.d1, self.theta, self.rest)))
-
-    def padded(self, size: int) -> VertexMajorState:
-        """``size`` rods: these, then copies of the first (a compiled step's fixed batch), contiguous."""
-        pad = size - self.x.shape[-1]
-
-        def fill(t: Tensor) -> Tensor:
-            return t.contiguous() if pad == 0 else torch.cat([t, t[..., :1].expand(*t.shape[:-1], pad)], -1)
-
-        return VertexMajorState(*(fill(t) for t in (self.x, self.v, self.d1, self.theta, self.rest)))
 
     def batch_major(self) -> RodState:
         """Back to a :class:`RodState` (B, ...)."""
@@ -482,14 +474,10 @@ class DeformModel(nn.Module):
         (:meth:`_physical`) stay valid from step to step."""
         cached = getattr(self, "_rest_vertex_major", None)
         if cached is not None and cached[0] is state.rest and cached[1] == state.rest._version:
-            rest = cached[2]
-        else:
-            rest = vertex_major(state.rest, 1)
-            self._rest_vertex_major = (state.rest, state.rest._version, rest)
-        x, v, d1, theta = (
-            vertex_major(t, e) for t, e in ((state.x, 2), (state.v, 2), (state.d1, 2), (state.theta, 1))
-        )
-        return VertexMajorState(x, v, d1, theta, rest)
+            return state.vertex_major(rest=cached[2])
+        vm = state.vertex_major()
+        self._rest_vertex_major = (state.rest, state.rest._version, vm.rest)
+        return vm
 
     def step_vertex_major(
         self,
@@ -539,10 +527,8 @@ class DeformModel(nn.Module):
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))
         d1_new = G.time_transport(state.d1, t_old, t_new)
-        new = VertexMajorState(x_new, v_new, d1_new, theta, state.rest)
-        if not create_graph:
-            return VertexMajorState(*(t.detach() for t in (x_new, v_new, d1_new, theta)), state.rest)
-        return new
+        new = (x_new, v_new, d1_new, theta)
+        return VertexMajorState(*(new if create_graph else (t.detach() for t in new)), state.rest)
 
     def _projection_inv_mass(self, mass: Tensor, held: bool) -> Tensor:
         """Inverse masses (n, B) for the inextensibility projection: 0 at the gripped vertices when
