@@ -163,6 +163,7 @@ def generate_planted(
     damping: float = 1.0,
     settle_s: float = 1.0,
     truth_override: dict | None = None,
+    nodes_out: list | None = None,
 ):
     """-> (recordings, truth params). Each source recording gives the gripper motion of one output.
     ``truth_override``: planted parameter values replacing :func:`planted_truth`'s (a size study).
@@ -181,6 +182,8 @@ def generate_planted(
         damping: linear velocity damping [1/s] (in every dataset).
         settle_s: settling time before the first frame [s].
         truth_override: planted values to use instead.
+        nodes_out: when given, receives the simulated rod's node positions (B, T, N, 3) [m] (noise-free)
+            and the node ids of the markers: the state between the markers that recordings do not show.
 
     Returns:
         ``(recordings, truth)``.
@@ -224,14 +227,18 @@ def generate_planted(
     state = model.static_state(torch.tensor(X0), rest=torch.tensor(rest))
     g0 = grip_at(0.0)
     out = np.empty((len(sources), T, n, 3))
+    every = np.empty((len(sources), T, n_sim, 3)) if nodes_out is not None else None
     with torch.no_grad():
         for _ in range(int(settle_s / sim_spec.dt)):
             state = model.step(state, g0)
-        out[:, 0] = state.x.numpy()[:, list(ids[0])]
-        for k in range(1, T):
-            for j in range(1, substeps + 1):
+        for k in range(T):
+            for j in range(1, substeps + 1) if k else ():
                 state = model.step(state, grip_at(k - 1 + j / substeps))
             out[:, k] = state.x.numpy()[:, list(ids[0])]
+            if every is not None:
+                every[:, k] = state.x.numpy()
+    if nodes_out is not None:
+        nodes_out.extend([every, list(ids[0])])
     out[:, :, gripped_indices(n)] = grips_rec  # the recorded inputs (the sim's ends lag them by `delay`)
     out = out + rng.normal(0, noise_m, out.shape)
     if not np.all(np.isfinite(out)):

@@ -251,12 +251,20 @@ class Simulator:
     markers), stepped at ``dt / (hidden + 1)``. Why: at marker resolution a mass on every marker is
     the same as a uniform mass factor, which the fitted stiffness absorbs; with mass between the
     markers the two differ. Terms are then built on the node arc length (:meth:`node_arclength`).
+    ``substeps``: model steps per frame instead (a study of the step's own error).
     A frame period longer than :data:`MAX_STEP_S` is stepped in ``ceil(dt / MAX_STEP_S)`` substeps
     as well (:func:`frame_substeps`)."""
 
-    def __init__(self, spec: RodSpec, nominal: Nominal, terms: list[Term] | None = None, hidden: int = 0):
+    def __init__(
+        self,
+        spec: RodSpec,
+        nominal: Nominal,
+        terms: list[Term] | None = None,
+        hidden: int = 0,
+        substeps: int | None = None,
+    ):
         self.hidden = hidden
-        self.substeps = (hidden + 1) * frame_substeps(spec.dt)
+        self.substeps = substeps or (hidden + 1) * frame_substeps(spec.dt)
         self.n_markers = spec.n_vertices
         self.markers = marker_nodes(spec.n_vertices, hidden)
         n = self.markers[-1] + 1

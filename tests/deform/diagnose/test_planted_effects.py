@@ -207,3 +207,27 @@ def test_windows_start_in_the_reference_frame_a_full_rollout_carries(sources):
     fresh = batch_major(G.space_parallel_frame(vertex_major(t[60:61], 2)), (1,))[0]
     # the grippers have turned: fresh frames would start the window with a different material frame
     assert float((fresh - torch.tensor(D[60])).norm(dim=-1).max()) > 0.05
+
+
+def test_the_truths_nodes_hold_the_noise_free_markers_where_a_hidden_node_simulator_puts_them(sources):
+    nodes = []
+    recs, _ = generate_planted(
+        None,
+        sources[:2],
+        SPEC,
+        n_frames=20,
+        refine=3,
+        substeps=2,
+        settle_s=0.1,
+        seed=3,
+        noise_m=0.0,
+        nodes_out=nodes,
+    )
+    every, ids = nodes
+    assert every.shape == (2, 20, 3 * (SPEC.n_vertices - 3) + 3, 3)
+    # the free markers are the truth's nodes (the gripped ones are the recorded inputs)
+    markers = np.stack([r.positions for r in recs])
+    assert np.array_equal(every[:, :, ids][:, :, 2:-2], markers[:, :, 2:-2])
+    # a simulator with two hidden nodes per interval has its markers at the same nodes
+    sim = Simulator(SPEC, Nominal(), hidden=2, substeps=2)
+    assert sim.markers == ids and sim.n == every.shape[2] and sim.model.dt == SPEC.dt / 2
