@@ -207,11 +207,17 @@ class InternalDamping(Term):
 
         The cache holds the tensor itself and checks identity and version: a key made of its address
         alone went stale when a freed tensor's memory was reused for other rest lengths, and a
-        rollout then ran with another recording's operator, depending on the allocator."""
-        if self._cache is not None and self._cache[0] is rest and self._cache[1] == rest._version:
-            return self._cache[2]
+        rollout then ran with another recording's operator, depending on the allocator. A view (the
+        model hands terms a fresh batch-first view of its vertex-major rest lengths every step) is
+        keyed on the tensor it views and its layout in it: keyed on the view object itself, the
+        cache missed on every step and the decomposition ran once per step."""
+        base = rest if rest._base is None else rest._base
+        layout = (rest.shape, rest.stride(), rest.storage_offset())
+        cached = self._cache
+        if cached is not None and cached[0] is base and cached[1] == rest._version and cached[2] == layout:
+            return cached[3]
         out = damping_modes(rest)
-        self._cache = (rest, rest._version, out)
+        self._cache = (base, rest._version, layout, out)
         return out
 
     @torch.no_grad()

@@ -159,6 +159,31 @@ def test_internal_damping_modes_follow_each_recordings_rest_lengths():
         assert torch.allclose(lam, again)
 
 
+def test_internal_damping_decomposes_its_operator_once_per_rollout_with_the_same_result(sources, monkeypatch):
+    """The model hands terms a new batch-first view of its rest lengths every step: the cache must
+    see through the view (it missed on every step, an eigendecomposition per step), and must still
+    give what a fresh decomposition gives."""
+    import deform.diagnose.terms as terms_module
+
+    X = torch.tensor(np.stack([r.positions[:22] for r in sources[:2]]))
+
+    def rollout():
+        term = make_term("internal_damping", SPEC.n_vertices, arclength_of(sources), {})
+        with torch.no_grad():
+            term.log_nu.fill_(math.log(20.0))
+            sim = Simulator(SPEC, Nominal(3e-3, 2e-3, 0.5), [term])
+            sim.sync()
+            return sim.rollout(X, 20), term
+
+    calls = []
+    fresh = terms_module.damping_modes
+    monkeypatch.setattr(terms_module, "damping_modes", lambda rest: calls.append(1) or fresh(rest))
+    cached, _ = rollout()
+    assert len(calls) == 1
+    monkeypatch.setattr(terms_module.InternalDamping, "_modes", lambda self, rest: fresh(rest))
+    assert torch.equal(cached, rollout()[0])
+
+
 def test_internal_damping_means_the_same_on_a_finer_discretisation():
     """nu is a property of the rod: the decay rate of a smooth bending mode is the same on 12 and on
     34 vertices (the planted truth is the finer rod), unlike plain second differences of velocity."""
