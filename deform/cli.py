@@ -13,6 +13,7 @@ from pathlib import Path
 
 from deform.config import ConfigError
 from deform.errors import UsageError
+from deform.io.gaps import MAX_GAP_S
 from deform.io.recordings import RecordingError, find_data_root
 
 
@@ -278,6 +279,15 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="auto (default): recordings at 100 Hz or faster with marker noise above 0.5 mm are smoothed "
         "(Savitzky-Golay, stated in the report); off: never",
+    )
+    g.add_argument(
+        "--max-gap",
+        type=float,
+        default=MAX_GAP_S,
+        metavar="SECONDS",
+        help="markers missing (NaN) for at most this long are filled by cubic splines in time and "
+        "incomplete frames at a recording's ends dropped, stated in the report (default 0.1 s; "
+        "0: any missing marker is an error)",
     )
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)

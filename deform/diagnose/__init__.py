@@ -1,9 +1,9 @@
 """Discrepancy tool: locate where the plain DER model and recordings differ, name the missing physics.
 
 ``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]
-[--budget full|quick] [--clamp fit|METRES] [--denoise auto|off]``
+[--budget full|quick] [--clamp fit|METRES] [--denoise auto|off] [--max-gap SECONDS]``
 
-Modules: :mod:`.spec` (inputs and their checks), :mod:`.resample` (other frame rates to 100 Hz),
+Modules: :mod:`.spec` (inputs and their checks; marker dropouts filled by :mod:`deform.io.gaps`), :mod:`.resample` (other frame rates to 100 Hz),
 :mod:`.denoise` (marker noise measured; smoothing far above the calibrated level),
 :mod:`.simulator` (bound DER model),
 :mod:`.terms` (candidate library), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 import tempfile
 from pathlib import Path
+
+from deform.io.gaps import MAX_GAP_S
 
 
 def given_clamp(value: str, spec) -> float | None:
@@ -63,8 +66,15 @@ def run_cli(args) -> int:
         raise UsageError(f"{out}: --out exists and is not a directory")
     if getattr(args, "model", None) and not Path(args.model).is_file():
         raise UsageError(f"{args.model}: --model: no such file")
+    max_gap = getattr(args, "max_gap", MAX_GAP_S)
+    if not (max_gap >= 0.0 and math.isfinite(max_gap)):
+        raise UsageError(f"--max-gap {max_gap}: expected a duration in seconds, 0 or more")
     inputs = load_inputs(
-        args.rod, args.fit, args.check, smooth_noise=getattr(args, "denoise", "auto") != "off"
+        args.rod,
+        args.fit,
+        args.check,
+        smooth_noise=getattr(args, "denoise", "auto") != "off",
+        max_gap_s=max_gap,
     )
     budget = DiagnoseBudget.quick() if getattr(args, "budget", "full") == "quick" else DiagnoseBudget()
     clamp = given_clamp(getattr(args, "clamp", "fit"), inputs.spec)

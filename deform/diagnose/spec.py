@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from deform.diagnose.denoise import denoise
 from deform.diagnose.resample import TOOL_DT, resample
+from deform.io.gaps import MAX_GAP_S, fill_gaps
 from deform.io.recordings import Recording, RecordingError, load_recordings
 
 MIN_FRAMES = 40  # at the tool's 100 Hz: a recording shorter than 0.4 s cannot be diagnosed
@@ -128,6 +129,29 @@ def marker_span_spec(
     return scaled, note
 
 
+def _filled(fit: list[Recording], check: list[Recording], dt: float, max_gap_s: float):
+    """Both sets with their dropouts filled (:func:`fill_gaps`), and a warning saying what was done
+    (None when the recordings were complete)."""
+    out, done = [], []
+    for r in fit + check:
+        x, gaps = fill_gaps(r.positions, dt, r.name, max_gap_s)
+        out.append(Recording(name=r.name, positions=x, dt=r.dt) if gaps.changed else r)
+        if gaps.changed:
+            done.append((r.name, gaps))
+    if not done:
+        return fit, check, None
+    filled = sum(g.filled for _, g in done)
+    trimmed = sum(g.trimmed_start + g.trimmed_end for _, g in done)
+    note = (
+        f"markers not seen (NaN) in {len(done)} recording(s) {[name for name, _ in done]}: "
+        f"{filled} marker-frame(s) filled by cubic splines in time (gaps of at most "
+        f"{max(g.longest for _, g in done)} frames)"
+    )
+    if trimmed:
+        note += f", {trimmed} incomplete frame(s) at the recordings' ends dropped"
+    return out[: len(fit)], out[len(fit) :], note
+
+
 def load_inputs(
     rod: str | Path,
     fit_dir: str | Path,
@@ -135,6 +159,7 @@ def load_inputs(
     min_fit: int = 2,
     min_check: int = 1,
     smooth_noise: bool = True,
+    max_gap_s: float = MAX_GAP_S,
 ) -> Inputs:
     """Load and cross-check ROD.json, fit/ and check/; raise on what cannot be diagnosed.
 
@@ -147,6 +172,8 @@ def load_inputs(
         smooth_noise: smooth recordings whose marker noise is far above the calibrated level
             (:func:`deform.diagnose.denoise.denoise`; only at 100 Hz or faster, where the noise can
             be told from the rope's motion).
+        max_gap_s: markers missing (NaN) for at most this long are filled in time, incomplete
+            frames at the ends dropped (:func:`deform.io.gaps.fill_gaps`); a longer gap is an error.
 
     Returns:
         The :class:`Inputs` (spec, fit, check, warnings).
@@ -155,8 +182,9 @@ def load_inputs(
         RecordingError: one line naming what cannot be diagnosed.
     """
     spec = load_rod_spec(rod)
-    fit = load_recordings(fit_dir)
-    check = load_recordings(check_dir)
+    fit = load_recordings(fit_dir, allow_gaps=True)
+    check = load_recordings(check_dir, allow_gaps=True)
+    fit, check, gap_note = _filled(fit, check, spec.dt, max_gap_s)
     for _, recs, d in (("fit", fit, fit_dir), ("check", check, check_dir)):
         n = recs[0].n_vertices
         if n != spec.n_vertices:
@@ -175,7 +203,7 @@ def load_inputs(
             f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} are "
             f"shorter than {MIN_FRAMES} frames at {1 / TOOL_DT:.0f} Hz ({(MIN_FRAMES - 1) * TOOL_DT:.2f} s)"
         )
-    warnings: list[str] = []
+    warnings: list[str] = [gap_note] if gap_note else []
     given_dt = spec.dt
     if not math.isclose(spec.dt, TOOL_DT, rel_tol=1e-9):
         fit = [resample(r, spec.dt) for r in fit]

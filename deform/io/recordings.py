@@ -62,7 +62,7 @@ def find_data_root() -> Path | None:
     return None
 
 
-def _to_array(obj, path: Path) -> np.ndarray:
+def _to_array(obj, path: Path, allow_gaps: bool = False) -> np.ndarray:
     if not isinstance(obj, (list, tuple, np.ndarray)):
         raise RecordingError(f"{path}: expected a list of (3, n) frames, got {type(obj).__name__}")
     try:
@@ -75,18 +75,23 @@ def _to_array(obj, path: Path) -> np.ndarray:
         raise RecordingError(f"{path}: needs at least 3 frames, has {arr.shape[0]}")
     if arr.shape[2] < 5:
         raise RecordingError(f"{path}: needs at least 5 markers, has {arr.shape[2]}")
-    if not np.all(np.isfinite(arr)):
-        bad = int((~np.isfinite(arr)).any(axis=(1, 2)).sum())
-        raise RecordingError(f"{path}: {bad} frame(s) contain NaN or infinite values")
+    if np.isinf(arr).any():
+        bad = int(np.isinf(arr).any(axis=(1, 2)).sum())
+        raise RecordingError(f"{path}: {bad} frame(s) contain infinite values")
+    if not allow_gaps and np.isnan(arr).any():
+        bad = int(np.isnan(arr).any(axis=(1, 2)).sum())
+        raise RecordingError(f"{path}: {bad} frame(s) contain NaN (markers not seen)")
     return np.ascontiguousarray(arr.transpose(0, 2, 1))
 
 
-def load_recording(path: str | Path, n_vertices: int | None = None) -> Recording:
+def load_recording(path: str | Path, n_vertices: int | None = None, allow_gaps: bool = False) -> Recording:
     """Load one DEFORM pickle safely and validate it.
 
     Args:
         path: a ``.pkl`` of the DEFORM format: a list of (3, n) arrays, one per frame [m].
         n_vertices: the marker count the caller expects (None: any).
+        allow_gaps: keep NaN (markers not seen) for the caller to fill (:mod:`deform.io.gaps`);
+            False: NaN is an error.
 
     Returns:
         A :class:`Recording` with ``positions`` (T, n, 3) float64.
@@ -102,18 +107,21 @@ def load_recording(path: str | Path, n_vertices: int | None = None) -> Recording
         obj = safe_load_pickle(path)
     except UnsafePickleError as exc:
         raise RecordingError(f"{path}: {exc}") from None
-    positions = _to_array(obj, path)
+    positions = _to_array(obj, path, allow_gaps)
     if n_vertices is not None and positions.shape[1] != n_vertices:
         raise RecordingError(f"{path}: has {positions.shape[1]} markers, the rod has {n_vertices}")
     return Recording(name=path.stem, positions=positions)
 
 
-def load_recordings(directory: str | Path, n_vertices: int | None = None) -> list[Recording]:
+def load_recordings(
+    directory: str | Path, n_vertices: int | None = None, allow_gaps: bool = False
+) -> list[Recording]:
     """Every .pkl in a directory, sorted by name (numerically: 2 before 10).
 
     Args:
         directory: a folder of DEFORM pickles.
         n_vertices: the marker count every recording must have (None: the same in all).
+        allow_gaps: see :func:`load_recording`.
 
     Returns:
         The recordings, each ``positions`` (T, n, 3).
@@ -127,7 +135,7 @@ def load_recordings(directory: str | Path, n_vertices: int | None = None) -> lis
     files = sorted(directory.glob("*.pkl"), key=lambda p: (len(p.stem), p.stem))
     if not files:
         raise RecordingError(f"{directory}: no .pkl recordings found")
-    recs = [load_recording(f, n_vertices) for f in files]
+    recs = [load_recording(f, n_vertices, allow_gaps) for f in files]
     counts = {r.n_vertices for r in recs}
     if len(counts) > 1:
         raise RecordingError(f"{directory}: recordings have different marker counts {sorted(counts)}")

@@ -8,9 +8,11 @@ import pytest
 from deform.cli import main
 from deform.diagnose.spec import load_inputs
 from deform.io import save_recording
+from deform.io.recordings import RecordingError
 
 
-def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=False, dt=0.01):
+def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=0, dt=0.01):
+    """``nan``: frames (from frame 10) the first check recording loses marker 3 for."""
     rng = np.random.default_rng(0)
     fit, check = tmp_path / "fit", tmp_path / "check"
     fit.mkdir()
@@ -25,7 +27,7 @@ def _write(tmp_path, n_fit=3, n_check=2, n=8, length=0.6, check_n=None, nan=Fals
     for i in range(n_check):
         x = cbase + rng.normal(0, 1e-3, cbase.shape)
         if nan and i == 0:
-            x[10, 3, 2] = np.nan
+            x[10 : 10 + nan, 3, 2] = np.nan
         save_recording(check / f"{i}.pkl", x)
     rod = tmp_path / "rod.json"
     rod.write_text(json.dumps({"length_m": length, "mass_kg": 0.04, "n_vertices": n, "dt": dt}))
@@ -61,7 +63,7 @@ def _budgets_asked(monkeypatch, tmp_path, *option_lists) -> list:
     "kwargs, needle",
     [
         ({"check_n": 9}, "markers"),
-        ({"nan": True}, "NaN"),
+        ({"nan": 20}, "marker 3 is missing for 20 frames from frame 10"),  # 0.2 s: not filled
         ({"n_fit": 1}, "at least"),
         ({"length": 0.5}, "length_m"),  # a rope shorter than its markers' span
         ({"dt": 0.005}, "shorter than 40 frames at 100 Hz"),  # 50 frames at 200 Hz: 0.25 s
@@ -73,6 +75,21 @@ def test_bad_input_is_one_error_line_and_nothing_written(tmp_path, capsys, kwarg
     assert _cli(rod, fit, check, out) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0] and "error" in err[0]
+    assert not out.exists()
+
+
+def test_a_short_dropout_is_filled_and_said_and_max_gap_bounds_it(tmp_path, capsys):
+    rod, fit, check = _write(tmp_path, nan=5)
+    inputs = load_inputs(rod, fit, check)
+    assert not any(np.isnan(r.positions).any() for r in inputs.fit + inputs.check)
+    assert any("5 marker-frame(s) filled" in w for w in inputs.warnings)
+    with pytest.raises(RecordingError, match="missing for 5 frames"):
+        load_inputs(rod, fit, check, max_gap_s=0.04)
+    out = tmp_path / "out"
+    assert _cli(rod, fit, check, out, "--max-gap", "0") == 2
+    assert "marker 3 is missing for 5 frames" in capsys.readouterr().err
+    assert _cli(rod, fit, check, out, "--max-gap", "-1") == 2
+    assert "--max-gap" in capsys.readouterr().err
     assert not out.exists()
 
 
