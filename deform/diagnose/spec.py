@@ -21,6 +21,19 @@ from deform.io.recordings import Recording, RecordingError, load_recordings
 
 MIN_FRAMES = 40  # at the tool's 100 Hz: a recording shorter than 0.4 s cannot be diagnosed
 LENGTH_TOLERANCE = 0.10  # a rope shorter than its markers' polyline by more than this is an error
+# the markers must span at least this share of the rope: past them the grippers hold it or it hangs
+# in short free tails, which the span's simulation leaves out (DLO1: 90 %)
+MIN_SPAN_SHARE = 0.5
+
+
+def _units_hint(ratio: float) -> str:
+    """A hint when the markers' span and the rope's length differ by a unit's factor."""
+    for factor, units in ((1000.0, "millimetres"), (100.0, "centimetres")):
+        if 0.5 * factor < ratio < 2.0 * factor:
+            return f" (recordings in {units}? they are read in metres)"
+        if 0.5 / factor < ratio < 2.0 / factor:
+            return f" (ROD.json in {units}? length_m is in metres)"
+    return ""
 
 
 class RodSpec(BaseModel):
@@ -105,6 +118,14 @@ def marker_span_spec(
         raise RecordingError(
             f"{source}: length_m={spec.length_m} but the markers span {span_m:.3f} m, "
             f"{rel * 100:+.0f} % longer than the rope (tolerance {LENGTH_TOLERANCE * 100:.0f} %)"
+            + _units_hint(span_m / spec.length_m)
+        )
+    if span_m < MIN_SPAN_SHARE * spec.length_m:
+        raise RecordingError(
+            f"{source}: length_m={spec.length_m} but the markers span only {span_m:.3f} m "
+            f"({span_m / spec.length_m * 100:.0f} % of the rope, at least {MIN_SPAN_SHARE * 100:.0f} % "
+            "needed: the rope between the outer markers is what is simulated)"
+            + _units_hint(span_m / spec.length_m)
         )
     if rel >= 0:
         note = (

@@ -66,6 +66,9 @@ def _budgets_asked(monkeypatch, tmp_path, *option_lists) -> list:
         ({"nan": 20}, "marker 3 is missing for 20 frames from frame 10"),  # 0.2 s: not filled
         ({"n_fit": 1}, "at least"),
         ({"length": 0.5}, "length_m"),  # a rope shorter than its markers' span
+        ({"length": 2.0}, "span only 0.6"),  # markers over 30 % of the rope: not the rope simulated
+        ({"length": 600.0}, "ROD.json in millimetres?"),
+        ({"length": 0.0006}, "recordings in millimetres?"),
         ({"dt": 0.005}, "shorter than 40 frames at 100 Hz"),  # 50 frames at 200 Hz: 0.25 s
     ],
 )
@@ -107,7 +110,7 @@ def test_length_off_by_a_little_is_a_warning(tmp_path):
     assert inputs.spec.length_m == 0.57
 
 
-@pytest.mark.parametrize("length", [0.64, 0.8, 2.0])
+@pytest.mark.parametrize("length", [0.64, 0.8, 1.15])
 def test_a_rope_longer_than_its_markers_is_simulated_over_the_span(tmp_path, length):
     """Real ropes run past their outer markers: the span is simulated with its share of the mass."""
     rod, fit, check = _write(tmp_path, length=length)
