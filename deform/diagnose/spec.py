@@ -150,6 +150,60 @@ def marker_span_spec(
     return scaled, note
 
 
+UP_CHECK_MIN_SAG = 0.01  # [m] below this mean sag the direction says nothing (a taut or stiff rope)
+UP_CHECK_MAX_ANGLE = (
+    45.0  # [deg] between the mean sag and -z; DEFORM's rods hang within 18 deg in every recording
+)
+
+
+def mean_sag(recordings: list[Recording]) -> np.ndarray:
+    """(3,) mean offset [m] of the free markers from the straight line between the gripped ones (at
+    the same share of the arc length): a rope held at both ends hangs along gravity.
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+
+    Returns:
+        The mean over recordings, frames and free markers.
+    """
+    out = []
+    for r in recordings:
+        x = r.positions
+        n = x.shape[1]
+        s = np.concatenate(
+            [np.zeros((x.shape[0], 1)), np.cumsum(np.linalg.norm(np.diff(x, axis=1), axis=-1), 1)], 1
+        )
+        share = (s - s[:, 1:2]) / np.maximum(s[:, n - 2 : n - 1] - s[:, 1:2], 1e-9)
+        chord = x[:, 1, None] + share[..., None] * (x[:, n - 2] - x[:, 1])[:, None]
+        out.append((x - chord)[:, 2 : n - 2].mean(axis=(0, 1)))
+    return np.mean(out, axis=0)
+
+
+def check_up_axis(recordings: list[Recording], source: str | Path) -> None:
+    """Raise when the rope clearly hangs along another axis than -z: the model's gravity is -z, and
+    motion capture often exports y up (OptiTrack's default), which would make every fit nonsense.
+
+    Args:
+        recordings: all recordings.
+        source: where they came from, for the message.
+
+    Raises:
+        RecordingError: naming the axis the rope hangs along.
+    """
+    sag = mean_sag(recordings)
+    size = float(np.linalg.norm(sag))
+    if size < UP_CHECK_MIN_SAG:
+        return
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, -sag[2] / size))))
+    if angle > UP_CHECK_MAX_ANGLE:
+        axis = int(np.argmax(np.abs(sag)))
+        along = f"{'+' if sag[axis] > 0 else '-'}{'xyz'[axis]}"
+        raise RecordingError(
+            f"{source}: the rope hangs along {along} (mean sag {size * 100:.1f} cm, {angle:.0f} deg from -z); "
+            "recordings are read z up, gravity along -z: rotate them (a y-up export?)"
+        )
+
+
 def _filled(fit: list[Recording], check: list[Recording], dt: float, max_gap_s: float):
     """Both sets with their dropouts filled (:func:`fill_gaps`), and a warning saying what was done
     (None when the recordings were complete)."""
@@ -240,6 +294,7 @@ def load_inputs(
         if note:
             fit, check = smoothed[: len(fit)], smoothed[len(fit) :]
             warnings.append(note)
+    check_up_axis(fit + check, f"{fit_dir}, {check_dir}")
     lengths = np.array([polyline_length(r) for r in fit + check])
     spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
     if note:

@@ -153,3 +153,34 @@ def test_a_given_clamp_is_held_and_fit_is_the_default(tmp_path, monkeypatch):
     options = ([], ["--clamp", "fit"], ["--clamp", "0.02"], ["--clamp", "0"])
     used = _budgets_asked(monkeypatch, tmp_path, *options)
     assert [(b.fit_clamp, b.clamp_m) for b in used] == [(True, 0.0), (True, 0.0), (False, 0.02), (False, 0.0)]
+
+
+def _hanging(tmp_path, up="z"):
+    """Recordings of a rope hanging 10 cm between grippers, exported z up or y up."""
+    rng = np.random.default_rng(1)
+    s = np.linspace(0, 1, 8)
+    for d in ("fit", "check"):
+        (tmp_path / d).mkdir(parents=True)
+        for i in range(3):
+            x = np.zeros((50, 8, 3))
+            x[:, :, 0] = 0.6 * s
+            x[:, :, 2] = 0.3 - 0.1 * np.sin(np.pi * s)
+            if up == "y":
+                x = x[..., [0, 2, 1]] * [1, 1, -1]  # y up: height in y, z toward the viewer
+            save_recording(tmp_path / d / f"{i}.pkl", x + rng.normal(0, 3e-4, x.shape))
+    rod = tmp_path / "rod.json"
+    rod.write_text(json.dumps({"length_m": 0.7, "mass_kg": 0.04, "n_vertices": 8}))
+    return rod, tmp_path / "fit", tmp_path / "check"
+
+
+def test_a_rope_hanging_along_another_axis_than_minus_z_is_refused(tmp_path, capsys):
+    from deform.diagnose.spec import mean_sag
+
+    rod, fit, check = _hanging(tmp_path / "z")
+    inputs = load_inputs(rod, fit, check)
+    assert mean_sag(inputs.fit)[2] < -0.03
+    rod, fit, check = _hanging(tmp_path / "y", up="y")
+    out = tmp_path / "out"
+    assert _cli(rod, fit, check, out) == 2
+    err = capsys.readouterr().err
+    assert "hangs along -y" in err and "z up" in err and not out.exists()
