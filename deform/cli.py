@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -38,6 +39,7 @@ def cmd_train(args) -> int:
     import torch
 
     from deform.config import load_rod_config
+    from deform.io.gaps import fill_recordings
     from deform.io.recordings import load_recordings
     from deform.model import MODEL_DIR, DeformModel, ModelOptions, load_model
     from deform.train import TrainConfig, split_validation, train
@@ -50,7 +52,14 @@ def cmd_train(args) -> int:
     for name in args.term:
         print(describe(name), file=sys.stderr)
     cfg = load_rod_config(args.rod)
-    recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices)
+    if args.val_every < 1:
+        raise UsageError(f"--val-every {args.val_every}: hold out every k-th recording, k at least 1")
+    if not (args.max_gap >= 0.0 and math.isfinite(args.max_gap)):
+        raise UsageError(f"--max-gap {args.max_gap}: expected a duration in seconds, 0 or more")
+    recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices, allow_gaps=True)
+    recs, note = fill_recordings(recs, args.max_gap, dt=cfg.dt)
+    if note:
+        print(f"note: {note}", file=sys.stderr)
     train_recs, val_recs = split_validation(recs, args.val_every)
     if not train_recs:
         raise UsageError(f"{args.recordings}: too few recordings to train")
@@ -188,6 +197,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     t.add_argument("--rod", required=True)
     t.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/train)")
+    t.add_argument(
+        "--max-gap",
+        type=float,
+        default=MAX_GAP_S,
+        metavar="SECONDS",
+        help="markers missing (NaN) for at most this long are filled by cubic splines in time "
+        "(default 0.1 s; 0: any missing marker is an error)",
+    )
     t.add_argument("--out", help="run directory (default runs/ROD); resumes from its checkpoint")
     t.add_argument("--iterations", type=int, default=300)
     t.add_argument("--batch", type=int, default=32)

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from deform.diagnose.denoise import denoise
 from deform.diagnose.resample import TOOL_DT, resample
-from deform.io.gaps import MAX_GAP_S, fill_gaps
+from deform.io.gaps import MAX_GAP_S, fill_recordings
 from deform.io.recordings import Recording, RecordingError, load_recordings
 
 MIN_FRAMES = 40  # at the tool's 100 Hz: a recording shorter than 0.4 s cannot be diagnosed
@@ -204,29 +204,6 @@ def check_up_axis(recordings: list[Recording], source: str | Path) -> None:
         )
 
 
-def _filled(fit: list[Recording], check: list[Recording], dt: float, max_gap_s: float):
-    """Both sets with their dropouts filled (:func:`fill_gaps`), and a warning saying what was done
-    (None when the recordings were complete)."""
-    out, done = [], []
-    for r in fit + check:
-        x, gaps = fill_gaps(r.positions, dt, r.name, max_gap_s)
-        out.append(Recording(name=r.name, positions=x, dt=r.dt) if gaps.changed else r)
-        if gaps.changed:
-            done.append((r.name, gaps))
-    if not done:
-        return fit, check, None
-    filled = sum(g.filled for _, g in done)
-    trimmed = sum(g.trimmed_start + g.trimmed_end for _, g in done)
-    note = (
-        f"markers not seen (NaN) in {len(done)} recording(s) {[name for name, _ in done]}: "
-        f"{filled} marker-frame(s) filled by cubic splines in time (gaps of at most "
-        f"{max(g.longest for _, g in done)} frames)"
-    )
-    if trimmed:
-        note += f", {trimmed} incomplete frame(s) at the recordings' ends dropped"
-    return out[: len(fit)], out[len(fit) :], note
-
-
 def load_inputs(
     rod: str | Path,
     fit_dir: str | Path,
@@ -259,7 +236,8 @@ def load_inputs(
     spec = load_rod_spec(rod)
     fit = load_recordings(fit_dir, allow_gaps=True)
     check = load_recordings(check_dir, allow_gaps=True)
-    fit, check, gap_note = _filled(fit, check, spec.dt, max_gap_s)
+    both, gap_note = fill_recordings(fit + check, max_gap_s, dt=spec.dt)  # the pickles hold no period
+    fit, check = both[: len(fit)], both[len(fit) :]
     for _, recs, d in (("fit", fit, fit_dir), ("check", check, check_dir)):
         n = recs[0].n_vertices
         if n != spec.n_vertices:

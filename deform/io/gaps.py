@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deform.io.recordings import RecordingError
+from deform.io.recordings import Recording, RecordingError
 
 MAX_GAP_S = 0.1  # the longest dropout filled by default [s]
 
@@ -87,3 +87,40 @@ def fill_gaps(positions: np.ndarray, dt: float, name: str, max_gap_s: float = MA
         filled += int((~seen).sum())
         longest = max(longest, length)
     return x, FilledGaps(filled, longest, first, positions.shape[0] - 1 - last)
+
+
+def fill_recordings(
+    recordings: list[Recording], max_gap_s: float = MAX_GAP_S, dt: float | None = None
+) -> tuple[list[Recording], str | None]:
+    """:func:`fill_gaps` on each recording, and one line saying what was done (None when every
+    recording was complete).
+
+    Args:
+        recordings: loaded with ``allow_gaps=True``.
+        max_gap_s: the longest gap filled [s].
+        dt: the frame period [s] (None: each recording's own; a pickle does not hold it, so a caller
+            that knows it better passes it).
+
+    Returns:
+        ``(recordings, note)``.
+
+    Raises:
+        RecordingError: see :func:`fill_gaps`.
+    """
+    out, done = [], []
+    for r in recordings:
+        x, gaps = fill_gaps(r.positions, dt or r.dt, r.name, max_gap_s)
+        out.append(Recording(name=r.name, positions=x, dt=r.dt) if gaps.changed else r)
+        if gaps.changed:
+            done.append((r.name, gaps))
+    if not done:
+        return out, None
+    note = (
+        f"markers not seen (NaN) in {len(done)} recording(s) {[name for name, _ in done]}: "
+        f"{sum(g.filled for _, g in done)} marker-frame(s) filled by cubic splines in time (gaps of at "
+        f"most {max(g.longest for _, g in done)} frames)"
+    )
+    trimmed = sum(g.trimmed_start + g.trimmed_end for _, g in done)
+    if trimmed:
+        note += f", {trimmed} incomplete frame(s) at the recordings' ends dropped"
+    return out, note

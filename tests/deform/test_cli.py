@@ -55,6 +55,9 @@ def test_eval_json_on_a_directory_of_unseen_recordings(synthetic_dir):
         ("wrong_n", ["eval", "--rod", "DLO2"], "has 5 markers, the rod has 12"),
         ("ok", ["eval", "--rod", "DLO9"], "unknown rod 'DLO9'"),
         ("empty", ["train", "--rod", "DLO2", "--iterations", "1"], "no .pkl recordings"),
+        ("gap", ["train", "--rod", "DLO2", "--iterations", "1"], "marker 4 is missing for 30 frames"),
+        ("ok", ["train", "--rod", "DLO2", "--iterations", "1", "--max-gap", "-1"], "--max-gap"),
+        ("ok", ["train", "--rod", "DLO2", "--iterations", "1", "--val-every", "0"], "--val-every"),
     ],
 )
 def test_bad_input_gives_one_error_line_and_writes_nothing(
@@ -68,6 +71,11 @@ def test_bad_input_gives_one_error_line_and_writes_nothing(
         (d / "a.pkl").write_bytes(pickle.dumps([np.full((3, 12), np.nan)] * 5))
     elif setup == "wrong_n":
         (d / "a.pkl").write_bytes(pickle.dumps([np.zeros((3, 5))] * 5))
+    elif setup == "gap":  # 0.3 s without marker 4: longer than train's --max-gap
+        frames = [np.stack([np.linspace(0, 0.6, 12), np.zeros(12), np.full(12, 0.3)]) for _ in range(60)]
+        for f in frames[10:40]:
+            f[:, 4] = np.nan
+        (d / "a.pkl").write_bytes(pickle.dumps(frames))
     elif setup == "ok":
         (d / "a.pkl").write_bytes(pickle.dumps([np.zeros((3, 12))] * 5))
     work = tmp_path / "work"
@@ -81,3 +89,37 @@ def test_bad_input_gives_one_error_line_and_writes_nothing(
     lines = err.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], err
     assert list(work.iterdir()) == []
+
+
+def test_train_fills_a_short_marker_gap_and_says_so(tmp_path, monkeypatch, capsys, synthetic_dir):
+    import deform.train
+
+    d = tmp_path / "recs"
+    d.mkdir()
+    for i, f in enumerate(sorted(synthetic_dir.glob("*.pkl"))):
+        frames = pickle.loads(f.read_bytes())
+        if i == 0:
+            for frame in frames[20:25]:  # 50 ms without marker 6
+                frame[:, 6] = np.nan
+        (d / f.name).write_bytes(pickle.dumps(frames))
+    seen = []
+
+    def stop(model, train_recs, val_recs, *a, **k):
+        seen.extend(train_recs + val_recs)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(deform.train, "train", stop)
+    with pytest.raises(SystemExit):
+        main(
+            [
+                "train",
+                "--rod",
+                "DLO2",
+                "--recordings",
+                str(d),
+                "--out",
+                str(tmp_path / "run"),
+            ]
+        )
+    assert len(seen) == 2 and not any(np.isnan(r.positions).any() for r in seen)
+    assert "5 marker-frame(s) filled" in capsys.readouterr().err
