@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
+from deform.argtypes import int_at_least, number
 from deform.config import ConfigError
 from deform.errors import UsageError
 from deform.io.gaps import MAX_GAP_S
@@ -52,10 +52,6 @@ def cmd_train(args) -> int:
     for name in args.term:
         print(describe(name), file=sys.stderr)
     cfg = load_rod_config(args.rod)
-    if args.val_every < 1:
-        raise UsageError(f"--val-every {args.val_every}: hold out every k-th recording, k at least 1")
-    if not (args.max_gap >= 0.0 and math.isfinite(args.max_gap)):
-        raise UsageError(f"--max-gap {args.max_gap}: expected a duration in seconds, 0 or more")
     recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices, allow_gaps=True)
     recs, note = fill_recordings(recs, args.max_gap, dt=cfg.dt)
     if note:
@@ -199,20 +195,22 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/train)")
     t.add_argument(
         "--max-gap",
-        type=float,
+        type=number(positive=False),
         default=MAX_GAP_S,
         metavar="SECONDS",
         help="markers missing (NaN) for at most this long are filled by cubic splines in time "
         "(default 0.1 s; 0: any missing marker is an error)",
     )
     t.add_argument("--out", help="run directory (default runs/ROD); resumes from its checkpoint")
-    t.add_argument("--iterations", type=int, default=300)
-    t.add_argument("--batch", type=int, default=32)
-    t.add_argument("--horizon", type=int, default=100)
-    t.add_argument("--curriculum", type=int, nargs="*", default=[10, 25, 50])
-    t.add_argument("--time-limit", type=float, default=None, help="seconds")
+    t.add_argument("--iterations", type=int_at_least(1), default=300)
+    t.add_argument("--batch", type=int_at_least(1), default=32)
+    t.add_argument("--horizon", type=int_at_least(1), default=100)
+    t.add_argument("--curriculum", type=int_at_least(1), nargs="*", default=[10, 25, 50])
+    t.add_argument("--time-limit", type=number(positive=True), default=None, help="seconds")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--val-every", type=int, default=5, help="hold out every k-th recording for validation")
+    t.add_argument(
+        "--val-every", type=int_at_least(1), default=5, help="hold out every k-th recording for validation"
+    )
     t.add_argument("--no-residual", action="store_true")
     t.add_argument("--no-sysid", action="store_true")
     t.add_argument("--original-inextensibility", action="store_true")
@@ -242,22 +240,22 @@ def build_parser() -> argparse.ArgumentParser:
         "rest_curvature, point_mass) or an added term the starting model carries",
     )
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
-    t.add_argument("--lr-physics", type=float, default=2e-2)
-    t.add_argument("--lr-network", type=float, default=1e-3)
+    t.add_argument("--lr-physics", type=number(positive=True), default=2e-2)
+    t.add_argument("--lr-network", type=number(positive=True), default=1e-3)
     t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     t.add_argument("--install", action="store_true", help="copy the best model to deform/models/ROD.pt")
-    t.add_argument("--threads", type=int, default=1)
+    t.add_argument("--threads", type=int_at_least(1), default=1)
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="500-step open-loop prediction of every recording in a directory")
     e.add_argument("--rod", required=True)
     e.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/eval)")
     e.add_argument("--model", help="checkpoint (.pt); default: the shipped model of the rod")
-    e.add_argument("--steps", type=int, default=500)
+    e.add_argument("--steps", type=int_at_least(1), default=500)
     e.add_argument("--no-residual", action="store_true")
     e.add_argument("--method", default="deform", help="deform (default) or a baseline: see deform.baselines")
     e.add_argument("--json", action="store_true")
-    e.add_argument("--threads", type=int, default=1)
+    e.add_argument("--threads", type=int_at_least(1), default=1)
     e.set_defaults(func=cmd_eval)
 
     b = sub.add_parser("bench", help="speed benchmark (latency, throughput, scaling, training)")
@@ -299,7 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument(
         "--max-gap",
-        type=float,
+        type=number(positive=False),
         default=MAX_GAP_S,
         metavar="SECONDS",
         help="markers missing (NaN) for at most this long are filled by cubic splines in time and "

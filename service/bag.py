@@ -7,12 +7,14 @@ which is how zenoh-bridge-ros2dds maps them. Replay can remap to another namespa
 from __future__ import annotations
 
 import logging
+import struct
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
@@ -109,14 +111,25 @@ def write_messages(path: str | Path, namespace: str, messages) -> None:
     w.close()
 
 
+class BagError(ValueError):
+    """A file that is not a readable MCAP recording; the message names it."""
+
+
 def read_messages(path: str | Path) -> list[Message]:
-    """All messages of known input names, in log-time order (stable for equal times)."""
+    """All messages of known input names, in log-time order (stable for equal times).
+
+    Raises:
+        BagError: not an MCAP file, or one cut short.
+    """
     out = []
-    with open(path, "rb") as f:
-        for _, channel, msg in make_reader(f).iter_messages(log_time_order=True):
-            name = channel.topic.rstrip("/").rsplit("/", 1)[-1]
-            if name in TYPES and name != "vertices":
-                out.append(Message(name, msg.log_time, bytes(msg.data)))
+    try:
+        with open(path, "rb") as f:
+            for _, channel, msg in make_reader(f).iter_messages(log_time_order=True):
+                name = channel.topic.rstrip("/").rsplit("/", 1)[-1]
+                if name in TYPES and name != "vertices":
+                    out.append(Message(name, msg.log_time, bytes(msg.data)))
+    except (McapError, EOFError, struct.error) as exc:
+        raise BagError(f"{path}: not a readable MCAP recording ({exc})") from None
     return out
 
 

@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 
+from deform.argtypes import int_at_least, number
 from service.config import ServiceConfigError, load_config
 
 
@@ -37,7 +38,9 @@ def _common(p: argparse.ArgumentParser, default=None) -> argparse.ArgumentParser
         default=default,
         help="zenoh: plain keys (zenoh-bridge-ros2dds); ros2: rmw_zenoh keys and graph tokens (run, record)",
     )
-    p.add_argument("--domain-id", type=int, default=default, help="interface ros2: ROS_DOMAIN_ID (default 0)")
+    p.add_argument(
+        "--domain-id", type=int_at_least(0), default=default, help="interface ros2: ROS_DOMAIN_ID (default 0)"
+    )
     p.add_argument("-v", "--verbose", action="store_true", default=default or False)
     return p
 
@@ -63,20 +66,20 @@ def _parser() -> argparse.ArgumentParser:
         "record", parents=[shared], help="record the input keys to an MCAP file (Ctrl-C to stop)"
     )
     rec.add_argument("file")
-    rec.add_argument("--duration", type=float, help="seconds, default until interrupted")
+    rec.add_argument("--duration", type=number(positive=True), help="seconds, default until interrupted")
     rep = sub.add_parser("replay", parents=[shared], help="publish an MCAP file on the input keys")
     rep.add_argument("file")
     rep.add_argument(
         "--fast", action="store_true", help="as fast as possible (use a service with --clock message)"
     )
-    rep.add_argument("--speed", type=float, default=1.0)
+    rep.add_argument("--speed", type=number(positive=True), default=1.0)
     bag = sub.add_parser(
         "demo-bag",
         parents=[shared],
         help="write the demo recording (poses and rendered clouds) to an MCAP file",
     )
     bag.add_argument("file")
-    bag.add_argument("--frames", type=int, default=500)
+    bag.add_argument("--frames", type=int_at_least(2), default=500)
     return p
 
 
@@ -112,6 +115,20 @@ def _config(args):
         if rr:
             over["rerun"] = base.rerun.model_copy(update=rr).model_dump()
     return load_config(args.config, **over)
+
+
+def _check_files(args) -> None:
+    """A file to replay must exist, a file to write must have its directory: one line, before a
+    session is opened (a missing replay file was a traceback)."""
+    from pathlib import Path
+
+    path = getattr(args, "file", None)
+    if path is None:
+        return
+    if args.command == "replay" and not Path(path).is_file():
+        raise ServiceConfigError(f"{path}: no such file to replay")
+    if args.command in ("record", "demo-bag") and not Path(path).resolve().parent.is_dir():
+        raise ServiceConfigError(f"{path}: its directory does not exist")
 
 
 def _wait(stop: threading.Event, duration: float | None = None) -> None:
@@ -180,6 +197,7 @@ def main(argv=None) -> int:
     )
     try:
         cfg = _config(args)
+        _check_files(args)
     except ServiceConfigError as exc:
         print(f"deform-service: {exc}", file=sys.stderr)
         return 2
@@ -216,8 +234,12 @@ def main(argv=None) -> int:
         session.close()
         return 0
     if args.command == "replay":
+        try:
+            messages = bag.read_messages(args.file)
+        except bag.BagError as exc:
+            print(f"deform-service: {exc}", file=sys.stderr)
+            return 2
         session = open_session(cfg.zenoh)
-        messages = bag.read_messages(args.file)
         n = bag.replay(session, cfg.namespace, messages, fast=args.fast, speed=args.speed)
         print(f"replayed {n} messages on {cfg.namespace}/*")
         session.close()

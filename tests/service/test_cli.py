@@ -73,3 +73,38 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
     finally:
         torch.set_num_threads(before)
     assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float32) != built[1][3]
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["replay", "{tmp}/missing.mcap"], "no such file to replay"),
+        (["replay", "{tmp}/garbage.mcap"], "not a readable MCAP recording"),
+        (["demo-bag", "{tmp}/no/such/dir/x.mcap", "--frames", "10"], "directory does not exist"),
+    ],
+)
+def test_unusable_files_are_one_line_and_exit_2_before_a_session(tmp_path, capsys, monkeypatch, argv, needle):
+    import service.node
+
+    monkeypatch.setattr(service.node, "open_session", lambda *a: pytest.fail("a session was opened"))
+    (tmp_path / "garbage.mcap").write_bytes(b"not an mcap file")
+    assert cli.main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
+    assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["replay", "x.mcap", "--speed", "0"],
+        ["record", "x.mcap", "--duration", "-1"],
+        ["demo-bag", "x.mcap", "--frames", "0"],
+    ],
+)
+def test_bad_numbers_stop_at_parsing(tmp_path, monkeypatch, capsys, argv):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(argv)
+    assert stop.value.code == 2 and argv[-2] in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
