@@ -13,7 +13,7 @@ from pathlib import Path
 
 from deform.argtypes import int_at_least, number
 from deform.config import ConfigError
-from deform.errors import UsageError
+from deform.errors import CheckpointError, UsageError
 from deform.io.gaps import MAX_GAP_S
 from deform.io.recordings import RecordingError, find_data_root
 
@@ -325,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (RecordingError, ConfigError, UsageError) as exc:
+    except (RecordingError, ConfigError, UsageError, CheckpointError) as exc:
         print(f"deform {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -7,3 +7,8 @@ so a class defined there would be a different class from the one other modules i
 
 class UsageError(ValueError):
     """Arguments or inputs that cannot be used; the message names the file or option."""
+
+
+class CheckpointError(ValueError):
+    """A model file that is missing, not a DEFORM checkpoint, or one of another model; the message
+    names the file."""

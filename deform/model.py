@@ -602,7 +602,19 @@ class DeformModel(nn.Module):
 
     @classmethod
     def load(cls, path: str | Path) -> DeformModel:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        """A checkpoint written by :meth:`save` (loaded with ``weights_only``: tensors and plain
+        data only). Raises :class:`deform.errors.CheckpointError` naming the file when it is
+        missing, unreadable or of another model."""
+        from deform.errors import CheckpointError
+
+        if not Path(path).is_file():
+            raise CheckpointError(f"{path}: no such model file")
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises several types for a file that is no checkpoint
+            raise CheckpointError(f"{path}: not a DEFORM checkpoint ({type(exc).__name__})") from None
+        if not isinstance(payload, dict) or not {"config", "options", "state_dict"} <= payload.keys():
+            raise CheckpointError(f"{path}: not a DEFORM checkpoint (no config, options and state_dict)")
         model = cls(RodConfig(**payload["config"]), ModelOptions(**payload["options"]))
         if payload.get("terms"):
             from deform.terms import rebuild
@@ -610,7 +622,7 @@ class DeformModel(nn.Module):
             rebuild(model, payload["terms"])
         missing, unexpected = model.load_state_dict(payload["state_dict"], strict=False)
         if unexpected or any(k not in ("log_drag", "nominal_rest") for k in missing):
-            raise RuntimeError(
+            raise CheckpointError(
                 f"{path}: checkpoint does not match the model (missing {missing}, unexpected {unexpected})"
             )
         if payload.get("terms"):

@@ -181,6 +181,23 @@ class ServiceConfig(_Strict):
                 raise ValueError(f"perception settings {v}: {exc}") from None
         return v
 
+    @field_validator("rod")
+    @classmethod
+    def _rod(cls, v: str) -> str:
+        """A rod name or a checkpoint that exists: fail at start-up naming it, not in a worker after
+        the processes started (the content of a checkpoint is read by the loop)."""
+        if v.endswith(".pt"):
+            if not Path(v).is_file():
+                raise ValueError(f"rod {v}: no such model file")
+            return v
+        from deform.config import ConfigError, load_rod_config
+
+        try:
+            load_rod_config(v)
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+        return v
+
     @field_validator("namespace")
     @classmethod
     def _key(cls, v: str) -> str:

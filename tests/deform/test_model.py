@@ -224,3 +224,16 @@ def test_options_take_strings_once_and_checkpoints_store_plain_values(tmp_path):
     stored = torch.load(tmp_path / "m.pt", weights_only=True)["options"]
     assert stored["theta_solver"] == "theseus" and type(stored["theta_solver"]) is str
     assert DeformModel.load(tmp_path / "m.pt").options == opts
+
+
+def test_a_bad_checkpoint_is_a_checkpoint_error_naming_the_file(tmp_path):
+    from deform.errors import CheckpointError
+
+    with pytest.raises(CheckpointError, match=r"gone\.pt: no such model file"):
+        DeformModel.load(tmp_path / "gone.pt")
+    (tmp_path / "text.pt").write_text("not a checkpoint")
+    with pytest.raises(CheckpointError, match=r"text\.pt: not a DEFORM checkpoint"):
+        DeformModel.load(tmp_path / "text.pt")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match=r"other\.pt: not a DEFORM checkpoint"):
+        load_model(str(tmp_path / "other.pt"))

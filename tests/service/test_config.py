@@ -48,3 +48,14 @@ def test_perception_settings_file_is_checked_at_load(tmp_path):
     bad.write_text("tracker: {stale_after: 0.5}\n")
     with pytest.raises(ServiceConfigError, match="stale_after"):
         load_config(perception=str(bad))
+
+
+def test_rod_is_checked_at_load_not_in_a_started_worker(tmp_path):
+    assert load_config(rod="DLO3").rod == "DLO3"
+    model = tmp_path / "m.pt"
+    model.write_bytes(b"")  # a file: its content is the loop's to read
+    assert load_config(rod=str(model)).rod == str(model)
+    with pytest.raises(ServiceConfigError, match="unknown rod 'DLO9'"):
+        load_config(rod="DLO9")
+    with pytest.raises(ServiceConfigError, match="no such model file"):
+        load_config(rod=str(tmp_path / "gone.pt"))
