@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from deform.argtypes import int_at_least
 from service import bag, scenario
 from service.client import ServiceError, ShapeClient
 from service.config import load_config
@@ -176,7 +177,7 @@ def plot(result: dict, path: str, title: str) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m service.demo", description=__doc__)
-    ap.add_argument("--frames", type=int, default=500)
+    ap.add_argument("--frames", type=int_at_least(2), default=500)
     ap.add_argument("--rrd", default="demo.rrd")
     ap.add_argument("--png", help="also save a picture of the run (e.g. docs/demo.png)")
     ap.add_argument("--rod", default="DLO1")
