@@ -206,6 +206,7 @@ def _serve(conn, cfg, nice: int = 0, threads: int | None = None) -> None:
     import service.predict  # the predict job's code
     import service.tracking  # noqa: F401  (perception, for fuse: imported once here, not in a timed job)
     from deform import DeformModel
+    from deform.errors import CheckpointError
 
     try:
         op, args = conn.recv()
@@ -215,7 +216,7 @@ def _serve(conn, cfg, nice: int = 0, threads: int | None = None) -> None:
         return
     try:
         model = DeformModel.load(args[0])
-    except FileNotFoundError:
+    except CheckpointError:
         # the parent closed before this worker had started (a pool's late joiner at exit) and its
         # temporary model file went with it; a parent still waiting sees the socket close
         return

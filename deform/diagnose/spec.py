@@ -151,9 +151,8 @@ def marker_span_spec(
 
 
 UP_CHECK_MIN_SAG = 0.01  # [m] below this mean sag the direction says nothing (a taut or stiff rope)
-UP_CHECK_MAX_ANGLE = (
-    45.0  # [deg] between the mean sag and -z; DEFORM's rods hang within 18 deg in every recording
-)
+# [deg] the most the mean sag may turn from -z; DEFORM's rods hang within 18 deg in every recording
+UP_CHECK_MAX_ANGLE = 45.0
 
 
 def mean_sag(recordings: list[Recording]) -> np.ndarray:
