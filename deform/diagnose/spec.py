@@ -178,29 +178,39 @@ def mean_sag(recordings: list[Recording]) -> np.ndarray:
     return np.mean(out, axis=0)
 
 
-def check_up_axis(recordings: list[Recording], source: str | Path) -> None:
-    """Raise when the rope clearly hangs along another axis than -z: the model's gravity is -z, and
-    motion capture often exports y up (OptiTrack's default), which would make every fit nonsense.
+def check_up_axis(recordings: list[Recording], source: str | Path) -> str | None:
+    """Raise when the rope clearly hangs sideways: the model's gravity is -z, and motion capture
+    often exports y up (OptiTrack's default), which would make every fit nonsense. A rope bowing
+    upward on average is only a warning: a stiff rod held in an arch does that with gravity along -z.
 
     Args:
         recordings: all recordings.
         source: where they came from, for the message.
 
+    Returns:
+        A warning, or None.
+
     Raises:
-        RecordingError: naming the axis the rope hangs along.
+        RecordingError: naming the horizontal axis the rope hangs along.
     """
     sag = mean_sag(recordings)
     size = float(np.linalg.norm(sag))
     if size < UP_CHECK_MIN_SAG:
-        return
+        return None
     angle = math.degrees(math.acos(max(-1.0, min(1.0, -sag[2] / size))))
-    if angle > UP_CHECK_MAX_ANGLE:
-        axis = int(np.argmax(np.abs(sag)))
-        along = f"{'+' if sag[axis] > 0 else '-'}{'xyz'[axis]}"
-        raise RecordingError(
-            f"{source}: the rope hangs along {along} (mean sag {size * 100:.1f} cm, {angle:.0f} deg from -z); "
-            "recordings are read z up, gravity along -z: rotate them (a y-up export?)"
+    if angle <= UP_CHECK_MAX_ANGLE:
+        return None
+    axis = int(np.argmax(np.abs(sag)))
+    along = f"{'+' if sag[axis] > 0 else '-'}{'xyz'[axis]}"
+    if axis == 2:
+        return (
+            f"the rope bows upward on average (mean offset {size * 100:.1f} cm along +z from the line "
+            "between its grippers): an arch, or recordings with gravity along +z (they are read z up)"
         )
+    raise RecordingError(
+        f"{source}: the rope hangs along {along} (mean sag {size * 100:.1f} cm, {angle:.0f} deg from -z); "
+        "recordings are read z up, gravity along -z: rotate them (a y-up export?)"
+    )
 
 
 def load_inputs(
@@ -271,7 +281,9 @@ def load_inputs(
         if note:
             fit, check = smoothed[: len(fit)], smoothed[len(fit) :]
             warnings.append(note)
-    check_up_axis(fit + check, f"{fit_dir}, {check_dir}")
+    note = check_up_axis(fit + check, f"{fit_dir}, {check_dir}")
+    if note:
+        warnings.append(note)
     lengths = np.array([polyline_length(r) for r in fit + check])
     spec, note = marker_span_spec(spec, float(np.median(lengths)), rod)
     if note:

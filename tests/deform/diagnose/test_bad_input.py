@@ -168,13 +168,15 @@ def _hanging(tmp_path, up="z"):
             x[:, :, 2] = 0.3 - 0.1 * np.sin(np.pi * s)
             if up == "y":
                 x = x[..., [0, 2, 1]] * [1, 1, -1]  # y up: height in y, z toward the viewer
+            if up == "arch":
+                x[:, :, 2] = 0.3 + 0.1 * np.sin(np.pi * s)  # bowing upward, gravity still along -z
             save_recording(tmp_path / d / f"{i}.pkl", x + rng.normal(0, 3e-4, x.shape))
     rod = tmp_path / "rod.json"
     rod.write_text(json.dumps({"length_m": 0.7, "mass_kg": 0.04, "n_vertices": 8}))
     return rod, tmp_path / "fit", tmp_path / "check"
 
 
-def test_a_rope_hanging_along_another_axis_than_minus_z_is_refused(tmp_path, capsys):
+def test_a_rope_hanging_sideways_is_refused_and_one_bowing_up_is_a_warning(tmp_path, capsys):
     from deform.diagnose.spec import mean_sag
 
     rod, fit, check = _hanging(tmp_path / "z")
@@ -185,3 +187,5 @@ def test_a_rope_hanging_along_another_axis_than_minus_z_is_refused(tmp_path, cap
     assert _cli(rod, fit, check, out) == 2
     err = capsys.readouterr().err
     assert "hangs along -y" in err and "z up" in err and not out.exists()
+    rod, fit, check = _hanging(tmp_path / "arch", up="arch")  # an arch is a warning only
+    assert any("bows upward" in w for w in load_inputs(rod, fit, check).warnings)
