@@ -208,13 +208,19 @@ def main(argv=None) -> int:
     from service import bag
     from service.node import Service, open_session
 
-    if args.command in (None, "run"):
-        svc = Service(cfg).start()
+    if args.command in (None, "run", "prebuild"):
+        from deform.errors import CheckpointError
+
+        try:
+            if args.command == "prebuild":
+                return prebuild(cfg)
+            svc = Service(cfg).start()
+        except CheckpointError as exc:  # the config checks that the file exists, not what it holds
+            print(f"deform-service: {exc}", file=sys.stderr)
+            return 2
         _wait(threading.Event())
         svc.stop()
         return 0
-    if args.command == "prebuild":
-        return prebuild(cfg)
     if args.command == "record":
         session = open_session(cfg.zenoh)
         stop = threading.Event()

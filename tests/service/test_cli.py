@@ -108,3 +108,11 @@ def test_bad_numbers_stop_at_parsing(tmp_path, monkeypatch, capsys, argv):
         cli.main(argv)
     assert stop.value.code == 2 and argv[-2] in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_model_file_that_is_no_checkpoint_is_one_line_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / "model.pt"
+    bad.write_text("not a checkpoint")  # exists, so the config accepts it; its content is read at start
+    assert cli.main(["prebuild", "--rod", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a DEFORM checkpoint" in err[0]
