@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from deform.diagnose.denoise import denoise
 from deform.diagnose.resample import TOOL_DT, resample
 from deform.io.gaps import MAX_GAP_S, fill_recordings
+from deform.io.labels import fix_recordings_labels
 from deform.io.recordings import Recording, RecordingError, load_recordings
 
 MIN_FRAMES = 40  # at the tool's 100 Hz: a recording shorter than 0.4 s cannot be diagnosed
@@ -246,6 +247,7 @@ def load_inputs(
     fit = load_recordings(fit_dir, allow_gaps=True)
     check = load_recordings(check_dir, allow_gaps=True)
     both, gap_note = fill_recordings(fit + check, max_gap_s, dt=spec.dt)  # the pickles hold no period
+    both, label_note = fix_recordings_labels(both)
     fit, check = both[: len(fit)], both[len(fit) :]
     for _, recs, d in (("fit", fit, fit_dir), ("check", check, check_dir)):
         n = recs[0].n_vertices
@@ -265,7 +267,7 @@ def load_inputs(
             f"{fit_dir if short[0] in {r.name for r in fit} else check_dir}: recording(s) {short} are "
             f"shorter than {MIN_FRAMES} frames at {1 / TOOL_DT:.0f} Hz ({(MIN_FRAMES - 1) * TOOL_DT:.2f} s)"
         )
-    warnings: list[str] = [gap_note] if gap_note else []
+    warnings: list[str] = [n for n in (gap_note, label_note) if n]
     given_dt = spec.dt
     if not math.isclose(spec.dt, TOOL_DT, rel_tol=1e-9):
         fit = [resample(r, spec.dt) for r in fit]

@@ -97,6 +97,19 @@ def test_a_short_dropout_is_filled_and_said_and_max_gap_bounds_it(tmp_path, caps
     assert not out.exists()
 
 
+def test_swapped_marker_labels_are_restored_and_said(tmp_path):
+    from deform.io import load_recording
+
+    rod, fit, check = _write(tmp_path)
+    x = load_recording(check / "1.pkl").positions
+    swapped = x.copy()
+    swapped[10:20, [3, 4]] = x[10:20, [4, 3]]
+    save_recording(check / "1.pkl", swapped)
+    inputs = load_inputs(rod, fit, check, smooth_noise=False)  # 1 mm of noise would be smoothed
+    assert np.array_equal(inputs.check[1].positions, x)
+    assert any("markers 3-4: 10 frame(s)" in w for w in inputs.warnings)
+
+
 def test_bad_rod_json_names_the_file(tmp_path, capsys):
     rod, fit, check = _write(tmp_path)
     rod.write_text('{"length_m": -1}')
