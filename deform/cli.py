@@ -41,6 +41,7 @@ def cmd_train(args) -> int:
     from deform.config import load_rod_config
     from deform.io.gaps import fill_recordings
     from deform.io.labels import fix_recordings_labels
+    from deform.io.orientation import check_up_axis
     from deform.io.recordings import load_recordings
     from deform.model import MODEL_DIR, DeformModel, ModelOptions, load_model
     from deform.train import TrainConfig, split_validation, train
@@ -56,7 +57,8 @@ def cmd_train(args) -> int:
     recs = load_recordings(_data_dir(args.rod, "train", args.recordings), cfg.n_vertices, allow_gaps=True)
     recs, gap_note = fill_recordings(recs, args.max_gap, dt=cfg.dt)
     recs, label_note = fix_recordings_labels(recs)
-    for note in (gap_note, label_note):
+    up_note = check_up_axis(recs, args.recordings or args.rod)
+    for note in (gap_note, label_note, up_note):
         if note:
             print(f"note: {note}", file=sys.stderr)
     train_recs, val_recs = split_validation(recs, args.val_every)

@@ -56,6 +56,7 @@ def test_eval_json_on_a_directory_of_unseen_recordings(synthetic_dir):
         ("ok", ["eval", "--rod", "DLO9"], "unknown rod 'DLO9'"),
         ("empty", ["train", "--rod", "DLO2", "--iterations", "1"], "no .pkl recordings"),
         ("gap", ["train", "--rod", "DLO2", "--iterations", "1"], "marker 4 is missing for 30 frames"),
+        ("y_up", ["train", "--rod", "DLO2", "--iterations", "1"], "the rope hangs along -y"),
     ],
 )
 def test_bad_input_gives_one_error_line_and_writes_nothing(
@@ -74,6 +75,10 @@ def test_bad_input_gives_one_error_line_and_writes_nothing(
         for f in frames[10:40]:
             f[:, 4] = np.nan
         (d / "a.pkl").write_bytes(pickle.dumps(frames))
+    elif setup == "y_up":  # a rope hanging 10 cm, exported with y up
+        s = np.linspace(0, 1, 12)
+        frame = np.stack([0.9 * s, 0.4 - 0.1 * np.sin(np.pi * s), np.zeros(12)])
+        (d / "a.pkl").write_bytes(pickle.dumps([frame] * 60))
     elif setup == "ok":
         (d / "a.pkl").write_bytes(pickle.dumps([np.zeros((3, 12))] * 5))
     work = tmp_path / "work"

@@ -190,7 +190,7 @@ def _hanging(tmp_path, up="z"):
 
 
 def test_a_rope_hanging_sideways_is_refused_and_one_bowing_up_is_a_warning(tmp_path, capsys):
-    from deform.diagnose.spec import mean_sag
+    from deform.io.orientation import mean_sag
 
     rod, fit, check = _hanging(tmp_path / "z")
     inputs = load_inputs(rod, fit, check)
