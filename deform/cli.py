@@ -189,6 +189,19 @@ def cmd_demo(args) -> int:
     return int(model_demo() or 0)
 
 
+def _add_max_gap(p: argparse.ArgumentParser) -> None:
+    """``--max-gap``, the same for every command that reads a user's recordings (deform.io.gaps)."""
+    p.add_argument(
+        "--max-gap",
+        type=number(positive=False),
+        default=MAX_GAP_S,
+        metavar="SECONDS",
+        help="markers missing (NaN) for at most this long are filled by cubic splines in time and "
+        "incomplete frames at a recording's ends dropped, stated as a note (default 0.1 s; "
+        "0: any missing marker is an error)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="deform", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -198,14 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     t.add_argument("--rod", required=True)
     t.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/train)")
-    t.add_argument(
-        "--max-gap",
-        type=number(positive=False),
-        default=MAX_GAP_S,
-        metavar="SECONDS",
-        help="markers missing (NaN) for at most this long are filled by cubic splines in time "
-        "(default 0.1 s; 0: any missing marker is an error)",
-    )
+    _add_max_gap(t)
     t.add_argument("--out", help="run directory (default runs/ROD); resumes from its checkpoint")
     t.add_argument("--iterations", type=int_at_least(1), default=300)
     t.add_argument("--batch", type=int_at_least(1), default=32)
@@ -300,15 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="auto (default): recordings at 100 Hz or faster with marker noise above 0.5 mm are smoothed "
         "(Savitzky-Golay, stated in the report); off: never",
     )
-    g.add_argument(
-        "--max-gap",
-        type=number(positive=False),
-        default=MAX_GAP_S,
-        metavar="SECONDS",
-        help="markers missing (NaN) for at most this long are filled by cubic splines in time and "
-        "incomplete frames at a recording's ends dropped, stated in the report (default 0.1 s; "
-        "0: any missing marker is an error)",
-    )
+    _add_max_gap(g)
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 
