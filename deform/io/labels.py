@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from deform.io.recordings import Recording
+
 # a frame's neighbours are swapped back when the crossed assignment is shorter than this share of the
 # labelled one: a real swap of markers 3-10 cm apart moving at most 2 cm a frame gives at most 0.2-0.5
 # of it; the rope's own motion never favours the crossed one by that much
@@ -45,18 +47,16 @@ def fix_label_swaps(positions: np.ndarray) -> tuple[np.ndarray, list[tuple[int, 
     return (x if swaps else positions), swaps
 
 
-def fix_recordings_labels(recordings: list) -> tuple[list, str | None]:
+def fix_recordings_labels(recordings: list[Recording]) -> tuple[list[Recording], str | None]:
     """:func:`fix_label_swaps` on each recording, and one line saying what was restored (None when
     no labels crossed).
 
     Args:
-        recordings: :class:`deform.io.recordings.Recording`, without NaN.
+        recordings: without NaN.
 
     Returns:
         ``(recordings, note)``.
     """
-    from deform.io.recordings import Recording
-
     out, done = [], []
     for r in recordings:
         x, swaps = fix_label_swaps(r.positions)
