@@ -66,10 +66,15 @@ def budget(quick) -> DiagnoseBudget:
 def tool_budget(args) -> DiagnoseBudget:
     """The budget of the tool's runs: ``--quick``, and ``--fits-version N`` for the fits of an
     older tool (6: slow terms on the candidates' fixed windows; 7: rest curvature in the "up"
-    convention's roll, not read from each recording; 8: the rope freed at the gripped markers)."""
+    convention's roll, not read from each recording; 8: the rope freed at the gripped markers;
+    10: every fit at the 10 ms step)."""
     version = getattr(args, "fits_version", None) or TOOL_VERSION
     return dataclasses.replace(
-        budget(args.quick), grow_slow_terms=version >= 7, read_roll=version >= 8, fit_clamp=version >= 9
+        budget(args.quick),
+        grow_slow_terms=version >= 7,
+        read_roll=version >= 8,
+        fit_clamp=version >= 9,
+        slow_step_s=DiagnoseBudget().slow_step_s if version >= 11 else None,
     )
 
 
@@ -106,8 +111,10 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # the wind term is fitted as log strength and azimuth from a grid of directions and strengths
 # (terms.ExternalForce); before, its two components started from no wind and reached at most about
 # 0.75 m/s^2 per axis; and a clip's mass is fitted as its log from three masses (terms.PointMass):
-# before, its fits stopped at about 10.5 g.
-TOOL_VERSION = 10
+# before, its fits stopped at about 10.5 g. v11: the slow terms (internal damping) and their reference
+# fitted with the model stepped at 2.5 ms, and every later round once one is selected
+# (DiagnoseBudget.slow_step_s); before, every fit at 10 ms.
+TOOL_VERSION = 11
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0

@@ -42,6 +42,9 @@ class FitBudget:
     final_horizon: int | None = None
     grow: float = 0.6
     min_batch: int = 4
+    # the model's longest step [s] in this fit (None: simulator.MAX_STEP_S): see
+    # DiagnoseBudget.slow_step_s
+    max_step_s: float | None = None
     anneal: bool = (
         True  # second half: cosine decay of the learning rates to 0: the last iterate settles instead of
     )

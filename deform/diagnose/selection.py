@@ -21,6 +21,7 @@ from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penal
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
     MATERIAL_DAMPING_MAX,
+    MAX_STEP_S,
     Nominal,
     Simulator,
     arclength_of,
@@ -58,6 +59,13 @@ class DiagnoseBudget:
     # who knows how far past the gripped markers the jaws hold the rope gives it (deform diagnose
     # --clamp); 0 with fit_clamp off frees the rope at the markers
     clamp_m: float = 0.0
+    # slow terms (Term.slow: internal damping) and their reference are fitted with the model stepped
+    # at most this long [s] (2 steps per 100 Hz frame), and so is every later round once one is
+    # selected; None: every fit at simulator.MAX_STEP_S (tool v10). Why: the 10 ms step's own
+    # dissipation stands in for a light rope's material damping: on PyElastica's light rope planted
+    # with 2e-4 m^4/s the check error was lowest at nu 0 with 10 ms steps (the term fitted at 0) and
+    # near the truth with 2.5 ms steps; 5 ms names it at half the cost of 2.5 (docs/diagnose.md)
+    slow_step_s: float | None = 0.005
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
@@ -211,6 +219,21 @@ def fit_noise(
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
 
+def model_step_for(term: Term, selected: list[Term], slow_step_s: float | None) -> float | None:
+    """The longest model step [s] a candidate is fitted with: ``slow_step_s`` for a slow term
+    (:attr:`Term.slow`) and for every term once a slow one is selected (its fitted size holds at
+    the step it was fitted with), else None (:data:`simulator.MAX_STEP_S`).
+
+    Args:
+        term: the candidate.
+        selected: terms selected in earlier rounds.
+        slow_step_s: :attr:`DiagnoseBudget.slow_step_s`.
+    """
+    if slow_step_s is None or not (term.slow or any(t.slow for t in selected)):
+        return None
+    return slow_step_s
+
+
 def refit_reference(
     spec, nominal, selected, inputs: Inputs, budget: FitBudget, current: CheckErrors, desc: str
 ) -> CheckErrors:
@@ -251,7 +274,9 @@ def fit_and_check(
     Returns:
         ``(simulator, CheckErrors)``.
     """
-    sim = Simulator(spec, copy.deepcopy(nominal), terms, hidden=hidden)
+    sim = Simulator(
+        spec, copy.deepcopy(nominal), terms, hidden=hidden, max_step_s=budget.max_step_s or MAX_STEP_S
+    )
     fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
     return sim, CheckErrors.of(sim, inputs.check)
 
@@ -309,26 +334,30 @@ def diagnose(
     base_nominal, base_err, base_sim = nominal, c_nom, sim
     remaining = list(budget.candidates)
     candidates_out: list[dict] = []
-    slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON)
+    slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON if budget.grow_slow_terms else None)
 
     def budget_for(term: Term) -> FitBudget:
         """A term's fit budget: slow terms on windows growing to the scoring windows (see
-        :attr:`DiagnoseBudget.grow_slow_terms`), the others on the candidate budget's."""
-        return slow_cb if budget.grow_slow_terms and term.slow else cb
+        :attr:`DiagnoseBudget.grow_slow_terms`), the others on the candidate budget's; slow terms,
+        and every term once one is selected, with the model's step at most
+        :attr:`DiagnoseBudget.slow_step_s`."""
+        tb = slow_cb if term.slow else cb
+        return dataclasses.replace(tb, max_step_s=model_step_for(term, selected, budget.slow_step_s))
 
     for rnd in range(budget.max_rounds):
         if not remaining:
             break
-        references: dict[int | None, CheckErrors] = {}  # per fit-window kind, fitted once per round
+        references: dict[tuple, CheckErrors] = {}  # per fit-window kind and step, fitted once per round
         results = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context, read_roll=budget.read_roll)
             tb = budget_for(term)
-            if tb.final_horizon not in references:
-                references[tb.final_horizon] = refit_reference(
+            kind = (tb.final_horizon, tb.max_step_s)
+            if kind not in references:
+                references[kind] = refit_reference(
                     spec, base_nominal, selected, inputs, tb, base_err, f"round {rnd + 1}: reference"
                 )
-            c_ref = references[tb.final_horizon]
+            c_ref = references[kind]
             e_ref = c_ref.window
             csim, checked = fit_and_check(
                 spec,
@@ -363,6 +392,7 @@ def diagnose(
                     "reference_check_l1_m": float(c_ref.rollout.mean()),
                     "reference_check_window_l1_m": float(e_ref.mean()),
                     "growing_windows": tb.final_horizon is not None,
+                    "model_step_s": csim.model.dt,
                 }
             )
         choice = choose([c for c in candidates_out if c["round"] == rnd + 1])

@@ -223,17 +223,18 @@ def clamped(grip: Tensor, clamp: Tensor) -> Tensor:
     )
 
 
-def frame_substeps(dt: float) -> int:
+def frame_substeps(dt: float, max_step_s: float = MAX_STEP_S) -> int:
     """Model steps per recorded frame of period ``dt`` [s]: the fewest that keep each at most
-    :data:`MAX_STEP_S` (1 at 100 Hz and above; 2 at 50 Hz; 4 at 30 Hz).
+    ``max_step_s`` (with :data:`MAX_STEP_S`: 1 at 100 Hz and above; 2 at 50 Hz; 4 at 30 Hz).
 
     Args:
         dt: the recordings' frame period [s].
+        max_step_s: the longest model step [s].
 
     Returns:
         Substeps per frame.
     """
-    return max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
+    return max(1, math.ceil(dt / max_step_s - 1e-9))
 
 
 def roll_directors(d1: Tensor, t: Tensor, roll: Tensor) -> Tensor:
@@ -252,8 +253,8 @@ class Simulator:
     the same as a uniform mass factor, which the fitted stiffness absorbs; with mass between the
     markers the two differ. Terms are then built on the node arc length (:meth:`node_arclength`).
     ``substeps``: model steps per frame instead (a study of the step's own error).
-    A frame period longer than :data:`MAX_STEP_S` is stepped in ``ceil(dt / MAX_STEP_S)`` substeps
-    as well (:func:`frame_substeps`)."""
+    A frame period longer than ``max_step_s`` (default :data:`MAX_STEP_S`) is stepped in
+    ``ceil(dt / max_step_s)`` substeps as well (:func:`frame_substeps`)."""
 
     def __init__(
         self,
@@ -262,9 +263,10 @@ class Simulator:
         terms: list[Term] | None = None,
         hidden: int = 0,
         substeps: int | None = None,
+        max_step_s: float = MAX_STEP_S,
     ):
         self.hidden = hidden
-        self.substeps = substeps or (hidden + 1) * frame_substeps(spec.dt)
+        self.substeps = substeps or (hidden + 1) * frame_substeps(spec.dt, max_step_s)
         self.n_markers = spec.n_vertices
         self.markers = marker_nodes(spec.n_vertices, hidden)
         n = self.markers[-1] + 1

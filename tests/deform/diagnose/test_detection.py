@@ -113,3 +113,50 @@ def test_slow_terms_grow_their_windows_against_their_own_reference(sources):
     ref = {n: c["reference_check_window_l1_m"] for n, c in out[True].items()}
     assert ref["external_force"] == ref["point_mass"]  # one common reference
     assert out[True]["internal_damping"]["improvement"] != out[False]["internal_damping"]["improvement"]
+
+
+def test_slow_terms_are_fitted_with_the_finer_step_and_so_is_every_later_round(sources):
+    """With ``slow_step_s`` the internal damping and its reference run the model at that step (2
+    steps per frame here), the other round-1 candidates at the 10 ms step; once a slow term is
+    selected every later candidate runs at the finer step. Smoke-sized: the wiring."""
+    import dataclasses
+
+    from deform.diagnose.fitting import FitBudget
+    from deform.diagnose.selection import DiagnoseBudget
+
+    inputs, _ = _inputs(None, sources)
+    b = DiagnoseBudget(
+        nominal_iterations=3,
+        candidate=FitBudget(iterations=3, batch=4, horizon=10, starts=1),
+        max_rounds=2,
+        later_round_candidates=2,
+        candidates=("internal_damping", "external_force", "point_mass"),
+        localization_recordings=3,
+        progress=False,
+    )
+    rep = diagnose(inputs, b).report
+    first = {c["name"]: c for c in rep["candidates"] if c["round"] == 1}
+    assert first["internal_damping"]["model_step_s"] == pytest.approx(0.005)
+    assert first["external_force"]["model_step_s"] == pytest.approx(0.01)
+    assert first["point_mass"]["model_step_s"] == pytest.approx(0.01)
+    coarse = diagnose(inputs, dataclasses.replace(b, slow_step_s=None)).report
+    assert all(c["model_step_s"] == pytest.approx(0.01) for c in coarse["candidates"])
+    # the other candidates and their common reference do not depend on the option
+    old = {c["name"]: c for c in coarse["candidates"] if c["round"] == 1}
+    for name in ("external_force", "point_mass"):
+        assert first[name]["improvement"] == old[name]["improvement"]
+
+
+def test_later_rounds_keep_the_finer_step_once_a_slow_term_is_in():
+    """``budget_for``'s rule, without a diagnosis: a slow term selected makes every term fine."""
+    import numpy as np
+
+    from deform.diagnose.selection import model_step_for
+    from deform.diagnose.terms import make_term
+
+    s = np.linspace(0, 1, SPEC.n_vertices)
+    damping, wind = (make_term(n, SPEC.n_vertices, s, {}) for n in ("internal_damping", "external_force"))
+    assert model_step_for(wind, [], 0.0025) is None
+    assert model_step_for(damping, [], 0.0025) == 0.0025
+    assert model_step_for(wind, [damping], 0.0025) == 0.0025
+    assert model_step_for(damping, [], None) is None
