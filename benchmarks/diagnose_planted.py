@@ -17,6 +17,7 @@ The significance rule is reported twice: as the tool ran, and calibrated on the 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import hashlib
 import json
@@ -1342,6 +1343,66 @@ def own_resolution_study(seed: int, args) -> list[dict]:
     return out
 
 
+def step_scan(kind: str, seed: int, args, simulator: str = "elastica") -> list[dict]:
+    """Does the model's own step hide a light rope's internal damping? On an independent simulator's
+    planted internal damping and its paired control: the tool's nominal fit (10 ms steps), then the
+    check errors (no further fit) with the nominal parameters held and the internal_damping term at
+    fixed sizes, the model stepped at 10, 5 and 2.5 ms (rows also with the nominal damping cut to a
+    fifth). Where the check error is lowest at nu 0 with 10 ms steps, the step's own dissipation
+    stands in for the rope's (DiagnoseBudget.slow_step_s)."""
+    import math
+
+    from deform.diagnose.fitting import fit_nominal
+    from deform.diagnose.selection import CheckErrors
+    from deform.diagnose.simulator import Nominal, Simulator, arclength_of, clamp_bound
+    from deform.diagnose.terms import make_term
+
+    _, generate, _ = independent_simulator(simulator)
+    spec, sources = independent_rod(kind, simulator=simulator)
+    src = seeded_sources(sources, seed, args.fit + args.check)
+    quick = budget(True)
+    nb = dataclasses.replace(quick.candidate, progress=False, iterations=quick.nominal_iterations)
+    out = []
+    for effect in ("internal_damping", None):
+        recs, truth = generate(effect, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed)
+        inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
+        sim = Simulator(inputs.spec, Nominal())
+        fit_nominal(sim, inputs.fit, nb, 0.5 * clamp_bound(inputs.spec))
+        s = arclength_of(inputs.fit)
+        nominal = sim.nominal.params()
+        for step in (0.01, 0.005, 0.0025):
+            for damping_share in (1.0, 0.2):
+                for nu in (0.0, 3e-5, 1e-4, 2e-4, 4e-4):
+                    nom = copy.deepcopy(sim.nominal)
+                    with torch.no_grad():
+                        nom.log_damping.fill_(math.log(nominal["damping_1_per_s"] * damping_share))
+                    terms = []
+                    if nu > 0:
+                        term = make_term("internal_damping", spec.n_vertices, s, {})
+                        with torch.no_grad():
+                            term.log_nu.fill_(math.log(nu / term.scale))
+                        terms = [term]
+                    c = CheckErrors.of(Simulator(inputs.spec, nom, terms, max_step_s=step), inputs.check)
+                    out.append(
+                        {
+                            "simulator": simulator,
+                            "rod_kind": kind,
+                            "effect": effect or "none",
+                            "seed": seed,
+                            "planted": {k: v for k, v in truth.items() if k not in ("rod", "numerics")},
+                            "nominal": nominal,
+                            "model_step_s": step,
+                            "nominal_damping_share": damping_share,
+                            "nu_m4_per_s": nu,
+                            "check_window_cm": float(c.window.mean() * 100),
+                            "check_rollout_cm": float(c.rollout.mean() * 100),
+                            **provenance(),
+                        }
+                    )
+                    print(json.dumps(out[-1]), flush=True)
+    return out
+
+
 def main() -> None:
     import sys
 
@@ -1477,6 +1538,14 @@ def main() -> None:
         help="name of the result files (default diagnose, diagnose.elastica, diagnose.mujoco)",
     )
     p.add_argument(
+        "--step-scan",
+        nargs="*",
+        default=None,
+        metavar="KIND:SEED",
+        help="only the check error of the internal_damping term at fixed sizes with the model stepped at "
+        "10, 5 and 2.5 ms, on --simulator's planted internal damping and its control (JSON rows)",
+    )
+    p.add_argument(
         "--full-size-timing",
         action="store_true",
         help="only time `deform diagnose` (full budget) on one elastica case of 8 + 4 x 500 frames",
@@ -1504,6 +1573,13 @@ def main() -> None:
         for item in args.growing_windows or []:
             kind, seed = item.split(":")
             damping_study(kind, int(seed), args, variants=((0, None), (0, CHECK_HORIZON)))
+        return
+    if args.step_scan is not None:
+        torch.set_num_threads(1)
+        sys.path.insert(0, str(ROOT))
+        for item in args.step_scan:
+            kind, seed = item.split(":")
+            step_scan(kind, int(seed), args, simulator=args.simulator)
         return
     if args.own_resolution is not None:
         torch.set_num_threads(1)
