@@ -68,14 +68,14 @@ def tool_budget(args) -> DiagnoseBudget:
     """The budget of the tool's runs: ``--quick``, and ``--fits-version N`` for the fits of an
     older tool (6: slow terms on the candidates' fixed windows; 7: rest curvature in the "up"
     convention's roll, not read from each recording; 8: the rope freed at the gripped markers;
-    10: every fit at the 10 ms step)."""
+    10: every fit at the 10 ms step; 11, a study: slow terms at 5 ms)."""
     version = getattr(args, "fits_version", None) or TOOL_VERSION
     return dataclasses.replace(
         budget(args.quick),
         grow_slow_terms=version >= 7,
         read_roll=version >= 8,
         fit_clamp=version >= 9,
-        slow_step_s=DiagnoseBudget().slow_step_s if version >= 11 else None,
+        slow_step_s=SLOW_STEP_S if version >= 11 else None,
     )
 
 
@@ -112,10 +112,11 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # the wind term is fitted as log strength and azimuth from a grid of directions and strengths
 # (terms.ExternalForce); before, its two components started from no wind and reached at most about
 # 0.75 m/s^2 per axis; and a clip's mass is fitted as its log from three masses (terms.PointMass):
-# before, its fits stopped at about 10.5 g. v11: the slow terms (internal damping) and their reference
-# fitted with the model stepped at 2.5 ms, and every later round once one is selected
-# (DiagnoseBudget.slow_step_s); before, every fit at 10 ms.
-TOOL_VERSION = 11
+# before, its fits stopped at about 10.5 g. v11 (a study, `--fits-version 11`, not the tool's default):
+# the slow terms (internal damping) and their reference fitted with the model stepped at 5 ms
+# (DiagnoseBudget.slow_step_s = SLOW_STEP_S), and every later round once one is selected.
+TOOL_VERSION = 10
+SLOW_STEP_S = 0.005
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0
@@ -238,7 +239,7 @@ def previous_row(key: str, runs_path: Path, args) -> dict | None:
     candidates are spliced into (:func:`spliced_row`), or None (then the dataset is run in full)."""
     if not getattr(args, "refit", None):
         return None
-    return load_runs(runs_path, {**_config(args), "tool": TOOL_VERSION - 1}).get(key)
+    return load_runs(runs_path, {**_config(args), "tool": _config(args)["tool"] - 1}).get(key)
 
 
 def refit_budget(args) -> DiagnoseBudget:
@@ -892,7 +893,7 @@ def write(result: dict, stem: str = "diagnose") -> None:
         f"# deform diagnose: {title}",
         "",
         f"Run: `{result['command']}` on {result['machine']}; {result['seconds_total_runs']:.0f} s of "
-        f"dataset runs (sum over the rows in `{stem}.runs.jsonl`).",
+        f"dataset runs (sum over the rows in `{result.get('runs_file', stem + '.runs.jsonl')}`).",
         "",
         f"Budget: {result['budget']}",
         "",
@@ -1645,6 +1646,7 @@ def main() -> None:
             f"(real rods: the first {args.fit} + next {args.check} train recordings, full length)"
         ),
         "seconds_total_runs": float(sum(r["seconds"] for r in done.values())),
+        "runs_file": runs_path.name,
         "rules": rules,
         "rule": RULE,
         "fits_of_tool_version": args.fits_version or TOOL_VERSION,

@@ -59,13 +59,12 @@ class DiagnoseBudget:
     # who knows how far past the gripped markers the jaws hold the rope gives it (deform diagnose
     # --clamp); 0 with fit_clamp off frees the rope at the markers
     clamp_m: float = 0.0
-    # slow terms (Term.slow: internal damping) and their reference are fitted with the model stepped
-    # at most this long [s] (2 steps per 100 Hz frame), and so is every later round once one is
-    # selected; None: every fit at simulator.MAX_STEP_S (tool v10). Why: the 10 ms step's own
-    # dissipation stands in for a light rope's material damping: on PyElastica's light rope planted
-    # with 2e-4 m^4/s the check error was lowest at nu 0 with 10 ms steps (the term fitted at 0) and
-    # near the truth with 2.5 ms steps; 5 ms names it at half the cost of 2.5 (docs/diagnose.md)
-    slow_step_s: float | None = 0.005
+    # a number: slow terms (Term.slow: internal damping) and their reference fitted with the model
+    # stepped at most this long [s], and every later round once one is selected; None: every fit at
+    # simulator.MAX_STEP_S (10 ms). A study (fits v11, docs/diagnose.md), not the default: at 5 ms
+    # the 10 ms step's own dissipation no longer hides a light rope's damping (PyElastica 45/48
+    # named, 6/6 controls), but an own-simulator control got internal damping (+6.0 %)
+    slow_step_s: float | None = None
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
