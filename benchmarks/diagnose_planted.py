@@ -1404,6 +1404,72 @@ def step_scan(kind: str, seed: int, args, simulator: str = "elastica") -> list[d
     return out
 
 
+def fine_nominal_study(job: str, args) -> dict:
+    """The lead the slow-step study left: is the internal damping at 5 ms still named on a control
+    when the nominal model is fitted at 5 ms from scratch first? ``job`` is SIMULATOR:KIND:EFFECT:SEED
+    (``own:-:none:1``, ``elastica:light:internal_damping:0``). The internal_damping candidate at 5 ms
+    (growing windows, the quick budget) against a reference refitted at 5 ms, started from the
+    10 ms nominal fit (fits v11) and from a 5 ms nominal fit of its own, each reference falling back
+    to the better nominal model's check errors as the tool's does."""
+    from deform.diagnose.fitting import fit_nominal
+    from deform.diagnose.scoring import nameable, score
+    from deform.diagnose.selection import CheckErrors, fit_and_check, refit_reference
+    from deform.diagnose.simulator import Nominal, Simulator, arclength_of, clamp_bound
+    from deform.diagnose.terms import make_term
+
+    sim_name, kind, effect, seed = job.split(":")
+    seed, effect = int(seed), (None if effect == "none" else effect)
+    t0 = time.perf_counter()
+    if sim_name == "own":
+        src, spec = _sources(seed, 10)
+        recs, _ = generate_planted(effect, src, spec, n_frames=300, seed=seed)
+        inputs = Inputs(spec=spec, fit=recs[:6], check=recs[6:])
+    else:
+        _, generate, _ = independent_simulator(sim_name)
+        rod, sources = independent_rod(kind, simulator=sim_name)
+        recs, _ = generate(
+            effect, seeded_sources(sources, seed, 12), rod, rod_kind=kind, n_frames=300, seed=seed
+        )
+        inputs = as_user_inputs(rod, recs[:8], recs[8:])
+    spec, quick = inputs.spec, budget(True)
+    cb = dataclasses.replace(quick.candidate, progress=False)
+    nb = dataclasses.replace(cb, iterations=quick.nominal_iterations)
+    coarse = Simulator(spec, Nominal())
+    fit_nominal(coarse, inputs.fit, nb, 0.5 * clamp_bound(spec))
+    fine = Simulator(spec, Nominal(), max_step_s=SLOW_STEP_S)
+    fit_nominal(fine, inputs.fit, nb, 0.5 * clamp_bound(spec))
+    c_coarse, c_fine = CheckErrors.of(coarse, inputs.check), CheckErrors.of(fine, inputs.check)
+    best = c_fine if c_fine.window.mean() < c_coarse.window.mean() else c_coarse
+    tb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON, max_step_s=SLOW_STEP_S)
+    row = {
+        "job": job,
+        "nominal_10ms": coarse.nominal.params(),
+        "nominal_5ms": fine.nominal.params(),
+        "check_window_cm_10ms": float(c_coarse.window.mean() * 100),
+        "check_window_cm_5ms": float(c_fine.window.mean() * 100),
+    }
+    for label, nominal, current in (
+        ("from_10ms", coarse.nominal, c_coarse),
+        ("from_5ms", fine.nominal, best),
+    ):
+        c_ref = refit_reference(spec, nominal, [], inputs, tb, current, "reference")
+        term = make_term("internal_damping", spec.n_vertices, arclength_of(inputs.fit), {})
+        _, c = fit_and_check(spec, nominal, [term], inputs, tb, "internal_damping", new_term=term)
+        sc = score(c_ref.window, c.window, term.n_params)
+        row[label] = {
+            "reference_window_cm": float(c_ref.window.mean() * 100),
+            "candidate_window_cm": float(c.window.mean() * 100),
+            "improvement": sc.improvement,
+            "improvement_ci90": [sc.ci_low, sc.ci_high],
+            "params": term.params(),
+            "nameable": bool(nameable(term.name, term.params(), sc.improvement, sc.ci_low, sc.threshold)),
+        }
+    row["seconds"] = time.perf_counter() - t0
+    row.update(provenance())
+    print(json.dumps(row), flush=True)
+    return row
+
+
 def main() -> None:
     import sys
 
@@ -1547,6 +1613,14 @@ def main() -> None:
         "10, 5 and 2.5 ms, on --simulator's planted internal damping and its control (JSON rows)",
     )
     p.add_argument(
+        "--fine-nominal",
+        nargs="*",
+        default=None,
+        metavar="SIM:KIND:EFFECT:SEED",
+        help="only the internal_damping candidate at 5 ms against references from the 10 ms and from a "
+        "5 ms nominal fit (JSON rows), e.g. own:-:none:1 elastica:light:internal_damping:0",
+    )
+    p.add_argument(
         "--full-size-timing",
         action="store_true",
         help="only time `deform diagnose` (full budget) on one elastica case of 8 + 4 x 500 frames",
@@ -1574,6 +1648,12 @@ def main() -> None:
         for item in args.growing_windows or []:
             kind, seed = item.split(":")
             damping_study(kind, int(seed), args, variants=((0, None), (0, CHECK_HORIZON)))
+        return
+    if args.fine_nominal is not None:
+        torch.set_num_threads(1)
+        sys.path.insert(0, str(ROOT))
+        for job in args.fine_nominal:
+            fine_nominal_study(job, args)
         return
     if args.step_scan is not None:
         torch.set_num_threads(1)
