@@ -1709,6 +1709,9 @@ def main() -> None:
         if not args.summary_only:
             run_planted(jobs, args, runs_path, done)
             run_real(args.real, args, runs_path, done)
+    # rows another process appended since this one last looked: the tables are written from all of
+    # them (two processes sharing a runs file each wrote tables missing the other's last rows)
+    done.update(load_runs(runs_path, _config(args)))
     planted = [r for r in done.values() if r["kind"] == "planted"]
     planted.sort(key=lambda r: (r["effect"] != "none", r["effect"], r["seed"]))
     real = sorted((r for r in done.values() if r["kind"] == "real"), key=lambda r: r["rod"])
