@@ -68,7 +68,7 @@ def tool_budget(args) -> DiagnoseBudget:
     """The budget of the tool's runs: ``--quick``, and ``--fits-version N`` for the fits of an
     older tool (6: slow terms on the candidates' fixed windows; 7: rest curvature in the "up"
     convention's roll, not read from each recording; 8: the rope freed at the gripped markers;
-    10: every fit at the 10 ms step; 11, a study: slow terms at 5 ms)."""
+    10: every fit at the 10 ms step; 11, a study: slow terms at 5 ms from the 10 ms nominal fit)."""
     version = getattr(args, "fits_version", None) or TOOL_VERSION
     return dataclasses.replace(
         budget(args.quick),
@@ -76,6 +76,7 @@ def tool_budget(args) -> DiagnoseBudget:
         read_roll=version >= 8,
         fit_clamp=version >= 9,
         slow_step_s=SLOW_STEP_S if version >= 11 else None,
+        fine_nominal=version >= 12,
     )
 
 
@@ -114,9 +115,14 @@ def param_error(found: dict, truth: dict, edge_m: float) -> dict:
 # 0.75 m/s^2 per axis; and a clip's mass is fitted as its log from three masses (terms.PointMass):
 # before, its fits stopped at about 10.5 g. v11 (a study, `--fits-version 11`, not the tool's default):
 # the slow terms (internal damping) and their reference fitted with the model stepped at 5 ms
-# (DiagnoseBudget.slow_step_s = SLOW_STEP_S), and every later round once one is selected.
-TOOL_VERSION = 10
+# (DiagnoseBudget.slow_step_s = SLOW_STEP_S), and every later round once one is selected. v12: as
+# v11, but in round 1 the slow terms and their reference start from a nominal model fitted at 5 ms
+# of its own (DiagnoseBudget.fine_nominal); its rows are v10 rows with internal_damping refitted
+# (FITS_BASE).
+TOOL_VERSION = 12
 SLOW_STEP_S = 0.005
+# the fits version a --refit splices into, where it is not the one before (v11 was a study)
+FITS_BASE = {12: 10}
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
 # (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0
@@ -239,7 +245,8 @@ def previous_row(key: str, runs_path: Path, args) -> dict | None:
     candidates are spliced into (:func:`spliced_row`), or None (then the dataset is run in full)."""
     if not getattr(args, "refit", None):
         return None
-    return load_runs(runs_path, {**_config(args), "tool": _config(args)["tool"] - 1}).get(key)
+    version = _config(args)["tool"]
+    return load_runs(runs_path, {**_config(args), "tool": FITS_BASE.get(version, version - 1)}).get(key)
 
 
 def refit_budget(args) -> DiagnoseBudget:
@@ -270,6 +277,7 @@ def spliced_row(old: dict, rep: dict, config: dict, seconds: float) -> dict:
             "from_tool": old["config"]["tool"],
             "refitted": sorted({c["name"] for c in rep["candidates"]}),
             "nominal_check_delta_m": rep["nominal"]["check_l1_m"] - old["nominal_check_l1_m"],
+            "fine_nominal": rep["nominal"].get("fine"),
             "seconds": seconds,
         },
     }

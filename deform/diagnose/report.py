@@ -160,6 +160,20 @@ def _fmt(d: dict, std: dict | None = None) -> str:
     return ", ".join(parts)
 
 
+def _fine_nominal(nom: dict) -> list[str]:
+    """The nominal fit at the finer step that slow terms start from in round 1, if one was made."""
+    fine = nom.get("fine")
+    if not fine:
+        return []
+    return [
+        f"Slow terms (internal damping) are fitted with the model stepped at "
+        f"{fine['model_step_s'] * 1e3:g} ms, in round 1 from a nominal fit of their own at that step: "
+        f"{_fmt(fine['params'])}; one-second check predictions {fine['check_window_l1_m'] * 100:.3f} cm. "
+        "The model's usual step dissipates on its own about as much as a light rope's material damping.",
+        "",
+    ]
+
+
 def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
     """Write report.json, the plots and report.md into ``out`` (created).
 
@@ -195,6 +209,7 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         f"Check error (the whole recording open loop, paper's metric): **{nom['check_l1_m'] * 100:.3f} cm**; "
         f"one-second predictions along the recordings: {nom['check_window_l1_m'] * 100:.3f} cm",
         "",
+        *_fine_nominal(nom),
         "## Where the nominal model is wrong",
         "",
     ]
@@ -226,6 +241,7 @@ def write_report(diag: Diagnosis, check: list[Recording], out: Path) -> Path:
         "rope's own material level (internal damping up to the level every rope's material has) is "
         "significant but not named; one fitted beyond that level whose 90 % interval lies above 0 may be "
         "named below the threshold (its gain is diluted by the nominal model's own numerical dissipation). "
+        "A round picks the nameable candidate with the largest improvement less its parameter penalty. "
         "Nothing is named in a round where a term within its material level does as well as the best "
         "candidate, both less their parameter penalty.",
         "",

@@ -26,6 +26,11 @@ Nothing is named in a round where a term fitted within its material level explai
 recordings at least as well as the pick, both penalised by their parameters (rule v9,
 :func:`material_level_suffices`): the rope's own material damping, which every rope has, then
 accounts for the misfit as well as the new physics would, and the simpler explanation wins.
+
+Among the nameable candidates of a round the pick is the one with the largest improvement less its
+parameter penalty (rule v10, :func:`choose`), the same penalty the threshold charges: before, the
+largest raw improvement, so a three-parameter stiffness variation won over a one-parameter internal
+damping it led by less than the two parameters it adds.
 """
 
 from __future__ import annotations
@@ -168,7 +173,7 @@ class RoundChoice:
     """A selection round's decision over its candidate rows (report rows: ``name``, ``params``,
     ``improvement``, ``n_params``, ``nameable``)."""
 
-    best: dict | None  # the nameable row with the largest improvement, if any
+    best: dict | None  # the nameable row with the largest penalised improvement, if any
     held_by: dict | None = None  # a within-level row as good, penalised (rule v9): nothing named
 
     @property
@@ -177,9 +182,9 @@ class RoundChoice:
 
 
 def choose(rows: list[dict], per_param: float = PER_PARAM, parsimony: bool = True) -> RoundChoice:
-    """The round's pick: the nameable row with the largest mean improvement, unless (``parsimony``,
-    rule v9) a row fitted within its material level does as well penalised
-    (:func:`material_level_suffices`).
+    """The round's pick: the nameable row with the largest mean improvement less its parameter
+    penalty (rule v10; ties keep the row order), unless (``parsimony``, rule v9) a row fitted
+    within its material level does as well penalised (:func:`material_level_suffices`).
 
     Args:
         rows: the round's candidates, each with ``nameable`` by the rule in force.
@@ -192,7 +197,7 @@ def choose(rows: list[dict], per_param: float = PER_PARAM, parsimony: bool = Tru
     sig = [r for r in rows if r["nameable"]]
     if not sig:
         return RoundChoice(None)
-    best = max(sig, key=lambda r: r["improvement"])
+    best = max(sig, key=lambda r: penalised(r["improvement"], r["n_params"], per_param))
     within = [r for r in rows if not beyond_material_level(r["name"], r.get("params", {}))]
     pick = (best["improvement"], best["n_params"])
     if parsimony and material_level_suffices(
@@ -259,8 +264,9 @@ def reselect(
 ) -> dict:
     """Re-derive forward selection from a report's stored candidate scores under another threshold.
 
-    Exact for every round that was run: a round's pick is the significant candidate with the largest
-    mean improvement, and the bootstrap interval does not depend on the threshold. If the new rule
+    Exact for every round that was run: a round's pick is the nameable candidate with the largest
+    penalised mean improvement (:func:`choose`), and the bootstrap interval does not depend on the
+    threshold. If the new rule
     picks a term in the last round that was run (the original run stopped there, or hit its round
     limit), there is nothing to continue with: ``no_further_round`` is True. ``require_interval``: the
     rule of tools before v4 (the bootstrap interval's lower bound above 0 as well).

@@ -61,10 +61,14 @@ class DiagnoseBudget:
     clamp_m: float = 0.0
     # a number: slow terms (Term.slow: internal damping) and their reference fitted with the model
     # stepped at most this long [s], and every later round once one is selected; None: every fit at
-    # simulator.MAX_STEP_S (10 ms). A study (fits v11, docs/diagnose.md), not the default: at 5 ms
-    # the 10 ms step's own dissipation no longer hides a light rope's damping (PyElastica 45/48
-    # named, 6/6 controls), but an own-simulator control got internal damping (+6.0 %)
-    slow_step_s: float | None = None
+    # simulator.MAX_STEP_S (10 ms, tool v10). At 5 ms the 10 ms step's own dissipation no longer
+    # hides a light rope's damping (docs/diagnose.md)
+    slow_step_s: float | None = 0.005
+    # with slow_step_s: in round 1 the slow terms and their reference start from a nominal model
+    # fitted at that step of its own (from tool v12); off: from the 10 ms nominal fit (fits v11, a
+    # study), whose damping holds what the 10 ms step does not dissipate itself, so that at 5 ms
+    # the internal damping made up the difference on an own-simulator control (+6.0 %)
+    fine_nominal: bool = True
 
     @classmethod
     def quick(cls, progress: bool = True) -> DiagnoseBudget:
@@ -109,6 +113,7 @@ class FittedCandidate:
     reference: np.ndarray
     budget: FitBudget
     nameable: bool  # by the tool's rule (deform.diagnose.scoring.nameable)
+    base: Nominal  # the nominal parameters the fit started from
 
 
 @dataclass
@@ -301,14 +306,21 @@ def diagnose(
     cb = dataclasses.replace(budget.candidate, progress=budget.progress)
     nominal = _nominal_from_model(start_model) if start_model else Nominal()
     nominal.set_clamp(budget.clamp_m, fitted=budget.fit_clamp)
-    sim = Simulator(spec, nominal)
+    start = copy.deepcopy(nominal)
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
-    if start_model:
-        coarse, clamp_restart = None, None
-        fit(sim, inputs.fit, nb, desc="nominal fit")
-    else:
-        started = fit_nominal(sim, inputs.fit, nb, 0.5 * clamp_bound(spec))  # a held clamp is not restarted
-        coarse, clamp_restart = started["coarse"], started.get("clamp_restart")
+
+    def nominal_fit(max_step_s: float, desc: str) -> tuple[Simulator, dict | None, dict | None]:
+        """The nominal parameters fitted from ``start`` with the model stepped at most ``max_step_s``:
+        ``(simulator, coarse grid's best point, clamp restart)``."""
+        fsim = Simulator(spec, copy.deepcopy(start), max_step_s=max_step_s)
+        if start_model:
+            fit(fsim, inputs.fit, nb, desc=desc)
+            return fsim, None, None
+        started = fit_nominal(fsim, inputs.fit, nb, 0.5 * clamp_bound(spec))  # a held clamp is not restarted
+        return fsim, started["coarse"], started.get("clamp_restart")
+
+    sim, coarse, clamp_restart = nominal_fit(MAX_STEP_S, "nominal fit")
+    nominal = sim.nominal
     c_nom = CheckErrors.of(sim, inputs.check)
     e_nom = c_nom.rollout
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[
@@ -334,6 +346,20 @@ def diagnose(
     remaining = list(budget.candidates)
     candidates_out: list[dict] = []
     slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON if budget.grow_slow_terms else None)
+    fine: dict = {}  # the nominal fit at slow_step_s (fine_nominal), made when round 1 needs it
+
+    def base_for(term: Term, rnd: int) -> tuple[Nominal, CheckErrors]:
+        """What a candidate starts from and its reference falls back to: the current model, or in
+        round 1, for a slow term with :attr:`DiagnoseBudget.fine_nominal`, the nominal model fitted
+        at the slow step, falling back to the better of its and the 10 ms fit's check errors."""
+        if not (rnd == 0 and term.slow and budget.slow_step_s is not None and budget.fine_nominal):
+            return base_nominal, base_err
+        if not fine:
+            fsim, _, _ = nominal_fit(budget.slow_step_s, f"nominal fit at {budget.slow_step_s * 1e3:g} ms")
+            checked = CheckErrors.of(fsim, inputs.check)
+            fine.update(sim=fsim, checked=checked)
+            fine["current"] = checked if checked.window.mean() < c_nom.window.mean() else c_nom
+        return fine["sim"].nominal, fine["current"]
 
     def budget_for(term: Term) -> FitBudget:
         """A term's fit budget: slow terms on windows growing to the scoring windows (see
@@ -351,16 +377,17 @@ def diagnose(
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context, read_roll=budget.read_roll)
             tb = budget_for(term)
-            kind = (tb.final_horizon, tb.max_step_s)
+            start_nominal, current = base_for(term, rnd)
+            kind = (tb.final_horizon, tb.max_step_s, id(start_nominal))
             if kind not in references:
                 references[kind] = refit_reference(
-                    spec, base_nominal, selected, inputs, tb, base_err, f"round {rnd + 1}: reference"
+                    spec, start_nominal, selected, inputs, tb, current, f"round {rnd + 1}: reference"
                 )
             c_ref = references[kind]
             e_ref = c_ref.window
             csim, checked = fit_and_check(
                 spec,
-                base_nominal,
+                start_nominal,
                 [copy.deepcopy(t) for t in selected] + [term],
                 inputs,
                 tb,
@@ -370,7 +397,7 @@ def diagnose(
             sc = score(e_ref, checked.window, term.n_params)
             params = term.params()
             named = nameable(name, params, sc.improvement, sc.ci_low, sc.threshold)
-            results.append(FittedCandidate(name, term, csim, checked, sc, e_ref, tb, named))
+            results.append(FittedCandidate(name, term, csim, checked, sc, e_ref, tb, named, start_nominal))
             candidates_out.append(
                 {
                     "name": name,
@@ -392,6 +419,7 @@ def diagnose(
                     "reference_check_window_l1_m": float(e_ref.mean()),
                     "growing_windows": tb.final_horizon is not None,
                     "model_step_s": csim.model.dt,
+                    "from_fine_nominal": start_nominal is not base_nominal,
                 }
             )
         choice = choose([c for c in candidates_out if c["round"] == rnd + 1])
@@ -415,7 +443,7 @@ def diagnose(
         )
         cls["fit_noise"] = fit_noise(
             spec,
-            base_nominal,
+            best.base,
             selected,
             name,
             s,
@@ -447,6 +475,15 @@ def diagnose(
             "check_l1_by_recording_m": dict(zip([r.name for r in inputs.check], e_nom.tolist())),
             "coarse_identification": coarse,
             "clamp_fitted": budget.fit_clamp,
+            "model_step_s": sim.model.dt,
+            "fine": None
+            if not fine
+            else {
+                "params": fine["sim"].nominal.params(),
+                "model_step_s": fine["sim"].model.dt,
+                "check_l1_m": float(fine["checked"].rollout.mean()),
+                "check_window_l1_m": float(fine["checked"].window.mean()),
+            },
             "clamp_restart": clamp_restart,
             "warnings": list(inputs.warnings),
         },

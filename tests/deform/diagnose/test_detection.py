@@ -115,10 +115,11 @@ def test_slow_terms_grow_their_windows_against_their_own_reference(sources):
     assert out[True]["internal_damping"]["improvement"] != out[False]["internal_damping"]["improvement"]
 
 
-def test_slow_terms_are_fitted_with_the_finer_step_and_so_is_every_later_round(sources):
-    """With ``slow_step_s`` the internal damping and its reference run the model at that step (2
-    steps per frame here), the other round-1 candidates at the 10 ms step; once a slow term is
-    selected every later candidate runs at the finer step. Smoke-sized: the wiring."""
+def test_slow_terms_are_fitted_with_the_finer_step_from_a_nominal_fit_of_their_own(sources):
+    """With ``slow_step_s`` (the default) the internal damping and its reference run the model at
+    that step (2 steps per frame here), in round 1 from a nominal model fitted at that step
+    (``fine_nominal``); the other round-1 candidates at the 10 ms step from the 10 ms nominal fit,
+    bit-identical to a run without the option. Smoke-sized: the wiring."""
     import dataclasses
 
     from deform.diagnose.fitting import FitBudget
@@ -134,13 +135,21 @@ def test_slow_terms_are_fitted_with_the_finer_step_and_so_is_every_later_round(s
         localization_recordings=3,
         progress=False,
     )
-    rep = diagnose(inputs, dataclasses.replace(b, slow_step_s=0.005)).report
+    assert b.slow_step_s == pytest.approx(0.005) and b.fine_nominal
+    rep = diagnose(inputs, b).report
     first = {c["name"]: c for c in rep["candidates"] if c["round"] == 1}
     assert first["internal_damping"]["model_step_s"] == pytest.approx(0.005)
-    assert first["external_force"]["model_step_s"] == pytest.approx(0.01)
-    assert first["point_mass"]["model_step_s"] == pytest.approx(0.01)
-    coarse = diagnose(inputs, b).report  # the default: every fit at 10 ms
+    assert first["internal_damping"]["from_fine_nominal"]
+    for name in ("external_force", "point_mass"):
+        assert first[name]["model_step_s"] == pytest.approx(0.01) and not first[name]["from_fine_nominal"]
+    fine = rep["nominal"]["fine"]
+    assert fine["model_step_s"] == pytest.approx(0.005) and rep["nominal"]["model_step_s"] == pytest.approx(
+        0.01
+    )
+    assert fine["params"] != rep["nominal"]["params"]  # fitted on its own
+    coarse = diagnose(inputs, dataclasses.replace(b, slow_step_s=None)).report  # tool v10: all at 10 ms
     assert all(c["model_step_s"] == pytest.approx(0.01) for c in coarse["candidates"])
+    assert coarse["nominal"]["fine"] is None
     # the other candidates and their common reference do not depend on the option
     old = {c["name"]: c for c in coarse["candidates"] if c["round"] == 1}
     for name in ("external_force", "point_mass"):
