@@ -569,7 +569,7 @@ def calibrate_damping(args) -> dict:
 def full_size_timing(args) -> dict:
     """Wall time of `deform diagnose` with the default (full) budget on one independent-simulator case
     of the issue's size (8 + 4 recordings of 500 frames), run as a user runs it: files on disk and
-    the command line. -> the row stored in benchmarks/results/diagnose.timing.json."""
+    the command line. -> the row stored in benchmarks/results/diagnose.timing.EFFECT.json."""
     import subprocess
     import tempfile
 
@@ -629,7 +629,7 @@ def full_size_timing(args) -> dict:
         "selected": rep.get("selected"),
         "stderr_tail": out.stderr[-300:] if out.returncode else "",
     }
-    (RESULTS / "diagnose.timing.json").write_text(json.dumps(row, indent=2))
+    (RESULTS / f"diagnose.timing.{effect}.json").write_text(json.dumps(row, indent=2))
     return row
 
 
