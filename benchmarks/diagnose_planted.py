@@ -128,11 +128,13 @@ FITS_BASE = {12: 10}
 # is also named below the threshold when its interval over check recordings lies above 0
 # (deform.diagnose.scoring.nameable). Rule v9: nothing is named in a round where a term fitted within
 # its material level does as well as the pick, both less their parameter penalty
-# (deform.diagnose.scoring.material_level_suffices).
+# (deform.diagnose.scoring.material_level_suffices). Rule v10: the pick is the nameable candidate with
+# the largest improvement less its parameter penalty (deform.diagnose.scoring.choose).
 RULE = (
-    "v9: the mean windowed improvement above the threshold, or a term beyond its material level "
-    "with its 90 % interval above 0; never a term within its material level, and nothing where such "
-    "a term does as well as the pick, penalised"
+    "v10: the mean windowed improvement above the threshold, or a term beyond its material level "
+    "with its 90 % interval above 0; never a term within its material level; the pick the largest "
+    "improvement less its parameter penalty, and nothing where a term within its level does as well, "
+    "penalised"
 )
 ROLLOUT_MIN_GAIN = 0.057  # the tool's threshold on the rollout statistic of fits v3-v5 (rule v4)
 
