@@ -378,7 +378,8 @@ def diagnose(
             term = make_term(name, spec.n_vertices, s, context, read_roll=budget.read_roll)
             tb = budget_for(term)
             start_nominal, current = base_for(term, rnd)
-            kind = (tb.final_horizon, tb.max_step_s, id(start_nominal))
+            from_fine = start_nominal is not base_nominal
+            kind = (tb.final_horizon, tb.max_step_s, from_fine)
             if kind not in references:
                 references[kind] = refit_reference(
                     spec, start_nominal, selected, inputs, tb, current, f"round {rnd + 1}: reference"
@@ -419,7 +420,7 @@ def diagnose(
                     "reference_check_window_l1_m": float(e_ref.mean()),
                     "growing_windows": tb.final_horizon is not None,
                     "model_step_s": csim.model.dt,
-                    "from_fine_nominal": start_nominal is not base_nominal,
+                    "from_fine_nominal": from_fine,
                 }
             )
         choice = choose([c for c in candidates_out if c["round"] == rnd + 1])
