@@ -45,8 +45,10 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -x -m "not slow and not compile and not needs_data" tests
 
-# ruff, configured in pyproject.toml [tool.ruff]; CI runs `make lint` before the tests
+# the layer contracts (import-linter, pyproject.toml [tool.importlinter]) and ruff ([tool.ruff]);
+# CI runs `make lint` before the tests
 lint: $(STAMP)
+	$(VENV)/bin/lint-imports
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 

@@ -35,9 +35,9 @@ from deform.diagnose.scoring import MIN_GAIN, PER_PARAM, calibrate_min_gain, res
 from deform.diagnose.selection import DiagnoseBudget, diagnose
 from deform.diagnose.simulator import CHECK_HORIZON
 from deform.diagnose.spec import Inputs, RodSpec
-from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import Recording, find_data_root, load_recordings
 from deform.model import gripped_indices
+from deform.terms.library import LIBRARY
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"
@@ -124,7 +124,7 @@ SLOW_STEP_S = 0.005
 # the fits version a --refit splices into, where it is not the one before (v11 was a study)
 FITS_BASE = {12: 10}
 # Rule v7 (after fits v8): a term fitted within a rope's own material level is not named
-# (deform.diagnose.terms.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
+# (deform.terms.library.INTERNAL_DAMPING_LEVEL). Rule v8: a term fitted beyond its material level
 # is also named below the threshold when its interval over check recordings lies above 0
 # (deform.diagnose.scoring.nameable). Rule v9: nothing is named in a round where a term fitted within
 # its material level does as well as the pick, both less their parameter penalty
@@ -518,7 +518,7 @@ def provenance() -> dict:
 
 
 def calibrate_damping(args) -> dict:
-    """The nominal model's material damping level (deform.diagnose.terms.MATERIAL_DAMPING_LEVEL) from
+    """The nominal model's material damping level (deform.terms.library.MATERIAL_DAMPING_LEVEL) from
     controls only (no effect planted): the linear damping a free nominal fit gives on
     independent-simulator controls (light and stiff rod, small material damping) and on this
     project's own controls (stored rows); the level = 2x the largest. The factor leaves room for
@@ -1052,7 +1052,7 @@ def damping_scan(seed: int, args) -> list[dict]:
     import math
 
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     src, spec = _sources(seed, args.fit + args.check)
     recs, _ = generate_planted("internal_damping", src, spec, n_frames=args.frames, seed=seed)
@@ -1087,7 +1087,7 @@ def hidden_nodes_study(seed: int, args) -> list[dict]:
     from deform.diagnose.scoring import score
     from deform.diagnose.selection import fit_and_check
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of, per_recording_l1
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     src, spec = _sources(seed, args.fit + args.check)
     quick = budget(True)
@@ -1153,7 +1153,7 @@ def damping_study(kind: str, seed: int, args, variants=((0, None), (1, None))) -
     from deform.diagnose.scoring import score
     from deform.diagnose.selection import fit_and_check
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     spec, sources = independent_rod(kind)
     src = seeded_sources(sources, seed, args.fit + args.check)
@@ -1274,7 +1274,7 @@ def own_resolution_study(seed: int, args) -> list[dict]:
     from deform.diagnose.scoring import score
     from deform.diagnose.selection import CheckErrors, fit_and_check
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of, clamp_bound
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     src, spec = _sources(seed, args.fit + args.check)
     quick = budget(True)
@@ -1366,7 +1366,7 @@ def step_scan(kind: str, seed: int, args, simulator: str = "elastica") -> list[d
     from deform.diagnose.fitting import fit_nominal
     from deform.diagnose.selection import CheckErrors
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of, clamp_bound
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     _, generate, _ = independent_simulator(simulator)
     spec, sources = independent_rod(kind, simulator=simulator)
@@ -1425,7 +1425,7 @@ def fine_nominal_study(job: str, args) -> dict:
     from deform.diagnose.scoring import nameable, score
     from deform.diagnose.selection import CheckErrors, fit_and_check, refit_reference
     from deform.diagnose.simulator import Nominal, Simulator, arclength_of, clamp_bound
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     sim_name, kind, effect, seed = job.split(":")
     seed, effect = int(seed), (None if effect == "none" else effect)

@@ -178,12 +178,14 @@ def cmd_demo(args) -> int:
     Returns:
         The exit code (errors are raised and reported by :func:`main` as one line, exit code 2).
     """
-    try:
-        from service.demo import main as service_demo
-    except ImportError:
-        service_demo = None
-    if service_demo is not None and not args.model_only:
-        return int(service_demo() or 0)
+    import importlib.util
+
+    # the service is a layer above the model: its demo runs as a program of its own, not an import
+    if not args.model_only and importlib.util.find_spec("service") is not None:
+        import subprocess
+        import sys
+
+        return subprocess.call([sys.executable, "-m", "service.demo"])
     from deform.demo import main as model_demo
 
     return int(model_demo() or 0)

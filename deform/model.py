@@ -37,6 +37,7 @@ from deform.rod.inextensibility import (
     unweighted_inv_mass,
 )
 from deform.rod.layout import batch_major, vertex_major
+from deform.rod.positive import inv_softplus
 from deform.rod.tridiagonal import solve_tridiagonal_pd
 from deform.rod.twist_solver import gradient_and_hessian, solve_theta
 
@@ -178,19 +179,6 @@ class ModelOptions:
     def as_dict(self) -> dict:
         """Plain values (strings for the enums): what a checkpoint stores."""
         return {k: (v.value if isinstance(v, enum.Enum) else v) for k, v in vars(self).items()}
-
-
-def inv_softplus(y: float) -> float:
-    """``x`` with ``softplus(x) = y``: the raw value of a parameter kept positive by softplus.
-
-    Args:
-        y: the positive value wanted.
-
-    Returns:
-        The raw parameter value.
-    """
-    y = max(y, 1e-9)  # softplus never reaches 0: a massless marker is the smallest representable one
-    return y + math.log(-math.expm1(-y))
 
 
 class DeformModel(nn.Module):

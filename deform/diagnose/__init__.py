@@ -6,7 +6,7 @@
 Modules: :mod:`.spec` (inputs and their checks; marker dropouts filled by :mod:`deform.io.gaps`), :mod:`.resample` (other frame rates to 100 Hz),
 :mod:`.denoise` (marker noise measured; smoothing far above the calibrated level),
 :mod:`.simulator` (bound DER model),
-:mod:`.terms` (candidate library), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
+:mod:`deform.terms` (the term library the candidates come from), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
 :mod:`.scoring` (bootstrap + parameter penalty), :mod:`.selection` (forward selection),
 :mod:`.report`, :mod:`.planted` (benchmark data with planted effects).
 """

@@ -150,7 +150,7 @@ def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBu
 
     Args:
         sim: the simulator with ``term`` attached.
-        term: the :class:`deform.diagnose.terms.Term` to start.
+        term: the :class:`deform.terms.library.Term` to start.
         recordings: fit recordings.
         budget: batch, horizon and seed of the scoring windows.
 

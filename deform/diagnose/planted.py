@@ -16,9 +16,9 @@ from torch import nn
 
 from deform.diagnose.simulator import Nominal, Simulator, between_markers, marker_nodes
 from deform.diagnose.spec import RodSpec
-from deform.diagnose.terms import make_term
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
+from deform.terms.library import make_term
 
 EFFECTS = (
     "aerodynamic_drag",

@@ -10,8 +10,8 @@ import numpy as np
 from deform.diagnose.localize import plot_localization
 from deform.diagnose.scoring import PER_PARAM
 from deform.diagnose.selection import Diagnosis
-from deform.diagnose.terms import LIBRARY
 from deform.io.recordings import Recording
+from deform.terms.library import LIBRARY
 
 
 def _significance(c: dict) -> str:

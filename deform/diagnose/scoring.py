@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deform.diagnose.terms import beyond_material_level, fitted_beyond_level
+from deform.terms.library import beyond_material_level, fitted_beyond_level
 
 # min_gain of the windowed check statistic (tool v6), calibrated on control datasets only (quick
 # budget) with calibrate_min_gain(alpha=0.05): the 6 PyElastica controls of the benchmark (light and
@@ -124,7 +124,7 @@ def nameable(
     (``material_levels``, rule v7).
 
     Args:
-        name: a key of :data:`deform.diagnose.terms.LIBRARY`.
+        name: a key of :data:`deform.terms.library.LIBRARY`.
         params: its fitted parameters.
         improvement: mean relative improvement over the reference.
         ci_low: lower bound of the improvement's bootstrap interval.
@@ -158,7 +158,7 @@ def material_level_suffices(
     Args:
         pick: the pick's ``(improvement, parameters)``.
         within_level: ``(improvement, parameters)`` of the round's candidates fitted within their
-            material level (:func:`deform.diagnose.terms.beyond_material_level` False).
+            material level (:func:`deform.terms.library.beyond_material_level` False).
         per_param: the parameter penalty.
 
     Returns:
@@ -278,7 +278,7 @@ def reselect(
         per_param: the parameter penalty.
         require_interval: also require the interval's lower bound above 0 (tools before v4).
         material_levels: a term fitted within a rope's own material level is not named
-            (:func:`deform.diagnose.terms.beyond_material_level`; rule v7); False: rules before v7.
+            (:func:`deform.terms.library.beyond_material_level`; rule v7); False: rules before v7.
         by_level: a term fitted beyond its material level whose 90 % interval over the check
             recordings lies above 0 may be named below the threshold (:func:`nameable`; rule v8).
         parsimony: nothing is named in a round where a term fitted within its material level

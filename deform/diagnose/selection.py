@@ -30,7 +30,7 @@ from deform.diagnose.simulator import (
     per_recording_window_l1,
 )
 from deform.diagnose.spec import Inputs
-from deform.diagnose.terms import LIBRARY, Term, beyond_material_level, make_term
+from deform.terms.library import LIBRARY, Term, beyond_material_level, make_term
 
 
 @dataclass

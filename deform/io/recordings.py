@@ -152,3 +152,17 @@ def save_recording(path: str | Path, positions: np.ndarray) -> None:
     positions = np.asarray(positions, dtype=np.float64)
     frames = [np.ascontiguousarray(f.T) for f in positions]
     Path(path).write_bytes(pickle.dumps(frames, protocol=4))
+
+
+def arclength_of(recordings) -> np.ndarray:
+    """(n,) normalised arc-length position of each marker (median edge lengths over the data).
+
+    Args:
+        recordings: each ``positions`` (T, n, 3).
+
+    Returns:
+        (n,) in [0, 1].
+    """
+    edges = np.concatenate([np.linalg.norm(np.diff(r.positions[::25], axis=1), axis=-1) for r in recordings])
+    s = np.concatenate([[0.0], np.cumsum(np.median(edges, axis=0))])
+    return s / s[-1]

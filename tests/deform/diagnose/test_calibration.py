@@ -56,7 +56,7 @@ def test_a_term_within_a_ropes_material_level_is_not_named():
     """Internal damping that improves the check but is fitted at a rope's own material damping (as on
     a stiff MuJoCo control: +4.0 %, nu 4.9e-7 m^4/s) is not named; the same term fitted well beyond
     the level is, and terms without a level are untouched."""
-    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL, beyond_material_level
+    from deform.terms.library import INTERNAL_DAMPING_LEVEL, beyond_material_level
 
     def damping(nu, improvement):
         row = _cand("internal_damping", 1, [], improvement, 0.01, 0.9)
@@ -81,7 +81,7 @@ def test_internal_damping_fitted_far_beyond_a_ropes_level_is_named_below_the_thr
     the check recordings lies above 0, though its gain is under the threshold; not
     when the interval holds 0, not within its level, and never for a term without a level."""
     from deform.diagnose.scoring import nameable
-    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL
+    from deform.terms.library import INTERNAL_DAMPING_LEVEL
 
     def damping(nu, improvement, lo):
         row = _cand("internal_damping", 1, [], improvement, lo, 0.9)
@@ -116,7 +116,7 @@ def test_nothing_is_named_when_a_term_within_its_material_level_does_as_well():
     within a rope's material level (+11.9 %, 1 parameter), as on a PyElastica control; it is when the
     damping does clearly worse after the penalty, and the rule holds in later rounds too."""
     from deform.diagnose.scoring import choose
-    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL
+    from deform.terms.library import INTERNAL_DAMPING_LEVEL
 
     def damping(improvement, rnd=1, on_top=()):
         row = _cand("internal_damping", rnd, list(on_top), improvement, -0.01, 0.9)
@@ -144,7 +144,7 @@ def test_the_pick_is_the_largest_improvement_less_its_parameter_penalty():
     """Rule v10: a stiffness variation (3 parameters, +9.3 %) beside an internal damping fitted
     beyond its level (1 parameter, +7.7 %), as on the own simulator's damped rope at 5 ms: the
     damping is picked (6.7 against 6.3 % penalised); with a clear lead the variation is."""
-    from deform.diagnose.terms import INTERNAL_DAMPING_LEVEL
+    from deform.terms.library import INTERNAL_DAMPING_LEVEL
 
     damping = {
         **_cand("internal_damping", 1, [], 0.077, 0.045, 0.9),

@@ -161,7 +161,7 @@ def test_later_rounds_keep_the_finer_step_once_a_slow_term_is_in():
     import numpy as np
 
     from deform.diagnose.selection import model_step_for
-    from deform.diagnose.terms import make_term
+    from deform.terms.library import make_term
 
     s = np.linspace(0, 1, SPEC.n_vertices)
     damping, wind = (make_term(n, SPEC.n_vertices, s, {}) for n in ("internal_damping", "external_force"))

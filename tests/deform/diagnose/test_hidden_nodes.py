@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from deform.diagnose.simulator import Nominal, Simulator, arclength_of, marker_nodes, refine_markers
-from deform.diagnose.terms import make_term
+from deform.terms.library import make_term
 
 from .conftest import SPEC
 

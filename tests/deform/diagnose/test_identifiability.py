@@ -4,7 +4,7 @@ and localisation's contact height is among the contact term's starting points.""
 import numpy as np
 
 from deform.diagnose.selection import contact_height, equivalence_class
-from deform.diagnose.terms import make_term
+from deform.terms.library import make_term
 
 
 def test_equally_good_explanations_form_one_class_and_a_worse_one_does_not():

@@ -6,9 +6,9 @@ import numpy as np
 import torch
 
 from deform.diagnose.simulator import ROLL_FRAMES, Nominal, Simulator, arclength_of, roll_directors
-from deform.diagnose.terms import make_term
 from deform.rod import geometry as G
 from deform.rod.layout import batch_major, vertex_major
+from deform.terms.library import make_term
 
 from .conftest import SPEC
 

@@ -9,9 +9,9 @@ import torch
 from deform.diagnose.fitting import FitBudget, coarse_start, fit
 from deform.diagnose.planted import generate_planted, oracle_term
 from deform.diagnose.simulator import Nominal, Simulator, arclength_of
-from deform.diagnose.terms import damping_modes, make_term
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
+from deform.terms.library import damping_modes, make_term
 
 from .conftest import SPEC
 
@@ -163,7 +163,7 @@ def test_internal_damping_decomposes_its_operator_once_per_rollout_with_the_same
     """The model hands terms a new batch-first view of its rest lengths every step: the cache must
     see through the view (it missed on every step, an eigendecomposition per step), and must still
     give what a fresh decomposition gives."""
-    import deform.diagnose.terms as terms_module
+    import deform.terms.library as terms_module
 
     X = torch.tensor(np.stack([r.positions[:22] for r in sources[:2]]))
 

@@ -77,13 +77,13 @@ def attach(model, names: list[str] | tuple[str, ...], recordings=None) -> list[s
     Returns:
         The names attached now.
     """
-    from deform.diagnose.terms import make_term  # the discrepancy tool's term library
+    from deform.terms.library import make_term
 
     check_names(names)
     have = set(attached_names(model))
     context, arclength = {}, np.linspace(0.0, 1.0, model.n)
     if recordings:
-        from deform.diagnose.simulator import arclength_of
+        from deform.io.recordings import arclength_of
 
         arclength = arclength_of(recordings)
         context["lowest_z"] = float(min(r.positions[..., 2].min() for r in recordings))
@@ -110,52 +110,6 @@ def fix_rest(model) -> None:
     for term in model.extensions:
         if hasattr(term, "fix_rest"):
             term.fix_rest(model.nominal_rest)
-
-
-def coarse_start(model, names, recordings, steps: int = 100, max_recordings: int = 4) -> dict[str, dict]:
-    """Start each attached term of ``names`` at the best point of its coarse grid.
-
-    A term's effect can be decades away from its default start (a drag coefficient, a plane's
-    height), further than Adam moves in a fine-tuning budget. Each term's grid (``Term.grid``, the
-    discrepancy tool's multi-start) is scored by open-loop L1 over ``steps`` steps of a few
-    recordings, and the best point kept. Entries that move the tool's own nominal model are skipped:
-    here the model's parameters are already identified.
-
-    Returns:
-        Per term, the chosen raw values and their L1 [m].
-    """
-    from deform.evaluate import metrics, predict_recordings
-
-    recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
-    chosen = {}
-    for term in model.extensions:
-        if getattr(term, "name", None) not in names or not hasattr(term, "grid"):
-            continue
-        raw = dict(term.named_parameters())
-        points, seen = [], set()
-        for point in term.grid():
-            point = {k: v for k, v in point.items() if k in raw}
-            key = repr(sorted(point.items()))
-            if point and key not in seen:
-                seen.add(key)
-                points.append(point)
-        initial = {k: p.detach().clone() for k, p in raw.items()}
-        best = (math.inf, {})
-        for point in [{}, *points]:
-            with torch.no_grad():
-                for k, p in raw.items():
-                    p.copy_(torch.as_tensor(point.get(k, initial[k]), dtype=p.dtype))
-                err = metrics(predict_recordings(model, recs, steps))["l1_m"]
-            if err < best[0]:
-                best = (err, point)
-        with torch.no_grad():
-            for k, p in raw.items():
-                p.copy_(torch.as_tensor(best[1].get(k, initial[k]), dtype=p.dtype))
-        chosen[term.name] = {
-            "l1_m": best[0],
-            "start": {k: float(torch.as_tensor(v).sum()) for k, v in best[1].items()},
-        }
-    return chosen
 
 
 def attached_names(model) -> list[str]:
@@ -195,7 +149,7 @@ def without(model, names: list[str] | tuple[str, ...]) -> list[torch.nn.Paramete
     Returns:
         The parameters frozen.
     """
-    from deform.model import inv_softplus
+    from deform.rod.positive import inv_softplus
 
     check_names(names)
     frozen = []

@@ -5,7 +5,7 @@ Adam learning rate suits all). A term acts on the simulator in one or more of th
 
 * ``acceleration(x, v, mass, rest)`` / ``mass(mass)``: DeformModel extension hooks;
 * ``bind(exprs)``: rewrite the model's identified parameters (``log_beta``, ``wbar``...) as
-  differentiable expressions of the term's parameters (see :mod:`deform.diagnose.simulator`);
+  differentiable expressions of the term's parameters (see :mod:`deform.diagnose.simulator`, the discrepancy tool);
 * ``delay_frames``: a fractional shift of the gripper input sequence.
 
 ``params()`` gives the physical values for the report; ``init_from_data`` sets data-driven starts;
@@ -23,22 +23,9 @@ import torch
 from torch import Tensor, nn
 from torch.nn.functional import softplus
 
-from deform.model import inv_softplus
 from deform.rod.geometry import normal_velocity
 from deform.rod.layout import batch_major, vertex_major
-
-# The most linear velocity damping the nominal model may hold [1/s]: what a nominal fit gives when
-# nothing but a rope's own material damping (and the model's discretisation) dissipates. A damping of
-# absolute velocity is, physically, an external drag: beyond this level the nominal damping would
-# absorb air drag, contact friction or strong internal damping (measured: 1.8-2.1 /s with PyElastica's
-# drag against 0.15 /s on the paired controls; 5.1-5.3 /s against 0.7 /s on another simulator's stiff
-# rope) and leave no candidate anything to explain, so the nominal fit is bounded here and what is
-# left must be named. 2x the largest free fit on 11 controls, PyElastica's light and stiff rods and
-# this project's own planted controls (`python benchmarks/diagnose_planted.py --calibrate-damping`:
-# 0.13-0.16 and 0.32-0.52 /s), never on the cases a benchmark scores. Known limit: a coarse model of
-# a much finer, violently moved rod needs numerical damping of its own (an 8-vertex model of a
-# 15-node truth at 0.3 m/s per frame wanted 2.7 /s on a control), which the bound then withholds.
-MATERIAL_DAMPING_LEVEL = 1.03
+from deform.rod.positive import inv_softplus
 
 # The least internal (bending-rate) damping the tool names [m^4/s]: a fit at or below it is what a
 # rope's own material damping gives, as every real rope has, not an effect left out of the model.
