@@ -158,7 +158,7 @@ def prebuild(cfg) -> int:
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
         from deform.compiled import bucket_size
         from deform.nn.precision import for_batch, network_dtype
-        from service.workers import share_sizes
+        from service.predict_pool import share_sizes
 
         dtype, threads = getattr(torch, cfg.workers.predict_dtype), predict_threads(cfg.workers)
         network = network_dtype(cfg.workers.predict_network_dtype)

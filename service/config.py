@@ -94,7 +94,7 @@ class Workers(_Strict):
     # 209k on a quiet machine; benchmarks/predict_planning.py --compare predict_threads=2)
     predict_threads: int | None = Field(default=1, ge=1)
     # predict worker processes: a binary request of at least predict_split_min_plans plans is split
-    # across them in consecutive blocks (service.workers.PredictPool: processes do not wait for each
+    # across them in consecutive blocks (service.predict_pool.PredictPool: processes do not wait for each
     # other as threads do)
     predict_processes: int = Field(default=2, ge=1)
     predict_split_min_plans: int = Field(default=128, ge=2)

@@ -20,13 +20,13 @@ import torch
 import zenoh
 
 from service import messages as M
-from service import predict, predict_codec
+from service import predict_codec, predict_pool
 from service.config import ServiceConfig, ZenohSettings
 from service.estimator import Estimator
 from service.fusion import FusionWorker
 from service.ordering import SequenceBuffer, decode_order
 from service.stats import Stats
-from service.workers import fusion_worker_spec, make_predict_pool, make_worker
+from service.workers import fusion_worker_spec, make_worker
 
 log = logging.getLogger("deform.service")
 INPUT_TYPES = {
@@ -115,7 +115,7 @@ class Service:
                 max_yield_s=cfg.workers.fusion_yields_to_predict_s,
             )
         )
-        self.predict_worker = make_predict_pool(model, cfg)
+        self.predict_worker = predict_pool.make_predict_pool(model, cfg)
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
         self.latest_payload: bytes | None = None
@@ -530,7 +530,7 @@ class Service:
                     body = raw
                 self.predict_running.set()
                 try:
-                    ok, reply = predict.handle(self.est, body, self.predict_worker)
+                    ok, reply = predict_pool.handle(self.est, body, self.predict_worker)
                 finally:
                     self.predict_running.clear()
                 if kind == "ros2":

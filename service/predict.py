@@ -7,7 +7,6 @@ rollout never touches the live tracker.
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -240,34 +239,3 @@ def answer(ctx, body: bytes, base: tuple, stamp_ns: int) -> tuple[bool, bytes, s
     """Validate, roll out, encode the whole request in this process: -> (ok, reply, error reason,
     detail). ``ctx`` has ``model``, ``cfg``, ``step`` and ``dtype``."""
     return assemble([answer_part(ctx, body, base, stamp_ns)])
-
-
-def handle(est: Estimator, body: bytes, worker) -> tuple[bool, bytes]:
-    """-> (ok, JSON reply). Errors are counted under ``predict:<reason>``. The rollout runs in
-    ``worker`` (:mod:`service.workers`: a :class:`PredictPool` of processes, one child process, or
-    an ``InlineWorker`` for this thread)."""
-    try:
-        if len(body) > est.cfg.limits.max_request_bytes:  # before copying it anywhere
-            raise InputError("too_large", f"{len(body)} bytes > {est.cfg.limits.max_request_bytes}")
-        shape = predict_codec.request_shape(body)
-        if shape is not None and len(shape) == 4:  # here: the processes each see only their share
-            check_size(shape[0], shape[1], est.cfg.limits)
-        base, stamp = snapshot(est)
-    except InputError as exc:
-        est.stats.reject("predict", exc.reason, str(exc))
-        return False, json.dumps({"error": exc.reason, "detail": str(exc)}).encode()
-    t0 = time.perf_counter()
-    from service.workers import PredictPool
-
-    pool = worker if isinstance(worker, PredictPool) else PredictPool([worker])
-    ok, reply, reason, detail, compute_s, redone = pool.predict(
-        body, base, stamp, timeout=est.cfg.workers.predict_timeout_s
-    )
-    if ok:
-        est.stats.count("predictions")
-        est.stats.count("predict_steps_redone", redone)
-        est.stats.predict_s.add(time.perf_counter() - t0)
-        est.stats.predict_compute_s.add(compute_s)
-    else:
-        est.stats.reject("predict", reason, detail)
-    return ok, reply

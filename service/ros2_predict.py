@@ -92,7 +92,7 @@ def register_service(typename: str, request: str, response: str, typestore=None)
 
 def request_body(cdr: bytes) -> bytes:
     """A ``PredictShapes`` request -> the binary predict request (binary reply) that
-    :func:`service.predict.handle` takes: no text to write or parse, and a large request is split
+    :func:`service.predict_pool.handle` takes: no text to write or parse, and a large request is split
     across the predict processes (their pool reads the plan count from the header). Raises
     :class:`service.messages.InputError`."""
     msg = M.decode(cdr, f"{PREDICT_SRV}_Request")
@@ -110,7 +110,7 @@ def request_body(cdr: bytes) -> bytes:
 
 
 def response(ok: bool, reply: bytes) -> bytes:
-    """What :func:`service.predict.handle` answered -> a ``PredictShapes`` response (CDR)."""
+    """What :func:`service.predict_pool.handle` answered -> a ``PredictShapes`` response (CDR)."""
     Res = M.T[f"{PREDICT_SRV}_Response"]
     if not ok:
         err = json.loads(reply)

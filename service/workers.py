@@ -141,7 +141,7 @@ def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
 
 def job_warmup(ctx: JobContext, batch_sizes, rescue: bool = True) -> bool:
     """Compile or load predict's steps for these plan counts (``rescue=False``: all but the rescue
-    graph, see ``PredictPool._warmup``). -> whether the compiled step is in use."""
+    graph, see ``service.predict_pool.PredictPool._warmup``). -> whether the compiled step is in use."""
     active = ctx.step.warmup(tuple(batch_sizes), ctx.dtype, rescue=rescue) if batch_sizes else ctx.step.active
     gc.freeze()  # the compiled code's objects too (see _serve)
     return active
@@ -274,185 +274,6 @@ class InlineWorker:
 
     def close(self) -> None:
         pass
-
-
-def shares_for(plans: int | None, processes: int, split_min_plans: int) -> int:
-    """How many predict processes a request of ``plans`` plans is split across: every process from
-    ``split_min_plans`` plans on, else the first one alone (also when the plan count is not known
-    without parsing the request). The one rule for serving (:meth:`PredictPool.predict`) and for
-    what warm-up compiles (:func:`share_sizes`).
-
-    Args:
-        plans: plans in the request, or None.
-        processes: predict processes serving.
-        split_min_plans: smaller requests go to the first process whole.
-
-    Returns:
-        The number of shares, 1 or ``processes``.
-    """
-    if plans is None or plans < split_min_plans:
-        return 1
-    return min(processes, plans)  # no process without a plan
-
-
-def share_sizes(plan_counts, processes: int, split_min_plans: int) -> list[list[int]]:
-    """The batch sizes each predict process rolls out for requests of these plan counts: what it
-    compiles at warm-up, and what ``deform-service prebuild`` builds.
-
-    Args:
-        plan_counts: plans per request (``workers.predict_warmup``).
-        processes: predict processes.
-        split_min_plans: smaller requests go to the first process whole.
-
-    Returns:
-        Per process, the sorted distinct sizes (empty for a process no such request reaches).
-    """
-    from service.predict import share
-
-    out: list[set] = [set() for _ in range(processes)]
-    for plans in plan_counts:
-        k = shares_for(plans, processes, split_min_plans)
-        for i in range(k):
-            lo, hi = share(plans, i, k)
-            if hi > lo:
-                out[i].add(hi - lo)
-    return [sorted(s) for s in out]
-
-
-class PredictPool:
-    """The predict worker processes: a large request is split across them in consecutive blocks of
-    plans, each rolled out on one thread, and the shares are joined in order into one reply.
-
-    Why processes rather than threads: the compiled step's parallel loops meet at about 120
-    barriers per step, so two threads wait for each other whenever the loop, fusion or a camera
-    takes a core (a 1024-rod step beside one busy process: 53-122k rod-steps/s on two threads,
-    201-209k on one); processes do not wait for each other, and Python threads cannot share the
-    work (the ahead-of-time step holds the interpreter lock). Only binary requests of at least
-    ``split_min_plans`` plans are split (their plan count is in the header; a JSON request would
-    have to be parsed here, in the loop's process).
-
-    ``more``: makers of the other processes, started in the background by the first ``warmup`` once
-    the first process is warm (predict is ready then), so that their imports do not slow the
-    service's start-up (a third process importing torch beside the service and two workers put
-    warm start-up at 11 s instead of 6.5), and they load the packages the first one built. Until
-    they are warm, every request goes to the first process (``started`` tells when they are).
-    """
-
-    def __init__(self, workers: list, split_min_plans: int = 128, more=()):
-        self.workers, self.split_min_plans = list(workers), split_min_plans
-        self._more = list(more)
-        self._lock = threading.Lock()  # the pool's membership against close()
-        self._closed = False
-        self.started = threading.Event()  # every process is warm and takes its share
-        if not self._more:
-            self.started.set()
-
-    @property
-    def pid(self) -> int:
-        return self.workers[0].pid
-
-    def call(self, op: str, *args, timeout: float | None = None):
-        """A job on the first process (``warmup``: on every process, for the share sizes a split
-        request gives it, the first process before the others so that they load its packages)."""
-        if op == "warmup":
-            return self._warmup(args[0], timeout)
-        return self.workers[0].call(op, *args, timeout=timeout)
-
-    def _warmup(self, sizes, timeout) -> bool:
-        """The first process now (-> whether its step is compiled), the others in the background.
-
-        With other processes to start, the first defers the rescue graph (``RolloutStep.warmup``):
-        on a cold start the second process builds it while the first already serves (its redo on
-        the eager loops meanwhile), and the first loads it once the others are warm; predict is
-        ready one package build (about 25 s) sooner."""
-        per = share_sizes(sizes, len(self.workers) + len(self._more), self.split_min_plans)
-        more, self._more = self._more, []
-        active = self.workers[0].call("warmup", per[0], not more, timeout=timeout)
-        if more:
-            threading.Thread(target=self._start_more, args=(more, per[1:], timeout), daemon=True).start()
-        return bool(active)
-
-    def _start_more(self, makers, sizes, timeout) -> None:
-        try:
-            self._add_processes(makers, sizes, timeout)
-        finally:  # the first process's deferred rescue graph, built by now (or built by it here)
-            try:
-                if not self._closed:
-                    self.workers[0].call("warmup_rescue", timeout=timeout)
-            except Exception as exc:
-                log.warning("predict: the rescue graph is not loaded (%s); unconverged rods go eager", exc)
-
-    def _add_processes(self, makers, sizes, timeout) -> None:
-        new = []
-        try:
-            for make in makers:
-                with self._lock:
-                    if self._closed:
-                        return
-                    new.append(make())
-            self._each([(w, ("warmup", p)) for w, p in zip(new, sizes)], timeout)
-            self._each([(w, ("warmup_rescue",)) for w in new], timeout)  # builds it on a cold start
-            with self._lock:
-                if not self._closed:
-                    self.workers = [*self.workers, *new]  # split requests from here on
-                    new = []
-                    self.started.set()
-        except Exception as exc:  # predict goes on with the first process alone
-            log.warning("predict: the other predict processes did not start (%s); one process serves", exc)
-        finally:
-            for w in new:  # not taken into the pool (closed meanwhile, or failed)
-                w.close()
-
-    @staticmethod
-    def _each(calls, timeout) -> list:
-        """``worker.call(*args)`` for each ``(worker, args)`` at once (each waits on its own socket);
-        a single call in this thread."""
-        if len(calls) == 1:
-            worker, args = calls[0]
-            return [worker.call(*args, timeout=timeout)]
-        out: list = [None] * len(calls)
-        errors: list = []
-
-        def run(i, worker, args):
-            try:
-                out[i] = worker.call(*args, timeout=timeout)
-            except Exception as exc:
-                errors.append(exc)
-
-        threads = [threading.Thread(target=run, args=(i, w, a)) for i, (w, a) in enumerate(calls)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        if errors:
-            raise errors[0]
-        return out
-
-    def predict(self, body: bytes, base, stamp_ns: int, timeout: float | None = None):
-        """-> (ok, reply, reason, detail, compute seconds (the slowest share), steps redone)."""
-        from service import predict, predict_codec
-
-        workers = list(self.workers)  # the second process may join meanwhile
-        plans = predict_codec.request_plans(body) if len(workers) > 1 else None
-        k = shares_for(plans, len(workers), self.split_min_plans)
-        bodies = None
-        if k > 1:  # each process is sent its block of plans alone (predict.handle checked the size)
-            bodies = predict_codec.split_request(body, [predict.share(plans, i, k) for i in range(k)])
-        calls = [(w, ("predict", b, base, stamp_ns)) for w, b in zip(workers, bodies or [body])]
-        results = self._each(calls, timeout)
-        reply = predict.assemble([part for part, _, _ in results])
-        return (*reply, max(r[1] for r in results), sum(r[2] for r in results))
-
-    def restart(self) -> None:
-        for w in self.workers:
-            w.restart()
-
-    def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            workers = list(self.workers)
-        for w in workers:
-            w.close()
 
 
 class WorkerProcess:
@@ -598,14 +419,6 @@ def predict_worker_specs(cfg) -> list[tuple[str, int, int]]:
     ]
 
 
-def make_predict_pool(model, cfg) -> PredictPool:
-    """The service's :class:`PredictPool`: its first process now, the others at its warm-up (one
-    inline worker when ``workers.processes`` is off)."""
-    specs = predict_worker_specs(cfg) if cfg.workers.processes else predict_worker_specs(cfg)[:1]
-    more = [lambda s=s: make_worker(model, cfg, *s) for s in specs[1:]]
-    return PredictPool([make_worker(model, cfg, *specs[0])], cfg.workers.predict_split_min_plans, more)
-
-
 _PRESTARTED: dict[tuple[str, int, int, str], WorkerProcess] = {}
 
 
@@ -619,7 +432,7 @@ def prestart(cfg) -> None:
     """
     if not cfg.workers.processes:
         return
-    # the first predict process only: the others start at predict's warm-up (see PredictPool)
+    # the first predict process only: the others start at predict's warm-up (see service.predict_pool.PredictPool)
     for name, nice, threads in filter(None, (fusion_worker_spec(cfg), predict_worker_specs(cfg)[0])):
         key = (name, nice, threads, cfg.model_dump_json())
         if key not in _PRESTARTED:

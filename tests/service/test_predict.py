@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service import messages as M
-from service import predict
+from service import predict, predict_pool
 from service.estimator import Estimator
 from tests.service.conftest import make_config
 from tests.service.open_loop_tracker import OpenLoopTracker
@@ -38,11 +38,11 @@ _WORKERS: dict = {}
 
 
 def handle(est, raw):
-    """``predict.handle`` with an inline worker (the rollout in this thread), one per estimator."""
+    """``predict_pool.handle`` with an inline worker (the rollout in this thread), one per estimator."""
     from service.workers import InlineWorker
 
     worker = _WORKERS.setdefault(id(est), InlineWorker(est.model, est.cfg))
-    return predict.handle(est, raw, worker)
+    return predict_pool.handle(est, raw, worker)
 
 
 def body(plans, **extra):
@@ -328,7 +328,8 @@ def test_the_pool_splits_large_binary_requests_only(est):
     """Binary requests of at least ``split_min_plans`` plans go to every process, a share each; a
     smaller one or a JSON one goes to the first process alone."""
     from service import predict_codec
-    from service.workers import InlineWorker, PredictPool
+    from service.predict_pool import PredictPool
+    from service.workers import InlineWorker
 
     class Counting(InlineWorker):
         def __init__(self, *a):
@@ -364,5 +365,5 @@ def test_the_pool_splits_large_binary_requests_only(est):
     # more plans than the limits allow: refused before any process is sent a share of it
     for w in workers:
         w.jobs.clear()
-    ok, reply = predict.handle(est, predict_codec.encode_request(np.tile(GOOD, (9, 2, 1, 1)), {}), pool)
+    ok, reply = predict_pool.handle(est, predict_codec.encode_request(np.tile(GOOD, (9, 2, 1, 1)), {}), pool)
     assert not ok and json.loads(reply)["error"] == "too_large" and not any(w.jobs for w in workers)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from service import messages as M
-from service import predict
+from service import predict_pool
 from service.estimator import Estimator
 from service.workers import InlineWorker, WorkerError, WorkerProcess, pack_tracker, unpack_tracker
 from tests.service.conftest import make_config
@@ -45,15 +45,15 @@ def test_predict_in_child_process_equals_inline(est, child, model):
     plans = np.tile(GOOD, (2, 4, 1, 1))
     plans[1, :, :, 2] -= 0.01
     body = json.dumps({"plans": plans.tolist()}).encode()
-    ok_c, reply_c = predict.handle(est, body, child)
-    ok_i, reply_i = predict.handle(est, body, InlineWorker(model, est.cfg))
+    ok_c, reply_c = predict_pool.handle(est, body, child)
+    ok_i, reply_i = predict_pool.handle(est, body, InlineWorker(model, est.cfg))
     assert ok_c and ok_i
     assert json.loads(reply_c) == json.loads(reply_i)
     assert np.array(json.loads(reply_c)["vertices"]).shape == (2, 4, 13, 3)
 
 
 def test_errors_come_back_and_the_child_keeps_serving(est, child):
-    ok, reply = predict.handle(est, b"{not json", child)
+    ok, reply = predict_pool.handle(est, b"{not json", child)
     assert not ok and json.loads(reply)["error"] == "bad_json"
     with pytest.raises(WorkerError, match=r"Error"):
         child.call("fuse", b"not a tracker", None)
@@ -200,7 +200,7 @@ def test_prestarted_workers_serve_the_service_with_its_model_and_are_used_once(m
 
 def test_share_sizes_are_what_each_predict_process_rolls_out():
     """Small requests go whole to the first process; a split one gives each its block."""
-    from service.workers import share_sizes
+    from service.predict_pool import share_sizes
 
     assert share_sizes([64, 256, 1001], 2, 128) == [[64, 128, 500], [128, 501]]
     assert share_sizes([64, 256], 1, 128) == [[64, 256]]
@@ -213,7 +213,7 @@ def test_the_first_predict_process_defers_the_rescue_graph_to_the_second():
     first loads it after that. Alone, the first warms it up itself."""
     import time
 
-    from service.workers import PredictPool
+    from service.predict_pool import PredictPool
 
     class Fake:
         pid = 0
