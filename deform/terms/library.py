@@ -8,6 +8,12 @@ Adam learning rate suits all). A term acts on the simulator in one or more of th
   differentiable expressions of the term's parameters (see :mod:`deform.diagnose.simulator`, the discrepancy tool);
 * ``delay_frames``: a fractional shift of the gripper input sequence.
 
+Every hook follows the dtype of what it is given: the parameters and buffers are float64, the state
+is float64 in the loop and in training but float32 in the service's predict rollout, so a hook casts
+its own tensors to the state's dtype (``x.dtype``, ``mass.dtype``, the expression's) and returns that
+dtype. Left to type promotion, a (3,) float64 field added to a float32 state made the whole step
+float64 and it failed further on (``expected scalar type Float but found Double``, issue 52).
+
 ``params()`` gives the physical values for the report; ``init_from_data`` sets data-driven starts;
 ``grid()`` lists coarse starting values (raw parameter values, log-spaced over decades) that the fit
 tries before gradient descent, so that a term whose effect is orders of magnitude away from its
@@ -109,7 +115,8 @@ class AerodynamicDrag(Term):
 
     def acceleration(self, x, v, mass, rest):
         vn = batch_major(normal_velocity(vertex_major(x, 2), vertex_major(v, 2)), x.shape[:-2])
-        return -(self.log_lin.exp() + self.log_quad.exp() * vn.norm(dim=-1, keepdim=True)) * vn
+        lin, quad = self.log_lin.exp().to(x.dtype), self.log_quad.exp().to(x.dtype)
+        return -(lin + quad * vn.norm(dim=-1, keepdim=True)) * vn
 
     def grid(self):
         # quadratic coefficient over 3 decades, each with a linear part of none, 1 or 4 /s (the nominal
@@ -297,11 +304,12 @@ class GroundContact(Term):
         scale is a damping of rate ``mu a_n / v_eps`` near rest (about 500 /s for a rope lying on
         a table), far beyond what an explicit step of 10 ms can integrate: the resting part of
         the rope chattered and the candidate predicted worse than no table at all."""
-        pen = softplus((self.height - x[..., 2]) / self.width) * self.width
-        normal = self.log_k.exp() * pen  # (B, n) [m/s^2]
+        pen = softplus((self.height.to(x.dtype) - x[..., 2]) / self.width) * self.width
+        normal = self.log_k.exp().to(x.dtype) * pen  # (B, n) [m/s^2]
         vxy = v[..., :2]
         speed = (vxy.pow(2).sum(-1) + 1e-12).sqrt()
-        limit = torch.minimum(torch.sigmoid(self.raw_mu) * normal, speed / getattr(self, "dt", 0.01))
+        mu = torch.sigmoid(self.raw_mu).to(x.dtype)
+        limit = torch.minimum(mu * normal, speed / getattr(self, "dt", 0.01))
         fric = -(limit / speed).unsqueeze(-1) * vxy
         return torch.cat([fric, normal.unsqueeze(-1)], -1)
 
@@ -344,7 +352,7 @@ class PointMass(Term):
         pos = torch.sigmoid(self.raw_pos)
         w = torch.exp(-0.5 * ((self.s - pos) / self.sigma) ** 2)
         w = w / w.sum()
-        return mass + self.log_mass.exp() * w.to(mass.dtype)
+        return mass + (self.log_mass.exp() * w).to(mass.dtype)
 
     @torch.no_grad()
     def params(self):
@@ -375,7 +383,8 @@ class StiffnessVariation(Term):
 
     def bind(self, exprs):
         exprs = dict(exprs)
-        exprs["log_beta"] = exprs["log_beta"] + 2.0 * self.log_ratio * self.window()
+        log_beta = exprs["log_beta"]
+        exprs["log_beta"] = log_beta + (2.0 * self.log_ratio * self.window()).to(log_beta.dtype)
         return exprs
 
     @torch.no_grad()
@@ -435,7 +444,7 @@ class ExternalForce(Term):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def acceleration(self, x, v, mass, rest):
-        a = torch.cat([self.field(), self.log_strength.new_zeros(1)])
+        a = torch.cat([self.field(), self.log_strength.new_zeros(1)]).to(x.dtype)
         return a.expand_as(x)
 
     def grid(self):  # eight directions at 0.3, 1 and 3 m/s^2: within reach of any wind of 0.06-15
@@ -552,8 +561,9 @@ class RestCurvature(Term):
 
     def bind(self, exprs):
         exprs = dict(exprs)
-        m = exprs["wbar"].shape[0]
-        exprs["wbar"] = exprs["wbar"] + (0.05 * self.raw / self.nodes_per_interval).expand(m, 2, 2)
+        wbar = exprs["wbar"]
+        turn = (0.05 * self.raw / self.nodes_per_interval).to(wbar.dtype)
+        exprs["wbar"] = wbar + turn.expand(wbar.shape[0], 2, 2)
         return exprs
 
     def grid(self):  # turning per vertex 0.05 and 0.15 rad in 4 material directions
