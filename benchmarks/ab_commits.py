@@ -115,7 +115,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/ab_commits.json"))
     args = ap.parse_args()
-    from deform.bench import provenance
+    from benchmarks.provenance import provenance
 
     rows: dict[str, list] = {"base": [], "head": []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -141,7 +141,7 @@ def main() -> int:
         "rollout_512_ratio": med("base", "rollout_512_median_ms") / med("head", "rollout_512_median_ms"),
         "loop_step_p50_ratio": med("base", "loop_step", "p50_ms") / med("head", "loop_step", "p50_ms"),
     }
-    result = {**provenance("benchmarks/ab_commits.py"), "base": args.base, "rounds": rows, "speedup": summary}
+    result = {**provenance(), "base": args.base, "rounds": rows, "speedup": summary}
     Path(args.json).write_text(json.dumps(result, indent=2))
     print(json.dumps(summary, indent=2))
     return 0

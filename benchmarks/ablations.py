@@ -11,9 +11,13 @@ finished variant is not trained again.
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import torch
+
+if not __package__:  # run as `python benchmarks/ablations.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from deform.config import load_rod_config
 from deform.evaluate import evaluate
@@ -87,9 +91,9 @@ def main():
             rows.append(row)
     results = Path(__file__).parent / "results"
     results.mkdir(exist_ok=True)
-    from deform.bench import provenance
+    from benchmarks.provenance import provenance
 
-    payload = {**provenance("benchmarks/ablations.py"), "rows": rows}
+    payload = {**provenance(threads=1), "rows": rows}
     (results / "ablations.json").write_text(json.dumps(payload, indent=2) + "\n")
     table = {}
     for r in rows:

@@ -11,6 +11,10 @@ from pathlib import Path
 
 import torch
 
+if not __package__:  # run as `python benchmarks/accuracy.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+from benchmarks.provenance import provenance
 from deform.evaluate import evaluate
 from deform.io.recordings import find_data_root, load_recordings
 from deform.model import DeformModel, load_model
@@ -53,9 +57,7 @@ def main():
         )
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
-    from diagnose_planted import provenance  # the commit and machine, stored with the result
-
-    meta = {"command": "python benchmarks/accuracy.py " + " ".join(sys.argv[1:]), **provenance()}
+    meta = provenance()
     (out / "accuracy.json").write_text(json.dumps({**meta, **rows}, indent=2))
     lines = [
         "| rod | recordings | L1 [cm] | paper DEFORM [cm] | ratio | interior vertex dist [cm] | L1 at 1/10/100/500 steps [cm] |",

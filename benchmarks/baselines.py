@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -231,23 +230,18 @@ def main(argv=None):
             r["deform"]["paired_step_ratio_to_bilstm"] = float(
                 np.median(runs["deform"]) / np.median(runs["bilstm"])
             )
-    machine = {
-        "cpu_count": os.cpu_count(),
-        "threads": 1,
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "load_average_1_min_at_end": round(os.getloadavg()[0], 2),  # what else ran beside the timing
-        "timing_runs": args.timing_runs,
-        "batch": 1,
-    }
-    from deform.bench import source_commit
+    from benchmarks.provenance import provenance
 
     payload = {
-        "command": "python benchmarks/baselines.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": machine,
+        **provenance(
+            argv,
+            script="benchmarks/baselines.py",
+            threads=1,
+            cpu_count=os.cpu_count(),
+            load_average_1_min_at_end=round(os.getloadavg()[0], 2),  # what else ran beside the timing
+            timing_runs=args.timing_runs,
+            batch=1,
+        ),
         "seconds": time.perf_counter() - t_start,
         "training": training,
         "results": results,

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -59,17 +57,10 @@ def main() -> int:
         "predict_aot_2_2_float32_bf16_network_1_thread": (CompiledStep(model, **bf16), f32, 1),
         "one_graph_2_2_torch_compile": (CompiledStep(model, branch_free=PREDICT_BRANCH_FREE), f64, 2),
     }
-    from deform.bench import source_commit
+    from benchmarks.provenance import provenance
 
     out = {
-        "command": "python benchmarks/batched_throughput.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "torch": torch.__version__,
-            "native_bfloat16": native_bfloat16(),
-        },
+        **provenance(native_bfloat16=native_bfloat16()),
         "batch": args.batch,
         "steps": args.steps,
         "rod_steps_per_s": {},

@@ -1,6 +1,6 @@
 """Does the PyElastica benchmark's clamp explain the stiffness variation named on held-out controls?
 
-The independent-simulator benchmark (``elastica_planted.py``) holds each gripped portion out to
+The independent-simulator benchmark (``benchmarks/elastica_planted.py``) holds each gripped portion out to
 the next node of PyElastica's grid, up to a node (2.4 cm) past the gripped marker, while the tool's
 model frees the rope right at that marker. On the light rod's held-out controls (seeds 3 and 5)
 the tool named a softer middle, i.e. stiffer ends (docs/diagnose.md, held-out seeds). This runs
@@ -23,29 +23,33 @@ from pathlib import Path
 
 import torch
 
+if not __package__:  # run as `python benchmarks/clamp_study.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+from benchmarks.elastica_planted import generate_elastica
+from benchmarks.planted.config import budget as tool_budget
+from benchmarks.planted.inputs import as_user_inputs
+from benchmarks.provenance import provenance
+from benchmarks.rods import independent_rod, seeded_sources
+from deform.diagnose.selection import diagnose
+
 ROOT = Path(__file__).resolve().parent
-sys.path.insert(0, str(ROOT))
-
-import diagnose_planted as dp  # noqa: E402
-from elastica_planted import generate_elastica  # noqa: E402
-
-from deform.diagnose.selection import diagnose  # noqa: E402
 
 CANDIDATES = ("stiffness_variation", "external_force")
 
 
 def run(kind: str, seed: int, snap: str, args) -> dict:
-    spec, sources = dp.independent_rod(kind, None, "elastica")
-    src = dp.seeded_sources(sources, seed, args.fit + args.check)
+    spec, sources = independent_rod(kind, None, "elastica")
+    src = seeded_sources(sources, seed, args.fit + args.check)
     t0 = time.perf_counter()
     recs, truth = generate_elastica(
         None, src, spec, rod_kind=kind, n_frames=args.frames, seed=seed, grip_snap=snap
     )
-    inputs = dp.as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
+    inputs = as_user_inputs(spec, recs[: args.fit], recs[args.fit :])
     # tool v8's nominal model, which frees the rope at the gripped markers: the study asks whether the
     # benchmark's clamp is what that model missed (tool v9 fits the clamp instead)
     budget = dataclasses.replace(
-        dp.budget(True), candidates=CANDIDATES, max_rounds=1, progress=False, fit_clamp=False
+        tool_budget(True), candidates=CANDIDATES, max_rounds=1, progress=False, fit_clamp=False
     )
     rep = diagnose(inputs, budget).report
     return {
@@ -67,7 +71,7 @@ def run(kind: str, seed: int, snap: str, args) -> dict:
         ],
         "selected": rep["selected"],
         "seconds": time.perf_counter() - t0,
-        **dp.provenance(),
+        **provenance(),
     }
 
 

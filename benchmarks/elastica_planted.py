@@ -44,9 +44,14 @@ hang from the grippers. The markers' material positions are the median marker sp
 from __future__ import annotations
 
 import math
+import sys
 import time as _time
+from pathlib import Path
 
 import numpy as np
+
+if not __package__:  # run as `python benchmarks/elastica_planted.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from deform.diagnose.spec import RodSpec
 from deform.io.recordings import Recording
@@ -754,11 +759,11 @@ def print_detectability_table(generate, describe_numerics, description: str) -> 
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--strength", type=float, default=1.0)
     args = ap.parse_args()
-    from diagnose_planted import ELASTICA_SOURCES, RODS  # the benchmark's rods, one table
+    from benchmarks.rods import RODS, SOURCE_ROD  # the benchmark's rods, one table
 
     root = find_data_root()
     for kind in args.kinds:
-        name = ELASTICA_SOURCES[kind]
+        name = SOURCE_ROD[kind]
         length, mass, nv = RODS[name]
         sources = load_recordings(root / name / "train")[: args.sources]
         spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)

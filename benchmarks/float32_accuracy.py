@@ -37,14 +37,14 @@ def main() -> int:
     from deform.io.recordings import find_data_root, load_recordings
 
     torch.set_num_threads(1)
-    from deform.bench import provenance
+    from benchmarks.provenance import provenance
     from deform.nn import precision
 
     # the bfloat16 network's accuracy at every batch size (predict uses it from 512 rods on; the
     # recordings here are a batch of 14)
     precision.BFLOAT16_MIN_BATCH = 1
 
-    out = {**provenance("benchmarks/float32_accuracy.py"), "rods": {}}
+    out = {**provenance(), "rods": {}}
     root = find_data_root()
     if root is None:
         raise SystemExit("no DEFORM data: set DEFORM_DATA")

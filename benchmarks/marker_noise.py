@@ -12,7 +12,8 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+if not __package__:  # run as `python benchmarks/marker_noise.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 
 def main() -> None:
@@ -21,9 +22,9 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=300)
     args = p.parse_args()
 
-    import diagnose_planted as dp
-
-    from deform.bench import provenance
+    from benchmarks.planted.inputs import independent_simulator
+    from benchmarks.provenance import provenance
+    from benchmarks.rods import independent_rod, seeded_sources
     from deform.diagnose.denoise import SMOOTH_ABOVE_M, marker_noise, smoothing_window
     from deform.io.recordings import find_data_root, load_recordings
 
@@ -35,10 +36,10 @@ def main() -> None:
             sigma = marker_noise(recs)
             rows.append({"source": f"DEFORM {rod} train", "recordings": len(recs), "noise_mm": sigma * 1e3})
         for simulator in ("elastica", "mujoco"):
-            _, generate, _ = dp.independent_simulator(simulator)
+            _, generate, _ = independent_simulator(simulator)
             for kind in ("light", "stiff"):
-                spec, sources = dp.independent_rod(kind, root, simulator)
-                src = dp.seeded_sources(sources, 0, 12)
+                spec, sources = independent_rod(kind, root, simulator)
+                src = seeded_sources(sources, 0, 12)
                 for planted_mm in (0.0, 0.3, 1.0):
                     recs, _ = generate(
                         None,
@@ -61,7 +62,7 @@ def main() -> None:
                     )
                     print(rows[-1], flush=True)
     out = {
-        **provenance("benchmarks/marker_noise.py"),
+        **provenance(),
         "smooth_above_mm": SMOOTH_ABOVE_M * 1e3,
         "rows": rows,
     }

@@ -63,17 +63,18 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 
+if not __package__:  # run as `python benchmarks/mujoco_planted.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+from benchmarks import elastica_planted as elastica
 from deform.diagnose.spec import RodSpec
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
-
-if __package__:  # imported as benchmarks.mujoco_planted (tests)
-    from . import elastica_planted as elastica
-else:  # run as a script, or imported with benchmarks/ on sys.path (diagnose_planted.py)
-    import elastica_planted as elastica
 
 # the same effects, lead-in, planted parameters and detectability as the PyElastica benchmark
 EFFECTS, LEAD_FRAMES = elastica.EFFECTS, elastica.LEAD_FRAMES

@@ -20,7 +20,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import json
-import platform
 import sys
 import time
 from dataclasses import replace
@@ -153,18 +152,10 @@ def main(argv=None):
     summary = {}
     for r in rows:
         summary.setdefault((r["occlusion"], r["tracker"], r["fps"]), []).append(r["l1_cm"])
-    from deform.bench import source_commit
+    from benchmarks.provenance import provenance
 
     result = dict(
-        command="python benchmarks/perception_tracking.py "
-        + " ".join(sys.argv[1:] if argv is None else argv),
-        commit=source_commit(),
-        machine=dict(
-            cpus=os.cpu_count(),
-            platform=platform.platform(),
-            python=platform.python_version(),
-            torch_threads=torch.get_num_threads(),
-        ),
+        **provenance(argv, script="benchmarks/perception_tracking.py"),
         args=dict(per_rod=per_rod, rods=args.rods),
         wall_s=round(time.time() - t_start, 1),
         hidden_fraction_of_free_vertices=dict((str(k), float(np.mean(v))) for k, v in hidden.items()),

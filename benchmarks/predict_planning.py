@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -31,7 +29,6 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 CASES = (("1024x100 cost", 1024, "none"), ("256x100 final", 256, "final"), ("64x100 all", 64, "all"))
 
@@ -77,8 +74,7 @@ def main() -> int:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
-    from service_bench import start_feeder, status
-
+    from benchmarks.service_bench import start_feeder, status
     from service.client import ShapeClient
     from service.config import load_config
     from service.demo import free_port
@@ -194,16 +190,10 @@ def main() -> int:
         }
 
     head = summary(runs["default"])
-    from deform.bench import source_commit
+    from benchmarks.provenance import provenance
 
     out = {
-        "command": "python benchmarks/predict_planning.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-        },
+        **provenance(),
         "workers": cfg_workers,
         "rounds": args.rounds,
         "warmup_s": head["warmup_s"],

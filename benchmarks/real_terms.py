@@ -28,18 +28,18 @@ from pathlib import Path
 
 import torch
 
+if not __package__:  # run as `python benchmarks/real_terms.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+from benchmarks.accuracy import test_recordings
+from benchmarks.provenance import machine_text, provenance
+from deform.evaluate import evaluate
+from deform.io.recordings import find_data_root, load_recordings
+from deform.model import MODEL_DIR, DeformModel, load_model
+from deform.terms import ADDED, BUILT_IN, attached_names, describe
+from deform.train import TrainConfig, split_validation, train, validation_l1
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from accuracy import test_recordings  # noqa: E402
-from diagnose_planted import provenance  # noqa: E402
-
-from deform.evaluate import evaluate  # noqa: E402
-from deform.io.recordings import find_data_root, load_recordings  # noqa: E402
-from deform.model import MODEL_DIR, DeformModel, load_model  # noqa: E402
-from deform.terms import ADDED, BUILT_IN, attached_names, describe  # noqa: E402
-from deform.train import TrainConfig, split_validation, train, validation_l1  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -88,8 +88,7 @@ def main() -> int:
     def write(complete: bool) -> dict:
         """The rows so far (after every term: an interrupted run keeps what it measured)."""
         result = {
-            "command": "python benchmarks/real_terms.py " + " ".join(sys.argv[1:]),
-            **provenance(),
+            **provenance(threads=args.threads),
             "threads": args.threads,
             "budget": {
                 "iterations": args.iterations,
@@ -180,7 +179,7 @@ def markdown(result: dict) -> str:
         return f"{row[arm][key] * 100:.3f}" if arm in row else "-"
 
     b = result["budget"]
-    machine = result["machine"].replace("torch 1 thread", f"torch {result['threads']} threads")
+    machine = machine_text(result["machine"])
     lines = [
         "# Named physics trained into DEFORM, real rods",
         "",

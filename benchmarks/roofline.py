@@ -276,10 +276,10 @@ def main() -> int:
     if batched.get("batch") == B:
         predict32 = float(batched["rod_steps_per_s"]["predict_aot_2_2_float32"]["median"])
     profile = kernel_profile(model, B, args.profile_steps)
-    from deform.bench import provenance
+    from benchmarks.provenance import provenance
 
     result = {
-        **provenance("benchmarks/roofline.py"),
+        **provenance(),
         "rod": args.rod,
         "n_vertices": model.n,
         "batch": B,

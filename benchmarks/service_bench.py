@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -231,17 +229,10 @@ def main() -> int:
     cfg = load_config(args.config, zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False})
     svc = Service(cfg).start()
     client = ShapeClient(connect=[ep], timeout_s=5.0)
-    from deform.bench import source_commit
+    from benchmarks.provenance import provenance
 
     out: dict = {
-        "command": "python benchmarks/service_bench.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "processor": platform.processor(),
-        },
+        **provenance(),
         "tracker": type(svc.est.tracker).__name__,
         "feeder": "loop (gripper jumps)" if args.loop_jumps else "back and forth",
     }

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -29,12 +28,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def one_start(caches: Path, timeout_s: float) -> dict:
-    from service_bench import start_feeder
-
+    from benchmarks.service_bench import start_feeder
     from service.client import NotReady, ServiceError, ShapeClient
     from service.config import load_config
     from service.demo import free_port
@@ -144,16 +141,10 @@ def main() -> int:
     ap.add_argument("--timeout-s", type=float, default=400.0)
     ap.add_argument("--json", default=str(ROOT / "benchmarks/results/service_startup.json"))
     args = ap.parse_args()
-    from deform.bench import source_commit
+    from benchmarks.provenance import provenance
 
     result = {
-        "command": "python benchmarks/service_startup.py " + " ".join(sys.argv[1:]),
-        "commit": source_commit(),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-        },
+        **provenance(),
         "runs": [],
     }
     for i in range(args.runs):
