@@ -14,6 +14,7 @@ one ``<stem>.runs.jsonl`` file, are read as well (never written).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -22,12 +23,23 @@ from pathlib import Path
 
 
 def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._=+-]", ".", text)
+    return re.sub(r"[^A-Za-z0-9._=+,-]", ".", text)
+
+
+def _value(v) -> str:
+    if isinstance(v, (list, tuple)):
+        return ",".join(map(_value, v))
+    return json.dumps(v, sort_keys=True, separators=(",", ":")).replace('"', "")
 
 
 def config_name(config: dict) -> str:
-    """The directory name of a configuration: its fields, sorted, ``key=value`` joined by ``-``."""
-    return _slug("-".join(f"{k}={json.dumps(v)}".replace('"', "") for k, v in sorted(config.items())))
+    """The directory name of a configuration: its fields, sorted, ``key=value`` joined by ``-``
+    (a long one shortened, with a hash of the whole)."""
+    name = _slug("-".join(f"{k}={_value(v)}" for k, v in sorted(config.items())))
+    if len(name) > 150:
+        digest = hashlib.sha1(json.dumps(config, sort_keys=True).encode()).hexdigest()[:10]
+        name = f"{name[:120]}-{digest}"
+    return name
 
 
 def write_atomic(path: Path, text: str) -> None:
