@@ -68,6 +68,11 @@ def test_summary_only_runs_nothing_and_reads_an_old_runs_file(tmp_path, fake):
     result = json.loads((tmp_path / "diagnose.mujoco.json").read_text())
     assert result["summary"] == stored_summary()["summary"]
     assert result["runs_file"] == "x.runs.jsonl and x.runs/"
+    # the tables as the stored run wrote them, all but the line naming the command and machine
+    new = (tmp_path / "diagnose.mujoco.md").read_text().splitlines()
+    old = (fake_tasks.RESULTS / f"{fake_tasks.STEM}.md").read_text().splitlines()
+    assert len(new) == len(old)
+    assert [(a, b) for a, b in zip(new, old) if a != b and not a.startswith("Run: ")] == []
 
 
 def test_a_failed_dataset_is_reported_and_the_others_are_stored(tmp_path, monkeypatch):
