@@ -57,11 +57,17 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--rerun-url", help="viewer address for --rerun connect (rerun+http://HOST:9876/proxy)")
     run.add_argument("--rrd", help="output .rrd when --rerun file")
     run.add_argument("--perception", help="perception settings YAML (default: perception's defaults)")
-    sub.add_parser(
+    pre = sub.add_parser(
         "prebuild",
         parents=[shared],
         help="build the compiled steps the service loads at start-up into $DEFORM_CACHE (make install runs it)",
-    ).add_argument("--rod", help="rod config name or checkpoint")
+    )
+    pre.add_argument("--rod", help="rod config name or checkpoint (default: the config's)")
+    pre.add_argument(
+        "--all-rods",
+        action="store_true",
+        help="every shipped model (deform/models/*.pt) and the configured rod (make install uses it)",
+    )
     rec = sub.add_parser(
         "record", parents=[shared], help="record the input keys to an MCAP file (Ctrl-C to stop)"
     )
@@ -138,21 +144,23 @@ def _wait(stop: threading.Event, duration: float | None = None) -> None:
     stop.set()
 
 
-def prebuild(cfg) -> int:
-    """Build the ahead-of-time packages a start with ``cfg`` loads (the loop step, the predict step per
-    warm-up size, predict's rescue graph) so that the first start is a warm one (about 10 s instead
-    of a minute or more)."""
-    import time
+def shipped_rods() -> list[str]:
+    """The rods a model is shipped for (``deform/models/<rod>.pt``), sorted."""
+    from deform.model import MODEL_DIR
 
+    return sorted(path.stem for path in MODEL_DIR.glob("*.pt"))
+
+
+def prebuild_jobs(cfg) -> list[tuple]:
+    """The ahead-of-time packages a start with ``cfg`` loads: the loop step, the predict step per
+    warm-up size, predict's rescue graph. -> ``(label, branch_free, batch, dtype, network dtype,
+    threads)`` each; the thread count is part of a package's key, so each is built as its user runs it."""
     import torch
 
-    from deform import load_model
-    from deform.aot import cache_dir, ensure_package
     from deform.compiled import LOOP_BRANCH_FREE, PREDICT_BRANCH_FREE, RESCUE_BATCH, RESCUE_BRANCH_FREE
     from service.config import predict_threads
 
-    model = load_model(cfg.rod)
-    jobs = []  # the thread count is part of a package's key: each is built as its user runs it
+    jobs = []
     if cfg.compile_step and cfg.step_ahead_of_time:
         jobs.append(("loop step", LOOP_BRANCH_FREE, 1, torch.float64, None, cfg.torch_threads))
     if cfg.workers.compile_predict and cfg.workers.predict_ahead_of_time:
@@ -173,18 +181,38 @@ def prebuild(cfg) -> int:
         # the second try for the rods a predict step leaves unconverged (deform.compiled.RolloutStep)
         rescue_network = for_batch(network, RESCUE_BATCH)
         jobs.append(("predict rescue step", RESCUE_BRANCH_FREE, RESCUE_BATCH, dtype, rescue_network, threads))
+    return jobs
+
+
+def prebuild(cfg, rods: list[str] | None = None) -> int:
+    """Build the ahead-of-time packages a start with ``cfg`` loads (:func:`prebuild_jobs`) for each
+    of ``rods`` (None: the config's rod), so that the first start of each is a warm one (predict
+    ready in seconds instead of a minute or more). A package already in the cache is not built
+    again. -> exit code: 1 when a package cannot be built (no compiler, ...; the service then
+    compiles at start-up instead)."""
+    import time
+
+    import torch
+
+    from deform import load_model
+    from deform.aot import cache_dir, ensure_package
+
+    jobs = prebuild_jobs(cfg)
     before = torch.get_num_threads()
-    for label, branch_free, batch, dtype, network, threads in jobs:
-        t0 = time.perf_counter()
-        torch.set_num_threads(threads)
-        try:
-            path, _ = ensure_package(model, branch_free, batch, dtype, network)
-        except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
-            print(f"{label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
-            return 1
-        finally:
-            torch.set_num_threads(before)
-        print(f"{label}: {path.name} ({time.perf_counter() - t0:.0f} s)")
+    for rod in rods or [cfg.rod]:
+        model = load_model(rod)
+        for label, branch_free, batch, dtype, network, threads in jobs:
+            t0 = time.perf_counter()
+            torch.set_num_threads(threads)
+            try:
+                path, built = ensure_package(model, branch_free, batch, dtype, network)
+            except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
+                print(f"{rod} {label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
+                return 1
+            finally:
+                torch.set_num_threads(before)
+            how = f"built in {time.perf_counter() - t0:.0f} s" if built else "already built"
+            print(f"{rod} {label}: {path.name} ({how})", flush=True)
     print(f"cache: {cache_dir()}")
     return 0
 
@@ -213,7 +241,8 @@ def main(argv=None) -> int:
 
         try:
             if args.command == "prebuild":
-                return prebuild(cfg)
+                rods = [*shipped_rods(), cfg.rod] if getattr(args, "all_rods", False) else None
+                return prebuild(cfg, None if rods is None else list(dict.fromkeys(rods)))
             svc = Service(cfg).start()
         except CheckpointError as exc:  # the config checks that the file exists, not what it holds
             print(f"deform-service: {exc}", file=sys.stderr)

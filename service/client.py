@@ -45,7 +45,8 @@ class BadRequest(ServiceError):
 
 class NotReady(ServiceError):
     """No estimate yet (``no_estimate``: no gripper poses received), or predict is still being
-    prepared at start-up (``not_ready``; ``status()["not_ready"]`` lists what is pending)."""
+    prepared at start-up (``not_ready``: its warm-up runs; ``status()["not_ready"]`` lists what is
+    pending, ``status()["predict_state"]`` says ``preparing``). Worth asking again."""
 
 
 class Busy(ServiceError):
@@ -53,14 +54,22 @@ class Busy(ServiceError):
 
 
 class ServiceFailed(ServiceError):
-    """The service failed on a valid request (its log has the trace)."""
+    """The service failed on a valid request (``internal``: its log has the trace), or predict
+    cannot answer because its warm-up failed (``predict_failed``; ``detail`` names why, and says
+    when it is being retried in eager mode; ``status()["predict_failed"]`` too)."""
 
 
 class NoReply(ServiceError):
     """Nothing answered within the timeout: no service under this namespace, or it is not reachable."""
 
 
-_BY_REASON = {"no_estimate": NotReady, "not_ready": NotReady, "busy": Busy, "internal": ServiceFailed}
+_BY_REASON = {
+    "no_estimate": NotReady,
+    "not_ready": NotReady,
+    "busy": Busy,
+    "internal": ServiceFailed,
+    "predict_failed": ServiceFailed,
+}
 _PLAN_DTYPES = {"float32": "<f4", "float64": "<f8"}  # predict_full's binary plans
 
 

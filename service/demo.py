@@ -128,9 +128,14 @@ def _predict(rope: ShapeClient, x_last, grippers, plans: int, steps: int):
     ramp = np.linspace(0, 1, steps)[None, :, None, None]
     shift = np.zeros((plans, 1, 2, 7))
     shift[..., :3] = rng.uniform(-0.1, 0.1, (plans, 1, 2, 3))
+
     # the predict worker compiles its rollout at start-up (about 30 s the first time on a machine):
-    # time the query, not the compilation
-    _wait_for(lambda: (_status(rope) or {}).get("predict_ready"), 300)
+    # time the query, not the compilation (a failed warm-up is final: the query then says why)
+    def settled() -> bool:
+        status = _status(rope) or {}
+        return bool(status.get("predict_ready")) or status.get("predict_state") == "failed"
+
+    _wait_for(settled, 300)
     t = time.perf_counter()
     try:
         shapes = rope.predict(base[None, None] + ramp * shift, dt=0.01, timeout_s=60.0)

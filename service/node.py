@@ -15,6 +15,7 @@ import queue
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import torch
 import zenoh
@@ -69,6 +70,46 @@ def set_realtime_priority(priority: int | None) -> bool:
             "real-time priority %s not available (%s): the loop runs at normal priority", priority, exc
         )
         return False
+
+
+@dataclass(frozen=True)
+class PredictReadiness:
+    """Where predict stands; replaced whole, so that a status or a query reads one consistent value.
+
+    ``state``: ``preparing`` (the warm-up runs: checking the model's step, compiling or loading the
+    compiled steps), ``ready`` (answers), ``retrying_eager`` (the warm-up failed; the eager step is
+    being checked) or ``failed`` (the eager retry failed too: predict cannot answer). ``mode``: how
+    a ready predict runs (``compiled``, ``eager``, ``compiles on first use``). ``failed``: the
+    reason of a failed warm-up (kept once ready in eager mode, to say why it is eager)."""
+
+    state: str = "preparing"
+    mode: str | None = None
+    failed: str | None = None
+    since: float = 0.0  # time.monotonic() of the last change
+
+    @property
+    def ready(self) -> bool:
+        return self.state == "ready"
+
+    def detail(self) -> str:
+        """What a refused predict is told (NotReady while preparing, ServiceFailed after a failure)."""
+        if self.state == "preparing":
+            return (
+                f"predict is being prepared (warm-up running for {time.monotonic() - self.since:.0f} s: "
+                "checking the model's step, compiling or loading the compiled steps); "
+                "status.predict_state says when it is ready or has failed"
+            )
+        if self.state == "retrying_eager":
+            return f"predict warm-up failed ({self.failed}); retrying in eager mode"
+        return f"predict warm-up failed: {self.failed}"
+
+
+def _failure(exc: Exception) -> str:
+    """A warm-up's exception as one line (a worker's error already names the remote exception)."""
+    from service.workers import WorkerError
+
+    text = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 class Service:
@@ -127,7 +168,7 @@ class Service:
         self.shape_pub = None  # {ns}/shape, declared by start()
         self._last_logged_cloud = None
         self._idle = True
-        self.predict_ready = False
+        self.predict = PredictReadiness(since=time.monotonic())
         self.step_ready = (
             not cfg.compile_step or self.est.message_clock
         )  # the loop's step compiled (or not wanted)
@@ -229,21 +270,51 @@ class Service:
             time.sleep(0.005)
         return False
 
+    @property
+    def predict_ready(self) -> bool:
+        """Whether predict answers now (:class:`PredictReadiness`)."""
+        return self.predict.ready
+
+    def _set_predict(self, state: str, mode: str | None = None, failed: str | None = None) -> None:
+        self.predict = PredictReadiness(state, mode, failed, time.monotonic())
+
     def _warmup(self) -> None:
-        """Compile the predict rollout for the configured plan counts (in the worker; queries wait)."""
+        """Check the model's step in predict's dtype, then compile the predict rollout for the
+        configured plan counts (in the worker; queries are refused meanwhile). A failed warm-up is
+        in status (``predict_failed``) and in every predict reply at once, and is retried once on
+        the eager step."""
+        ns = self.cfg.namespace
         sizes = self.cfg.workers.predict_warmup if self.cfg.workers.compile_predict else []
+        t0 = time.perf_counter()
         try:
-            t0 = time.perf_counter()
             active = self.predict_worker.call("warmup", list(sizes))
-            self.predict_ready = True
-            log.info(
-                "[%s] predict ready in %.1f s (%s)",
-                self.cfg.namespace,
-                time.perf_counter() - t0,
-                "compiled" if active and sizes else "eager" if not active else "compiles on first use",
-            )
         except Exception as exc:
-            log.warning("[%s] predict warm-up failed: %s", self.cfg.namespace, exc)
+            reason = _failure(exc)
+            self._set_predict("retrying_eager", failed=reason)
+            log.error(
+                "[%s] predict warm-up failed after %.1f s: %s; retrying in eager mode",
+                ns,
+                time.perf_counter() - t0,
+                reason,
+            )
+            self._retry_eager(reason)
+            return
+        mode = "compiled" if active and sizes else "eager" if not active else "compiles on first use"
+        self._set_predict("ready", mode)
+        log.info("[%s] predict ready in %.1f s (%s)", ns, time.perf_counter() - t0, mode)
+
+    def _retry_eager(self, reason: str) -> None:
+        """After a failed warm-up: every predict process on the model's eager step, if that works."""
+        ns = self.cfg.namespace
+        try:
+            self.predict_worker.call("warmup_eager")
+        except Exception as exc:
+            failed = f"{reason}; the eager retry failed too: {_failure(exc)}"
+            self._set_predict("failed", failed=failed)
+            log.error("[%s] predict unavailable: %s", ns, failed)
+            return
+        self._set_predict("ready", "eager", failed=reason)
+        log.warning("[%s] predict ready in eager mode, after its warm-up failed (%s)", ns, reason)
 
     def _compile_step(self) -> None:
         """Compile the loop's step (B = 1) off the loop thread, then switch the tracker to it."""
@@ -464,23 +535,23 @@ class Service:
 
     def _on_status_query(self, query) -> None:
         status = self.est.status()
-        status["predict_ready"] = self.predict_ready
+        predict = self.predict
+        status["predict_ready"] = predict.ready
+        status["predict_state"] = predict.state  # preparing, ready, retrying_eager or failed
+        status["predict_mode"] = predict.mode  # compiled, eager, compiles on first use (when ready)
+        status["predict_failed"] = predict.failed  # why a warm-up failed (None: it did not)
         # processes taking a share of a large request (the others start after predict is ready)
         status["predict_processes"] = len(self.predict_worker.workers)
         status["step_ready"] = self.step_ready
         status["not_ready"] = [
-            k for k, ok in (("predict", self.predict_ready), ("step", self.step_ready)) if not ok
+            k for k, ok in (("predict", predict.ready), ("step", self.step_ready)) if not ok
         ]
+        status["failed"] = ["predict"] if predict.state in ("retrying_eager", "failed") else []
         query.reply(self.cfg.key("status"), json.dumps(status).encode())
 
     def _on_predict_query(self, query) -> None:
-        def refuse(reason: str) -> None:
-            err = {"error": reason}
-            if reason == "not_ready":
-                err["detail"] = (
-                    "predict is being prepared (compiling); status.predict_ready turns true when it can answer"
-                )
-            query.reply_err(json.dumps(err).encode())
+        def refuse(reason: str, detail: str) -> None:
+            query.reply_err(json.dumps({"error": reason, "detail": detail}).encode())
 
         self._admit_predict("json", query, refuse)
 
@@ -489,24 +560,27 @@ class Service:
         from service.ros2 import reply
         from service.ros2_predict import error_response
 
-        texts = {
-            "not_ready": "not_ready: predict is being prepared (compiling)",
-            "busy": "busy: too many predictions queued",
-        }
-        self._admit_predict("ros2", query, lambda reason: reply(query, error_response(texts[reason])))
+        self._admit_predict(
+            "ros2", query, lambda reason, detail: reply(query, error_response(f"{reason}: {detail}"))
+        )
 
     def _admit_predict(self, kind: str, query, refuse) -> None:
-        """Queue a predict query for the predict thread, or ``refuse(reason)`` it at once: warming up
-        (``not_ready``: said now instead of answering after the compile) or too many queued (``busy``)."""
-        if not self.predict_ready:
-            self.stats.reject("predict", "not_ready", "predict is being prepared")
-            refuse("not_ready")
+        """Queue a predict query for the predict thread, or ``refuse(reason, detail)`` it at once:
+        warming up (``not_ready``: said now instead of answering after the compile), its warm-up
+        failed (``predict_failed``, naming why; the client raises ServiceFailed) or too many queued
+        (``busy``)."""
+        predict = self.predict
+        if not predict.ready:
+            reason = "not_ready" if predict.state == "preparing" else "predict_failed"
+            detail = predict.detail()
+            self.stats.reject("predict", reason, detail)
+            refuse(reason, detail)
             return
         try:
             self.predict_queue.put_nowait((kind, query))
         except queue.Full:
             self.stats.reject("predict", "busy", "too many predictions queued")
-            refuse("busy")
+            refuse("busy", "too many predictions queued; ask again")
 
     def _predict_loop(self) -> None:
         from service import ros2, ros2_predict

@@ -99,28 +99,41 @@ class PredictPool:
 
     def call(self, op: str, *args, timeout: float | None = None):
         """A job on the first process (``warmup``: on every process, for the share sizes a split
-        request gives it, the first process before the others so that they load its packages)."""
+        request gives it, the first process before the others so that they load its packages;
+        ``warmup_eager``, after a failed warm-up: every process on the eager step)."""
         if op == "warmup":
             return self._warmup(args[0], timeout)
+        if op == "warmup_eager":
+            return self._warmup([], timeout, eager=True)
         return self.workers[0].call(op, *args, timeout=timeout)
 
-    def _warmup(self, sizes, timeout) -> bool:
+    def _warmup(self, sizes, timeout, eager: bool = False) -> bool:
         """The first process now (-> whether its step is compiled), the others in the background.
 
         With other processes to start, the first defers the rescue graph (``RolloutStep.warmup``):
         on a cold start the second process builds it while the first already serves (its redo on
         the eager loops meanwhile), and the first loads it once the others are warm; predict is
-        ready one package build (about 25 s) sooner."""
+        ready one package build (about 25 s) sooner. When the first process's warm-up fails, the
+        others are kept for the next warm-up (``eager``: the retry on the eager step)."""
         per = share_sizes(sizes, len(self.workers) + len(self._more), self.split_min_plans)
         more, self._more = self._more, []
-        active = self.workers[0].call("warmup", per[0], not more, timeout=timeout)
+        try:
+            if eager:
+                active = self.workers[0].call("warmup_eager", timeout=timeout)
+            else:
+                active = self.workers[0].call("warmup", per[0], not more, timeout=timeout)
+        except Exception:
+            self._more = more
+            raise
         if more:
-            threading.Thread(target=self._start_more, args=(more, per[1:], timeout), daemon=True).start()
+            threading.Thread(
+                target=self._start_more, args=(more, per[1:], timeout, eager), daemon=True
+            ).start()
         return bool(active)
 
-    def _start_more(self, makers, sizes, timeout) -> None:
+    def _start_more(self, makers, sizes, timeout, eager: bool = False) -> None:
         try:
-            self._add_processes(makers, sizes, timeout)
+            self._add_processes(makers, sizes, timeout, eager)
         finally:  # the first process's deferred rescue graph, built by now (or built by it here)
             try:
                 if not self._closed:
@@ -128,7 +141,7 @@ class PredictPool:
             except Exception as exc:
                 log.warning("predict: the rescue graph is not loaded (%s); unconverged rods go eager", exc)
 
-    def _add_processes(self, makers, sizes, timeout) -> None:
+    def _add_processes(self, makers, sizes, timeout, eager: bool = False) -> None:
         new = []
         try:
             for make in makers:
@@ -136,7 +149,8 @@ class PredictPool:
                     if self._closed:
                         return
                     new.append(make())
-            self._each([(w, ("warmup", p)) for w, p in zip(new, sizes)], timeout)
+            warm = [(w, ("warmup_eager",) if eager else ("warmup", p)) for w, p in zip(new, sizes)]
+            self._each(warm, timeout)
             self._each([(w, ("warmup_rescue",)) for w in new], timeout)  # builds it on a cold start
             with self._lock:
                 if not self._closed:

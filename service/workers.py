@@ -103,17 +103,44 @@ class JobContext:
     @property
     def step(self):
         if self._step is None:
-            from deform.compiled import RolloutStep
-            from deform.nn.precision import network_dtype
-
-            self._step = RolloutStep(
-                self.model,
-                enabled=self.cfg.workers.compile_predict,
-                ahead_of_time=self.cfg.workers.predict_ahead_of_time,
-                compile_checked=self.cfg.workers.compile_checked_step,
-                network_dtype=network_dtype(self.cfg.workers.predict_network_dtype),
-            )
+            self._step = self._rollout_step(self.cfg.workers.compile_predict)
         return self._step
+
+    def _rollout_step(self, compiled: bool):
+        from deform.compiled import RolloutStep
+        from deform.nn.precision import network_dtype
+
+        return RolloutStep(
+            self.model,
+            enabled=compiled,
+            ahead_of_time=self.cfg.workers.predict_ahead_of_time,
+            compile_checked=self.cfg.workers.compile_checked_step,
+            network_dtype=network_dtype(self.cfg.workers.predict_network_dtype),
+        )
+
+    def use_eager(self) -> None:
+        """From now on the rollout is the model's eager step (what a failed warm-up falls back to)."""
+        self._step = self._rollout_step(False)
+
+    def check_step(self) -> None:
+        """Two eager steps of one rod at rest in predict's dtype: what every rollout falls back on
+        for the rods its compiled step leaves unconverged, and all it runs when not compiled.
+        Raises what the model raises (a physics term of another dtype, ...), or a RuntimeError when
+        the step does not keep the dtype or gives no finite shape: a warm-up that passes this
+        check serves, and one that fails it says why at once (a few ms), before any compiling."""
+        import torch
+
+        from deform.step_graph import rod_at_rest
+
+        state, grip = rod_at_rest(self.model, 1, self.dtype)
+        with torch.no_grad():
+            for _ in range(2):
+                state = self.model.step(state, grip)
+        kept = {name: getattr(state, name).dtype for name in ("x", "v", "d1", "theta")}
+        if any(dtype != self.dtype for dtype in kept.values()):
+            raise RuntimeError(f"the model's {self.dtype} step returned {kept}")
+        if not torch.isfinite(state.x).all():
+            raise RuntimeError(f"the model's {self.dtype} step of a rod at rest is not finite")
 
 
 def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]:
@@ -140,11 +167,23 @@ def job_predict(ctx: JobContext, body: bytes, base, stamp_ns: int):
 
 
 def job_warmup(ctx: JobContext, batch_sizes, rescue: bool = True) -> bool:
-    """Compile or load predict's steps for these plan counts (``rescue=False``: all but the rescue
-    graph, see ``service.predict_pool.PredictPool._warmup``). -> whether the compiled step is in use."""
+    """Check the model's eager step in predict's dtype (:meth:`JobContext.check_step`), then compile
+    or load predict's steps for these plan counts (``rescue=False``: all but the rescue graph, see
+    ``service.predict_pool.PredictPool._warmup``). -> whether the compiled step is in use. Raises
+    when predict cannot answer (the service then reports ``predict_failed``)."""
+    ctx.check_step()
     active = ctx.step.warmup(tuple(batch_sizes), ctx.dtype, rescue=rescue) if batch_sizes else ctx.step.active
     gc.freeze()  # the compiled code's objects too (see _serve)
     return active
+
+
+def job_warmup_eager(ctx: JobContext) -> bool:
+    """After a failed warm-up: the rollout on the model's eager step from now on, checked
+    (:meth:`JobContext.check_step`; raises when that fails too). -> False (not compiled)."""
+    ctx.use_eager()
+    ctx.check_step()
+    gc.freeze()
+    return False
 
 
 def job_warmup_rescue(ctx: JobContext) -> bool:
@@ -184,6 +223,7 @@ JOBS = {
     "fuse": job_fuse,
     "predict": job_predict,
     "warmup": job_warmup,
+    "warmup_eager": job_warmup_eager,
     "warmup_rescue": job_warmup_rescue,
     "build_step": job_build_step,
     "ping": job_ping,

@@ -75,6 +75,27 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
     assert aot.package_key(load_model("DLO1"), (2, 2), 65, torch.float32) != built[1][3]
 
 
+def test_prebuild_all_rods_builds_every_shipped_model(monkeypatch, tmp_path, capsys):
+    """`make install` prebuilds every shipped rod's packages (issue 52: DLO4 compiled for 48 s at
+    its first start), the same packages for each, once each."""
+    import deform.aot as aot
+    from tests.model_matrix import SHIPPED
+
+    built = []
+
+    def recorder(m, branch_free, batch, dtype, network_dtype=None):
+        built.append((m.cfg.name, tuple(branch_free), batch, dtype))
+        return tmp_path / f"step-{len(built)}.pt2", False
+
+    monkeypatch.setattr(aot, "ensure_package", recorder)
+    assert cli.main(["prebuild", "--all-rods"]) == 0
+    jobs = {rod: [b[1:] for b in built if b[0] == rod] for rod in dict.fromkeys(b[0] for b in built)}
+    assert list(jobs) == list(SHIPPED)
+    assert all(len(j) == 3 and j == jobs["DLO1"] for j in jobs.values())  # loop, predict, rescue
+    out = capsys.readouterr().out
+    assert "DLO4 predict step, 64 plans:" in out and "already built" in out
+
+
 @pytest.mark.parametrize(
     "argv, needle",
     [
