@@ -1,6 +1,6 @@
 """Does the PyElastica benchmark's clamp explain the stiffness variation named on held-out controls?
 
-The independent-simulator benchmark (``benchmarks/elastica_planted.py``) holds each gripped portion out to
+The independent-simulator benchmark (``benchmarks/planted/elastica.py``) holds each gripped portion out to
 the next node of PyElastica's grid, up to a node (2.4 cm) past the gripped marker, while the tool's
 model frees the rope right at that marker. On the light rod's held-out controls (seeds 3 and 5)
 the tool named a softer middle, i.e. stiffer ends (docs/diagnose.md, held-out seeds). This runs
@@ -26,8 +26,8 @@ import torch
 if not __package__:  # run as `python benchmarks/clamp_study.py`: import the repository's packages
     sys.path[0] = str(Path(__file__).resolve().parents[1])
 
-from benchmarks.elastica_planted import generate_elastica
 from benchmarks.planted.config import budget as tool_budget
+from benchmarks.planted.elastica import generate_elastica
 from benchmarks.planted.inputs import as_user_inputs
 from benchmarks.provenance import provenance
 from benchmarks.rods import independent_rod, seeded_sources

@@ -1,6 +1,6 @@
 """The rods of the planted-effect benchmarks and the recorded motions that drive them: one table,
 read by the benchmark (:mod:`benchmarks.planted`) and by the simulators' own command lines
-(``benchmarks/elastica_planted.py``, ``benchmarks/mujoco_planted.py``).
+(the detectability tables ``benchmarks/elastica_planted.py``, ``benchmarks/mujoco_planted.py``).
 
 * ``RODS``: the DEFORM rods, name -> (length [m], mass [kg], markers);
 * ``SOURCE_ROD``: the rod kind an independent simulator plants effects on -> the real rod whose

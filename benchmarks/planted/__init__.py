@@ -4,7 +4,8 @@
 * what the tool is given and what a row measures: :mod:`~benchmarks.planted.inputs`;
 * datasets per simulator: :mod:`~benchmarks.planted.own` (this project's simulator, and the real
   rods), :mod:`~benchmarks.planted.independent` (PyElastica, MuJoCo: the generators are
-  ``benchmarks/elastica_planted.py`` and ``benchmarks/mujoco_planted.py``);
+  :mod:`~benchmarks.planted.elastica` and :mod:`~benchmarks.planted.mujoco`, their shared geometry
+  :mod:`~benchmarks.planted.geometry` and table :mod:`~benchmarks.planted.detectability`);
   :mod:`~benchmarks.planted.splice` (``--refit``);
 * running (Ray tasks, one stored file per dataset): :mod:`~benchmarks.planted.run`;
 * tables: :mod:`~benchmarks.planted.tables`;

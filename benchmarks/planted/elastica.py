@@ -39,23 +39,45 @@ split into two equal free tails past the outer markers (5.7 cm for DLO1, 1.3 cm 
 hang from the grippers. The markers' material positions are the median marker spacings.
 
     python benchmarks/elastica_planted.py [--sources 8] [--frames 300]   # detectability table
+
+The rope's geometry (markers, grips, starting curve) is shared with MuJoCo's: benchmarks/planted/geometry.py.
 """
 
 from __future__ import annotations
 
 import math
-import sys
-import time as _time
-from pathlib import Path
 
 import numpy as np
 
-if not __package__:  # run as `python benchmarks/elastica_planted.py`: import the repository's packages
-    sys.path[0] = str(Path(__file__).resolve().parents[1])
-
+from benchmarks.planted.detectability import detectability
+from benchmarks.planted.geometry import (
+    LEAD_FRAMES,
+    _frames,
+    _unit,
+    driving_grips,
+    held_nodes,
+    initial_curve,
+    marker_layout,
+    transport,
+)
 from deform.diagnose.spec import RodSpec
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
+
+__all__ = [
+    "DEFAULTS",
+    "EFFECTS",
+    "LEAD_FRAMES",
+    "ROD_KINDS",
+    "detectability",
+    "driving_grips",
+    "generate_elastica",
+    "held_nodes",
+    "initial_curve",
+    "marker_layout",
+    "planted_truth",
+    "transport",
+]
 
 EFFECTS = (
     "aerodynamic_drag",
@@ -110,7 +132,6 @@ ROD_KINDS = {
 }
 SETTLE_S = 1.0  # settling time before the first recorded frame [s]
 SETTLE_DAMPING = 10.0  # extra velocity damping while settling [1/s]
-LEAD_FRAMES = 20  # grips ramp from rest to their first recorded velocity over this lead-in
 GRAVITY = 9.81
 
 # Planted parameters at strength 1 per rod kind, and what ``strength`` scales. The sizes are tuned
@@ -154,120 +175,6 @@ def _elastica():
     import elastica as ea  # imported lazily: an optional dependency (the `bench` extra)
 
     return ea
-
-
-# ----------------------------------------------------------------------------------------------
-# geometry: material layout of markers, nodes and grips
-# ----------------------------------------------------------------------------------------------
-
-
-def marker_layout(sources: list[Recording], length_m: float) -> tuple[np.ndarray, float]:
-    """Material arc length [m] of each marker on the rod, and the tail beyond each outer marker.
-
-    Marker spacings are the median edge lengths over the sources; the rope's length beyond the
-    marker span is split evenly into two free tails (the grippers hold the rope between its two end
-    markers; what runs past the outer marker hangs free)."""
-    edges = np.concatenate([np.linalg.norm(np.diff(r.positions[::25], axis=1), axis=-1) for r in sources])
-    spacing = np.median(edges, axis=0)
-    span = float(spacing.sum())
-    if span > length_m:  # markers spanning more than the rope: shrink them onto it, no tails
-        spacing *= length_m / span
-        span = length_m
-    tail = 0.5 * (length_m - span)
-    return tail + np.concatenate([[0.0], np.cumsum(spacing)]), tail
-
-
-def held_nodes(
-    s_nodes: np.ndarray, s_a: float, s_b: float, inner: str | None = None, snap: str = "outward"
-) -> np.ndarray:
-    """Node ids covering the material interval [s_a, s_b], snapped outwards to the node grid; with
-    ``snap="nearest"`` the ``inner`` end ("a" or "b": the side facing the free rope) goes to the
-    nearest node instead, so the clamp ends within half a node of the gripped marker rather than up
-    to a node past it (``benchmarks/clamp_study.py``)."""
-    dx = s_nodes[1] - s_nodes[0]
-    lo = math.floor(s_a / dx + 1e-9)
-    hi = math.ceil(s_b / dx - 1e-9)
-    if snap not in ("outward", "nearest") or (snap == "nearest" and inner not in ("a", "b")):
-        raise ValueError(f"snap 'outward', or 'nearest' with inner 'a' or 'b'; got {snap!r}, {inner!r}")
-    if snap == "nearest" and inner == "b":
-        hi = max(round(s_b / dx), lo + 1)
-    elif snap == "nearest":
-        lo = min(round(s_a / dx), hi - 1)
-    return np.arange(max(lo, 0), min(hi, len(s_nodes) - 1) + 1)
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def transport(d1: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Parallel transport of normal(s) ``d1`` onto tangent(s) ``t`` (projection, then unit)."""
-    return _unit(d1 - np.sum(d1 * t, axis=-1, keepdims=True) * t)
-
-
-def _frames(t: np.ndarray, d1: np.ndarray) -> np.ndarray:
-    """Director matrices (..., 3, 3), rows d1, d2 = t x d1, d3 = t (PyElastica's convention)."""
-    return np.stack([d1, np.cross(t, d1), t], axis=-2)
-
-
-def _curve_length(c: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(c, axis=0), axis=-1).sum())
-
-
-def initial_curve(
-    markers0: np.ndarray, s_markers: np.ndarray, s_nodes: np.ndarray, held_a: np.ndarray, held_b: np.ndarray
-) -> np.ndarray:
-    """(N, 3) node positions of the rod at the start of settling, segments all ``dx`` long.
-
-    Held portions and tails lie on the first frame's grip lines. Between the grips: a cubic spline
-    through the first frame's interior markers, tangent to the grip lines, given the rod's material
-    length by adding a downward sag (if too short) or blending towards the straight chord (if too
-    long), and resampled at equal arc length."""
-    from scipy.interpolate import CubicSpline
-
-    t_a = _unit(markers0[1] - markers0[0])
-    u_b = _unit(markers0[-2] - markers0[-1])
-    x = np.empty((len(s_nodes), 3))
-    lo, hi = held_a[-1], held_b[0]
-    x[: lo + 1] = markers0[0] + t_a * (s_nodes[: lo + 1] - s_markers[0])[:, None]
-    x[hi:] = markers0[-1] + u_b * (s_markers[-1] - s_nodes[hi:])[:, None]
-    inner = [k for k in range(len(s_markers)) if s_nodes[lo] + 1e-3 < s_markers[k] < s_nodes[hi] - 1e-3]
-    pts = np.concatenate([x[lo][None], markers0[inner], x[hi][None]])
-    chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=-1))])
-    spline = CubicSpline(chord, pts, bc_type=((1, t_a), (1, -u_b)))
-    u = np.linspace(0.0, chord[-1], 2001)
-    base = spline(u)
-    line = x[lo] + (u / chord[-1])[:, None] * (x[hi] - x[lo])
-    sag = (4 * (u / chord[-1]) * (1 - u / chord[-1]))[:, None] * np.array([0.0, 0.0, -1.0])
-    target = (hi - lo) * (s_nodes[1] - s_nodes[0])
-    grow = _curve_length(base) < target  # too short: sag it; too long: straighten it
-    shape = (lambda c: base + c * sag) if grow else (lambda c: (1 - c) * base + c * line)
-    a, b = 0.0, (2.0 * target if grow else 1.0)
-    for _ in range(60):  # bisection: the length is monotone in c on this bracket
-        c = 0.5 * (a + b)
-        if (_curve_length(shape(c)) < target) == grow:
-            a = c
-        else:
-            b = c
-    curve = shape(0.5 * (a + b))
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=-1))])
-    want = np.linspace(0.0, arc[-1], hi - lo + 1)
-    x[lo : hi + 1] = np.stack([np.interp(want, arc, curve[:, c]) for c in range(3)], axis=1)
-    return x
-
-
-def driving_grips(grips: np.ndarray, lead: int = LEAD_FRAMES) -> np.ndarray:
-    """The gripper trajectory (T, 4, 3) the rod is driven with, from the recorded one: the true
-    grippers move smoothly, so single-frame mocap spikes (median of 5) and jitter (Gaussian, 1 frame)
-    are filtered out; then ``lead`` frames are prepended in which the grippers accelerate uniformly
-    from rest to their first velocity (no velocity jump when the motion starts)."""
-    from scipy.ndimage import gaussian_filter1d, median_filter
-
-    g = gaussian_filter1d(median_filter(grips, size=(5, 1, 1), mode="nearest"), 1.0, axis=0, mode="nearest")
-    v0 = g[1] - g[0]  # per frame
-    k = np.arange(-lead, 0, dtype=float)[:, None, None]
-    before = g[0] - v0 * (-k - k**2 / (2 * lead))  # displacement of a linear velocity ramp
-    return np.concatenate([before, g])
 
 
 def _grip_tracks(
@@ -726,74 +633,7 @@ def generate_elastica(
     return recs, truth
 
 
-def detectability(effect_recs: list[Recording], control_recs: list[Recording]) -> float:
-    """Marker L1 [m] between a case and its paired control (same seed, motions and noise): mean
-    |a - b| over frames, non-gripped markers and xyz."""
-    diffs = []
-    for a, b in zip(effect_recs, control_recs, strict=True):
-        n = a.positions.shape[1]
-        inner = [k for k in range(n) if k not in gripped_indices(n)]
-        diffs.append(np.abs(a.positions[:, inner] - b.positions[:, inner]).ravel())
-    return float(np.concatenate(diffs).mean())
-
-
-def print_detectability_table(generate, describe_numerics, description: str) -> None:
-    """The command line of a planted-effect generator: per rod kind, a control (its time, what
-    ``describe_numerics(truth)`` says of its numerics, its L1 from the real recordings it replays),
-    then each effect's marker L1 from that control (:func:`detectability`).
-
-    Args:
-        generate: ``generate_elastica`` or another generator with its signature.
-        describe_numerics: ``truth -> str``, the simulator's own checks of a control.
-        description: the command's help text.
-    """
-    import argparse
-
-    from deform.io.recordings import find_data_root, load_recordings
-
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument("--sources", type=int, default=8)
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--kinds", nargs="*", default=list(ROD_KINDS))
-    ap.add_argument("--effects", nargs="*", default=list(EFFECTS))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--strength", type=float, default=1.0)
-    args = ap.parse_args()
-    from benchmarks.rods import RODS, SOURCE_ROD  # the benchmark's rods, one table
-
-    root = find_data_root()
-    for kind in args.kinds:
-        name = SOURCE_ROD[kind]
-        length, mass, nv = RODS[name]
-        sources = load_recordings(root / name / "train")[: args.sources]
-        spec = RodSpec(length_m=length, mass_kg=mass, n_vertices=nv, dt=0.01, name=name)
-        t0 = _time.perf_counter()
-        control, truth = generate(None, sources, spec, kind, args.frames, args.seed)
-        tc = _time.perf_counter() - t0
-        real = np.mean(
-            [
-                np.abs(c.positions[:, 2:-2] - r.positions[s : s + args.frames, 2:-2]).mean()
-                for c, r, s in zip(control, sources, truth["numerics"]["starts"])
-            ]
-        )
-        print(
-            f"{kind} ({name}): control {tc:.1f} s, {describe_numerics(truth)}, L1 vs real {real * 100:.2f} cm",
-            flush=True,
-        )
-        for effect in args.effects:
-            t0 = _time.perf_counter()
-            recs, _ = generate(effect, sources, spec, kind, args.frames, args.seed, strength=args.strength)
-            print(
-                f"  {effect:20s} {detectability(recs, control) * 100:5.2f} cm  "
-                f"({_time.perf_counter() - t0:.1f} s)",
-                flush=True,
-            )
-
-
-def _element_strain(truth: dict) -> str:
+def element_strain(truth: dict) -> str:
+    """The control's numerics for the detectability table."""
     n = truth["numerics"]
     return f"element strain max {n['max_stretch'] * 100:.2f} % p99 {n['p99_stretch'] * 100:.2f} %"
-
-
-if __name__ == "__main__":
-    print_detectability_table(generate_elastica, _element_strain, __doc__.splitlines()[0])

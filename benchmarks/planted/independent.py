@@ -1,5 +1,5 @@
 """Datasets planted by a simulator we did not write (``INDEPENDENT``: PyElastica,
-benchmarks/elastica_planted.py, or MuJoCo, benchmarks/mujoco_planted.py) on a light and a stiff
+benchmarks/planted/elastica.py, or MuJoCo, benchmarks/planted/mujoco.py) on a light and a stiff
 rod (a medium one when asked), each driven by real gripper motions; the tool is given them through
 the user path (files and ROD.json).
 

@@ -104,14 +104,14 @@ def equivalence_of(rep: dict) -> list[str]:
 
 # the independent simulators: the module that plants the effects and its generator function
 INDEPENDENT = {
-    "elastica": ("benchmarks.elastica_planted", "generate_elastica"),  # PyElastica, Cosserat rods
-    "mujoco": ("benchmarks.mujoco_planted", "generate_mujoco"),  # MuJoCo, a chain of rigid capsules
+    "elastica": ("benchmarks.planted.elastica", "generate_elastica"),  # PyElastica, Cosserat rods
+    "mujoco": ("benchmarks.planted.mujoco", "generate_mujoco"),  # MuJoCo, a chain of rigid capsules
 }
 
 
 def independent_simulator(simulator: str):
     """-> (EFFECTS, generate, detectability) of an independent simulator's planted-effect module
-    (``benchmarks/<simulator>_planted.py``; imported when asked: PyElastica and MuJoCo are optional)."""
+    (``benchmarks/planted/<simulator>.py``; imported when asked: PyElastica and MuJoCo are optional)."""
     import importlib
 
     module, generate = INDEPENDENT[simulator]

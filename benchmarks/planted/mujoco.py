@@ -1,7 +1,7 @@
 """Recordings with one planted effect, made by a third rod simulator (MuJoCo).
 
 Why: the discrepancy tool is scored on recordings from simulators we do not have. PyElastica
-(``benchmarks/elastica_planted.py``) is one independent simulator; this is a second one, built on
+(``benchmarks/planted/elastica.py``) is one independent simulator; this is a second one, built on
 a different mechanics altogether, so that a result that only holds for Cosserat rods (or only for
 our own discrete elastic rods) shows up. Nothing of ours is inside the simulation:
 
@@ -63,15 +63,10 @@ from __future__ import annotations
 
 import itertools
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 
-if not __package__:  # run as `python benchmarks/mujoco_planted.py`: import the repository's packages
-    sys.path[0] = str(Path(__file__).resolve().parents[1])
-
-from benchmarks import elastica_planted as elastica
+from benchmarks.planted import elastica
 from deform.diagnose.spec import RodSpec
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
@@ -575,13 +570,10 @@ def _wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
     return _wxyz(Rotation.from_matrix(R))
 
 
-def _grip_error(truth: dict) -> str:
+def grip_error(truth: dict) -> str:
+    """The control's numerics for the detectability table."""
     n = truth["numerics"]
     return (
         f"{n['n_links']} links, grip error max {n['max_grip_error_m'] * 1e3:.2f} mm "
         f"p99 {n['p99_grip_error_m'] * 1e3:.2f} mm"
     )
-
-
-if __name__ == "__main__":
-    elastica.print_detectability_table(generate_mujoco, _grip_error, __doc__.splitlines()[0])

@@ -37,7 +37,7 @@ def calibrate_damping(args) -> dict:
     independent-simulator controls (light and stiff rod, small material damping) and on this
     project's own controls (stored rows); the level = 2x the largest. The factor leaves room for
     ropes damped more than these; drag and contact have measured 5-10x."""
-    from benchmarks.elastica_planted import generate_elastica
+    from benchmarks.planted.elastica import generate_elastica
     from deform.diagnose.fitting import coarse_nominal, fit
     from deform.diagnose.simulator import Nominal, Simulator
 
@@ -87,7 +87,7 @@ def full_size_timing(args) -> dict:
     import subprocess
     import tempfile
 
-    from benchmarks.elastica_planted import generate_elastica
+    from benchmarks.planted.elastica import generate_elastica
     from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
@@ -148,7 +148,7 @@ def damping_study(kind: str, seed: int, args, variants=((0, None), (1, None))) -
     ``(hidden, final_horizon)`` a reference refit and the internal_damping candidate (same budget,
     scored on the windowed check error as the tool scores candidates): ``hidden`` nodes per marker
     interval (--hidden-damping), fit windows growing to ``final_horizon`` steps (--growing-windows)."""
-    from benchmarks.elastica_planted import generate_elastica
+    from benchmarks.planted.elastica import generate_elastica
     from deform.diagnose.fitting import coarse_nominal, fit
     from deform.diagnose.scoring import score
     from deform.diagnose.selection import fit_and_check

@@ -1,4 +1,4 @@
-"""The PyElastica planted-effect generator (benchmarks/elastica_planted.py) on small synthetic
+"""The PyElastica planted-effect generator (benchmarks/planted/elastica.py) on small synthetic
 gripper motions: no dataset needed; skipped without PyElastica (the `bench` extra)."""
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("elastica")
 
-from benchmarks.elastica_planted import detectability, generate_elastica
+from benchmarks.planted.elastica import detectability, generate_elastica
 from deform.model import gripped_indices
 from tests.benchmarks.swaying_rope import SPEC, WINDOW, N, swaying_source
 

@@ -1,4 +1,4 @@
-"""The MuJoCo planted-effect generator (benchmarks/mujoco_planted.py) on small synthetic gripper
+"""The MuJoCo planted-effect generator (benchmarks/planted/mujoco.py) on small synthetic gripper
 motions: no dataset needed; skipped without MuJoCo (the `bench` extra)."""
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from benchmarks.mujoco_planted import detectability, generate_mujoco
+from benchmarks.planted.mujoco import detectability, generate_mujoco
 from deform.model import gripped_indices
 from tests.benchmarks.swaying_rope import SPEC, WINDOW, N, swaying_source
 
