@@ -30,7 +30,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def one_start(caches: Path, timeout_s: float) -> dict:
+def one_start(caches: Path, timeout_s: float, rod: str | None = None) -> dict:
+    """One start of ``deform-service run [--rod ROD]`` on the compile caches in ``caches``."""
     from benchmarks.service_bench import start_feeder
     from service.client import NotReady, ServiceError, ShapeClient
     from service.config import load_config
@@ -63,7 +64,8 @@ def one_start(caches: Path, timeout_s: float) -> dict:
             rope.subscribe(on_vertices)
             t0 = time.perf_counter()
             proc = subprocess.Popen(
-                [sys.executable, "-m", "service", "run", "--config", str(cfg_path)],
+                [sys.executable, "-m", "service", "run", "--config", str(cfg_path)]
+                + (["--rod", rod] if rod else []),
                 cwd=ROOT,
                 env=env,
                 stdout=subprocess.DEVNULL,
@@ -95,9 +97,13 @@ def one_start(caches: Path, timeout_s: float) -> dict:
                         out[f"{k}_s"] = round(time.perf_counter() - t0, 1)
                 if status["predict_ready"] and status["step_ready"] and arrivals:  # serving, compiled
                     break
+                if status.get("predict_state") == "failed":  # final: it will not become ready
+                    break
                 time.sleep(0.2)
             t_ready = time.perf_counter()
             out["ready_s"] = round(t_ready - t0, 1) if status and not status["not_ready"] else None
+            for k in ("predict_state", "predict_mode", "predict_failed", "step"):
+                out[k] = (status or {}).get(k)
             counts = (status or {}).get("counts", {})
             ticks, misses, skipped = (counts.get(k, 0) for k in ("ticks", "deadline_misses", "ticks_skipped"))
             out["warmup_loop"] = {
