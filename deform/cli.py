@@ -309,6 +309,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(Savitzky-Golay, stated in the report); off: never",
     )
     _add_max_gap(g)
+    g.add_argument(
+        "--workers",
+        type=int_at_least(1),
+        default=None,
+        help="processes fitting a round's candidates side by side (default: the cores); the names "
+        "and numbers do not depend on it",
+    )
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 

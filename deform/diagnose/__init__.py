@@ -1,13 +1,14 @@
 """Discrepancy tool: locate where the plain DER model and recordings differ, name the missing physics.
 
 ``deform diagnose --rod ROD.json --fit DIR --check DIR --out OUTDIR [--json] [--model PT]
-[--budget full|quick] [--clamp fit|METRES] [--denoise auto|off] [--max-gap SECONDS]``
+[--budget full|quick] [--clamp fit|METRES] [--denoise auto|off] [--max-gap SECONDS] [--workers N]``
 
 Modules: :mod:`.spec` (inputs and their checks; marker dropouts filled by :mod:`deform.io.gaps`), :mod:`.resample` (other frame rates to 100 Hz),
 :mod:`.denoise` (marker noise measured; smoothing far above the calibrated level),
 :mod:`.simulator` (bound DER model),
 :mod:`deform.terms` (the term library the candidates come from), :mod:`.fitting` (multi-step fits), :mod:`.localize`,
 :mod:`.scoring` (bootstrap + parameter penalty), :mod:`.selection` (forward selection),
+:mod:`.checked_fit` (a fit and its check errors), :mod:`.pool` (fits side by side in processes),
 :mod:`.report`, :mod:`.planted` (benchmark data with planted effects).
 """
 
@@ -76,7 +77,10 @@ def run_cli(args) -> int:
     clamp = given_clamp(getattr(args, "clamp", "fit"), inputs.spec)
     if clamp is not None:
         budget = dataclasses.replace(budget, fit_clamp=False, clamp_m=clamp)
-    diag = diagnose(inputs, budget, start_model=getattr(args, "model", None))
+    from deform.diagnose.pool import default_workers
+
+    workers = getattr(args, "workers", None) or default_workers()
+    diag = diagnose(inputs, budget, start_model=getattr(args, "model", None), workers=workers)
     tmp = Path(tempfile.mkdtemp(prefix=".diagnose-", dir=out.parent if out.parent.exists() else None))
     try:
         write_report(diag, inputs.check, tmp)

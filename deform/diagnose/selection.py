@@ -11,12 +11,16 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
+from concurrent.futures import as_completed
 from dataclasses import dataclass, field
 
 import numpy as np
+from tqdm import tqdm
 
-from deform.diagnose.fitting import FitBudget, fit, fit_nominal, laplace_uncertainty
+from deform.diagnose.checked_fit import CheckErrors, fit_and_check
+from deform.diagnose.fitting import FitBudget, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
+from deform.diagnose.pool import FitPool, fit_and_check_job, nominal_fit_job
 from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
@@ -25,9 +29,6 @@ from deform.diagnose.simulator import (
     Nominal,
     Simulator,
     arclength_of,
-    clamp_bound,
-    per_recording_l1,
-    per_recording_window_l1,
 )
 from deform.diagnose.spec import Inputs
 from deform.terms.library import LIBRARY, Term, beyond_material_level, make_term
@@ -80,22 +81,6 @@ class DiagnoseBudget:
             max_rounds=2,
             later_round_candidates=3,
             progress=progress,
-        )
-
-
-@dataclass
-class CheckErrors:
-    """Held-out errors of one fitted model, per check recording [m]: ``window``, the mean L1 of
-    one-second predictions restarted along each recording, decides (scoring); ``rollout``, the
-    paper's full open loop, is what the report states as the check error."""
-
-    rollout: np.ndarray
-    window: np.ndarray
-
-    @classmethod
-    def of(cls, sim: Simulator, recordings) -> CheckErrors:
-        return cls(
-            per_recording_l1(sim.predict(recordings), recordings), per_recording_window_l1(sim, recordings)
         )
 
 
@@ -185,7 +170,7 @@ def fit_noise(
     name,
     s,
     context,
-    inputs: Inputs,
+    pool: FitPool,
     budget: FitBudget,
     improvement: float,
     read_roll: bool = True,
@@ -200,25 +185,34 @@ def fit_noise(
         name: the chosen term.
         s: (n,) normalised marker arc length.
         context: data-driven starts.
-        inputs: fit and check recordings.
+        pool: where the two fits run (side by side with worker processes).
         budget: the candidate fit's budget.
         improvement: the improvement measured first.
         read_roll: see :attr:`DiagnoseBudget.read_roll`.
     """
     other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
-    _, c_ref = fit_and_check(
-        spec, nominal, [copy.deepcopy(t) for t in selected], inputs, other, "refit: reference"
-    )
     term = make_term(name, spec.n_vertices, s, context, read_roll=read_roll)
-    _, c = fit_and_check(
-        spec,
-        nominal,
-        [copy.deepcopy(t) for t in selected] + [term],
-        inputs,
-        other,
-        f"refit: {name}",
-        new_term=term,
-    )
+    futures = [
+        pool.submit(
+            fit_and_check_job,
+            spec,
+            nominal,
+            [copy.deepcopy(t) for t in selected],
+            other,
+            "refit: reference",
+            None,
+        ),
+        pool.submit(
+            fit_and_check_job,
+            spec,
+            nominal,
+            [copy.deepcopy(t) for t in selected] + [term],
+            other,
+            f"refit: {name}",
+            len(selected),
+        ),
+    ]
+    (_, c_ref), (_, c) = _gather(futures, pool, "refit")
     again = float(((c_ref.window - c.window) / c_ref.window).mean())
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
@@ -259,34 +253,16 @@ def refit_reference(
     return current if c.window.mean() > current.window.mean() else c
 
 
-def fit_and_check(
-    spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None, hidden: int = 0
-):
-    """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
-    per-recording check errors.
-
-    Args:
-        spec: the rod.
-        nominal: the nominal parameters (copied).
-        terms: the terms to attach.
-        inputs: fit and check recordings.
-        budget: the fit's budget.
-        desc: progress label.
-        new_term: the term just added, started from its coarse grid, or None.
-        hidden: simulated nodes between markers.
-
-    Returns:
-        ``(simulator, CheckErrors)``.
-    """
-    sim = Simulator(
-        spec, copy.deepcopy(nominal), terms, hidden=hidden, max_step_s=budget.max_step_s or MAX_STEP_S
-    )
-    fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
-    return sim, CheckErrors.of(sim, inputs.check)
+def _gather(futures: list, pool: FitPool, desc: str) -> list:
+    """The results of ``futures`` in their order; with worker processes, one bar of finished fits."""
+    if pool.parallel and futures:
+        for _ in tqdm(as_completed(futures), total=len(futures), desc=desc, unit="fit", leave=False):
+            pass
+    return [f.result() for f in futures]
 
 
 def diagnose(
-    inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None
+    inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None, workers: int = 1
 ) -> Diagnosis:
     """Run the whole tool: nominal fit, localisation, candidates fitted and scored in forward
     selection rounds, equivalence classes and fit noise of the chosen terms.
@@ -295,33 +271,48 @@ def diagnose(
         inputs: from :func:`deform.diagnose.spec.load_inputs`.
         budget: the work to spend (default: the full budget).
         start_model: a DEFORM checkpoint to start the nominal parameters from, or None.
+        workers: processes that fit a round's independent candidates side by side
+            (:mod:`deform.diagnose.pool`); the result does not depend on it.
 
     Returns:
         The :class:`Diagnosis` (``report`` is report.json's content).
     """
-    budget = budget or DiagnoseBudget()
+    with FitPool(inputs, workers) as pool:
+        return _diagnose(inputs, budget or DiagnoseBudget(), start_model, pool)
+
+
+def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, pool: FitPool) -> Diagnosis:
     t0 = time.perf_counter()
     spec = inputs.spec
     s = arclength_of(inputs.fit)
-    cb = dataclasses.replace(budget.candidate, progress=budget.progress)
+    cb = dataclasses.replace(budget.candidate, progress=budget.progress and not pool.parallel)
     nominal = _nominal_from_model(start_model) if start_model else Nominal()
     nominal.set_clamp(budget.clamp_m, fitted=budget.fit_clamp)
     start = copy.deepcopy(nominal)
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
-
-    def nominal_fit(max_step_s: float, desc: str) -> tuple[Simulator, dict | None, dict | None]:
-        """The nominal parameters fitted from ``start`` with the model stepped at most ``max_step_s``:
-        ``(simulator, coarse grid's best point, clamp restart)``."""
-        fsim = Simulator(spec, copy.deepcopy(start), max_step_s=max_step_s)
-        if start_model:
-            fit(fsim, inputs.fit, nb, desc=desc)
-            return fsim, None, None
-        started = fit_nominal(fsim, inputs.fit, nb, 0.5 * clamp_bound(spec))  # a held clamp is not restarted
-        return fsim, started["coarse"], started.get("clamp_restart")
-
-    sim, coarse, clamp_restart = nominal_fit(MAX_STEP_S, "nominal fit")
+    from_model = bool(start_model)
+    # round 1 starts slow terms from a nominal fit at the slow step (fine_nominal): it needs only
+    # the start, so it is fitted beside the 10 ms one
+    wants_fine = (
+        budget.fine_nominal
+        and budget.slow_step_s is not None
+        and budget.max_rounds > 0
+        and any(LIBRARY[name].slow for name in budget.candidates)
+    )
+    nominal_future = pool.submit(nominal_fit_job, spec, start, nb, MAX_STEP_S, "nominal fit", from_model)
+    fine_future = None
+    if wants_fine:
+        fine_future = pool.submit(
+            nominal_fit_job,
+            spec,
+            start,
+            nb,
+            budget.slow_step_s,
+            f"nominal fit at {budget.slow_step_s * 1e3:g} ms",
+            from_model,
+        )
+    sim, coarse, clamp_restart, c_nom = nominal_future.result()
     nominal = sim.nominal
-    c_nom = CheckErrors.of(sim, inputs.check)
     e_nom = c_nom.rollout
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[
         : budget.localization_recordings
@@ -346,17 +337,21 @@ def diagnose(
     remaining = list(budget.candidates)
     candidates_out: list[dict] = []
     slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON if budget.grow_slow_terms else None)
-    fine: dict = {}  # the nominal fit at slow_step_s (fine_nominal), made when round 1 needs it
+    fine: dict = {}  # the nominal fit at slow_step_s (fine_nominal), once round 1 uses it
 
-    def base_for(term: Term, rnd: int) -> tuple[Nominal, CheckErrors]:
-        """What a candidate starts from and its reference falls back to: the current model, or in
-        round 1, for a slow term with :attr:`DiagnoseBudget.fine_nominal`, the nominal model fitted
-        at the slow step, falling back to the better of its and the 10 ms fit's check errors."""
-        if not (rnd == 0 and term.slow and budget.slow_step_s is not None and budget.fine_nominal):
+    def from_fine_nominal(term: Term, rnd: int) -> bool:
+        """Whether a candidate starts from the nominal model fitted at the slow step: in round 1,
+        a slow term with :attr:`DiagnoseBudget.fine_nominal`."""
+        return rnd == 0 and term.slow and budget.slow_step_s is not None and budget.fine_nominal
+
+    def base_for(from_fine: bool) -> tuple[Nominal, CheckErrors]:
+        """What a candidate starts from and its reference falls back to: the current model, or the
+        nominal model fitted at the slow step, falling back to the better of its and the 10 ms
+        fit's check errors."""
+        if not from_fine:
             return base_nominal, base_err
         if not fine:
-            fsim, _, _ = nominal_fit(budget.slow_step_s, f"nominal fit at {budget.slow_step_s * 1e3:g} ms")
-            checked = CheckErrors.of(fsim, inputs.check)
+            fsim, _, _, checked = fine_future.result()
             fine.update(sim=fsim, checked=checked)
             fine["current"] = checked if checked.window.mean() < c_nom.window.mean() else c_nom
         return fine["sim"].nominal, fine["current"]
@@ -372,29 +367,55 @@ def diagnose(
     for rnd in range(budget.max_rounds):
         if not remaining:
             break
-        references: dict[tuple, CheckErrors] = {}  # per fit-window kind and step, fitted once per round
-        results = []
+        plans = []
         for name in remaining:
             term = make_term(name, spec.n_vertices, s, context, read_roll=budget.read_roll)
             tb = budget_for(term)
-            start_nominal, current = base_for(term, rnd)
-            from_fine = start_nominal is not base_nominal
-            kind = (tb.final_horizon, tb.max_step_s, from_fine)
-            if kind not in references:
-                references[kind] = refit_reference(
-                    spec, start_nominal, selected, inputs, tb, current, f"round {rnd + 1}: reference"
+            from_fine = bool(from_fine_nominal(term, rnd))
+            plans.append((name, term, tb, (tb.final_horizon, tb.max_step_s, from_fine)))
+        # a reference per fit-window kind and step (fitted once per round), and every candidate:
+        # all independent; those from the fine nominal fit are sent once it is there
+        ref_futures: dict[tuple, object] = {}
+        cand_futures: dict[str, object] = {}
+        for fine_pass in (False, True):
+            for name, term, tb, kind in plans:
+                if kind[2] != fine_pass:
+                    continue
+                start_nominal, _ = base_for(kind[2])
+                if kind not in ref_futures:
+                    ref_futures[kind] = pool.submit(
+                        fit_and_check_job,
+                        spec,
+                        start_nominal,
+                        [copy.deepcopy(t) for t in selected],
+                        tb,
+                        f"round {rnd + 1}: reference",
+                        None,
+                    )
+                terms = [copy.deepcopy(t) for t in selected] + [term]
+                cand_futures[name] = pool.submit(
+                    fit_and_check_job,
+                    spec,
+                    start_nominal,
+                    terms,
+                    tb,
+                    f"round {rnd + 1}: {name}",
+                    len(selected),
                 )
+        kinds = list(ref_futures)
+        done = _gather(
+            [ref_futures[k] for k in kinds] + [cand_futures[p[0]] for p in plans], pool, f"round {rnd + 1}"
+        )
+        references: dict[tuple, CheckErrors] = {}
+        for kind, (_, c) in zip(kinds, done[: len(kinds)]):
+            current = base_for(kind[2])[1]
+            references[kind] = current if c.window.mean() > current.window.mean() else c
+        results = []
+        for (name, _, tb, kind), (csim, checked) in zip(plans, done[len(kinds) :]):
+            term = csim.terms[len(selected)]  # the fitted one (a copy, when it came from a worker)
+            start_nominal = base_for(kind[2])[0]
             c_ref = references[kind]
             e_ref = c_ref.window
-            csim, checked = fit_and_check(
-                spec,
-                start_nominal,
-                [copy.deepcopy(t) for t in selected] + [term],
-                inputs,
-                tb,
-                f"round {rnd + 1}: {name}",
-                new_term=term,
-            )
             sc = score(e_ref, checked.window, term.n_params)
             params = term.params()
             named = nameable(name, params, sc.improvement, sc.ci_low, sc.threshold)
@@ -420,7 +441,7 @@ def diagnose(
                     "reference_check_window_l1_m": float(e_ref.mean()),
                     "growing_windows": tb.final_horizon is not None,
                     "model_step_s": csim.model.dt,
-                    "from_fine_nominal": from_fine,
+                    "from_fine_nominal": kind[2],
                 }
             )
         choice = choose([c for c in candidates_out if c["round"] == rnd + 1])
@@ -449,7 +470,7 @@ def diagnose(
             name,
             s,
             context,
-            inputs,
+            pool,
             best.budget,
             best.score.improvement,
             read_roll=budget.read_roll,

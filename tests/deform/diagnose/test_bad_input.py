@@ -48,7 +48,7 @@ def _budgets_asked(monkeypatch, tmp_path, *option_lists) -> list:
     rod, fit, check = _write(tmp_path)
     used = []
 
-    def fake_diagnose(inputs, budget, start_model=None):
+    def fake_diagnose(inputs, budget, start_model=None, workers=1):
         used.append(budget)
         raise SystemExit(0)
 

@@ -145,7 +145,7 @@ def test_the_cli_smooths_by_default_and_not_with_denoise_off(tmp_path, monkeypat
     rod = _write(tmp_path, noisy, DT)
     seen = []
 
-    def fake_diagnose(inputs, budget, start_model=None):  # stop before any fitting
+    def fake_diagnose(inputs, budget, start_model=None, workers=1):  # stop before any fitting
         seen.append(inputs.warnings)
         raise SystemExit(0)
 

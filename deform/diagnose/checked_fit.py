@@ -1,0 +1,75 @@
+"""A simulator fitted on the fit recordings and its errors on the check recordings: the unit of
+work of a diagnosis, run inline or in a worker process (:mod:`deform.diagnose.pool`)."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+
+from deform.diagnose.fitting import FitBudget, fit, fit_nominal
+from deform.diagnose.simulator import (
+    MAX_STEP_S,
+    Simulator,
+    clamp_bound,
+    per_recording_l1,
+    per_recording_window_l1,
+)
+from deform.diagnose.spec import Inputs
+
+
+@dataclass
+class CheckErrors:
+    """Held-out errors of one fitted model, per check recording [m]: ``window``, the mean L1 of
+    one-second predictions restarted along each recording, decides (scoring); ``rollout``, the
+    paper's full open loop, is what the report states as the check error."""
+
+    rollout: np.ndarray
+    window: np.ndarray
+
+    @classmethod
+    def of(cls, sim: Simulator, recordings) -> CheckErrors:
+        return cls(
+            per_recording_l1(sim.predict(recordings), recordings), per_recording_window_l1(sim, recordings)
+        )
+
+
+def fit_and_check(
+    spec, nominal, terms, inputs: Inputs, budget: FitBudget, desc: str, new_term=None, hidden: int = 0
+):
+    """A simulator from a copy of ``nominal`` and ``terms``, fitted on ``inputs.fit``, and its
+    per-recording check errors.
+
+    Args:
+        spec: the rod.
+        nominal: the nominal parameters (copied).
+        terms: the terms to attach.
+        inputs: fit and check recordings.
+        budget: the fit's budget.
+        desc: progress label.
+        new_term: the term just added, started from its coarse grid, or None.
+        hidden: simulated nodes between markers.
+
+    Returns:
+        ``(simulator, CheckErrors)``.
+    """
+    sim = Simulator(
+        spec, copy.deepcopy(nominal), terms, hidden=hidden, max_step_s=budget.max_step_s or MAX_STEP_S
+    )
+    fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
+    return sim, CheckErrors.of(sim, inputs.check)
+
+
+def fit_nominal_at(
+    spec, start, recordings, budget: FitBudget, max_step_s: float, desc: str, from_model: bool
+):
+    """The nominal parameters fitted from ``start`` with the model stepped at most ``max_step_s``:
+    ``(simulator, coarse grid's best point, clamp restart)``; from a given model (``from_model``),
+    a plain descent with no grid and no restart (a held clamp is not restarted either)."""
+    fsim = Simulator(spec, copy.deepcopy(start), max_step_s=max_step_s)
+    if from_model:
+        fit(fsim, recordings, budget, desc=desc)
+        return fsim, None, None
+    started = fit_nominal(fsim, recordings, budget, 0.5 * clamp_bound(spec))
+    return fsim, started["coarse"], started.get("clamp_restart")

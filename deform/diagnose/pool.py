@@ -1,0 +1,97 @@
+"""Fits of a selection round run in parallel processes: they are independent of each other.
+
+Every fit draws its windows from a ``random.Random`` seeded by its own budget, and torch runs one
+thread in every process, so a fit gives the same numbers in a worker as inline: the names do not
+depend on ``workers``. Processes are spawned (not forked): a fork after torch has started its
+thread pool can deadlock. Each worker receives the recordings once, at its start.
+
+Why a process pool of the standard library rather than Ray: this is one machine's cores, for one
+command a user runs with no set-up; the benchmarks that spread many diagnoses over machines use
+Ray around whole ``deform diagnose`` runs.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import Future, ProcessPoolExecutor
+
+from deform.diagnose.checked_fit import CheckErrors, fit_and_check, fit_nominal_at
+from deform.diagnose.spec import Inputs
+
+_INPUTS: Inputs | None = None  # a worker's recordings, set once by _start
+
+
+def default_workers() -> int:
+    """The cores this process may run on (``--workers`` default)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _start(inputs: Inputs) -> None:
+    import torch
+
+    global _INPUTS
+    _INPUTS = inputs
+    torch.set_num_threads(1)
+
+
+def fit_and_check_job(spec, nominal, terms, budget, desc: str, new_index: int | None, inputs=None):
+    """:func:`deform.diagnose.checked_fit.fit_and_check` where the new term is ``terms[new_index]``
+    (identity does not survive pickling). -> ``(simulator, CheckErrors)``; the fitted new term is
+    ``simulator.terms[new_index]``."""
+    new_term = terms[new_index] if new_index is not None else None
+    return fit_and_check(spec, nominal, terms, inputs or _INPUTS, budget, desc, new_term=new_term)
+
+
+def nominal_fit_job(spec, start, budget, max_step_s: float, desc: str, from_model: bool, inputs=None):
+    """:func:`deform.diagnose.checked_fit.fit_nominal_at` -> ``(simulator, coarse, clamp restart,
+    CheckErrors on the check recordings)``."""
+    inputs = inputs or _INPUTS
+    sim, coarse, restart = fit_nominal_at(spec, start, inputs.fit, budget, max_step_s, desc, from_model)
+    return sim, coarse, restart, CheckErrors.of(sim, inputs.check)
+
+
+class FitPool:
+    """``submit(job, *args)`` -> a Future; ``workers`` 1 runs each job at once, in this process,
+    with the progress bars of the fits; more runs them in that many spawned processes, whose fits
+    show no bars of their own (the caller counts finished jobs)."""
+
+    def __init__(self, inputs: Inputs, workers: int = 1):
+        self.inputs = inputs
+        self.workers = max(1, int(workers))
+        self._executor: ProcessPoolExecutor | None = None
+        if self.workers > 1:
+            self._executor = ProcessPoolExecutor(
+                self.workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_start,
+                initargs=(inputs,),
+            )
+
+    @property
+    def parallel(self) -> bool:
+        return self._executor is not None
+
+    def submit(self, job, *args) -> Future:
+        if self._executor is not None:
+            return self._executor.submit(job, *args)
+        out: Future = Future()
+        try:
+            out.set_result(job(*args, inputs=self.inputs))
+        except Exception as exc:  # the caller's .result() raises it, as from a process
+            out.set_exception(exc)
+        return out
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    def __enter__(self) -> FitPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
