@@ -11,7 +11,9 @@
   to the workers (Ray's ``working_dir``, without ``.venv``, ``.git``, ``runs`` and the stored
   results); the nodes need the project's dependencies installed (``pip install -e ".[bench]"``) and
   the recordings at ``$DEFORM_DATA`` (passed on to the workers when it is set here) or
-  ``../shared/data/deform`` beside the code. ``--num-cpus N`` caps the tasks in flight;
+  ``../shared/data/deform`` beside the code. ``--num-cpus N`` caps the tasks in flight. A cluster
+  with Ray's token authentication (``ray start`` sets it up) takes a Ray client only with
+  ``RAY_AUTH_MODE=token`` and its token (``~/.ray/auth_token`` or ``$RAY_AUTH_TOKEN``) here;
 * ``--inline``: no Ray, the tasks one after another in this process (for a debugger).
 
 Every task runs with one torch thread (a task per core). Tasks return their results to this
@@ -220,7 +222,10 @@ class Workers:
                     bar.update()
             except BaseException:
                 for ref in pending:  # stopped: nothing left running on a cluster's workers
-                    ray.cancel(ref, force=True)
+                    try:
+                        ray.cancel(ref, force=True)
+                    except Exception:  # already finished, or the connection is gone
+                        pass
                 raise
         finally:
             bar.close()

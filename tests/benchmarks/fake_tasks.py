@@ -27,7 +27,8 @@ def simulate(simulator, kind, effect, seed, args) -> dict:
 
 def independent_dataset(simulator, kind, effect, seed, args, control=None, old=None) -> dict:
     assert control is not None and control["threads"] == 1  # the shared control, resolved
-    row = dict(stored_rows()[f"{simulator}:{kind}:{effect or 'none'}:{seed}"])
+    rows = getattr(args, "fake_rows", None) or stored_rows()  # given where the results are not shipped
+    row = dict(rows[f"{simulator}:{kind}:{effect or 'none'}:{seed}"])
     row["task_threads"] = torch.get_num_threads()
     return row
 
