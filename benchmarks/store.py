@@ -96,6 +96,12 @@ class RunStore:
         write_atomic(path, json.dumps(row) + "\n")
         return path
 
+    def where(self, config: dict) -> str:
+        """Where the rows of ``config`` are stored (for a table's caption): the directory, and the old
+        runs file when it holds some."""
+        old = [self.legacy.name] if self.legacy is not None and self._legacy(config) else []
+        return " and ".join([*old, f"{self.directory.name}/"])
+
     def _legacy(self, config: dict) -> dict[str, dict]:
         if self._old is None:
             self._old = []

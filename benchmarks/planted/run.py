@@ -54,15 +54,6 @@ def store_of(args) -> RunStore:
     return RunStore.for_runs(args.runs or RESULTS / f"{stem_of(args)}.runs")
 
 
-def runs_name(store: RunStore, config: dict) -> str:
-    """Where the configuration's rows are stored, for the tables' caption."""
-    names = []
-    if store.legacy is not None and store._legacy(config):
-        names.append(store.legacy.name)
-    names.append(f"{store.directory.name}/")
-    return " and ".join(names)
-
-
 def tasks_of(workers: Workers, args, store: RunStore) -> dict:
     """The tasks of the datasets of ``args`` not yet stored (key -> call), in the benchmark's order:
     controls first (they calibrate the rule and pair the effects), then the effects, then real rods."""
@@ -114,7 +105,7 @@ def run_benchmark(args, results: Path = RESULTS, argv: list[str] | None = None) 
         ),
         "workers": workers.describe(),
     }
-    write(result_of(store.load(config), args, prov, runs_name(store, config)), stem, results)
+    write(result_of(store.load(config), args, prov, store.where(config)), stem, results)
     if failures:
         print(f"{len(failures)} dataset(s) failed, not stored: {', '.join(failures)}", file=sys.stderr)
         return 1
