@@ -159,7 +159,8 @@ class Workers:
                 # the local workers import this repository's packages as this process does
                 path = os.environ.get("PYTHONPATH")
                 os.environ["PYTHONPATH"] = str(ROOT) + (os.pathsep + path if path else "")
-                ray.init(num_cpus=self.num_cpus or os.cpu_count(), include_dashboard=False)
+                # "local": a new instance even where another Ray runs (or a stopped one left its address)
+                ray.init(address="local", num_cpus=self.num_cpus or os.cpu_count(), include_dashboard=False)
             self._started = True
         self._ray = ray
         self._remote = ray.remote(num_cpus=1)(run_call)
