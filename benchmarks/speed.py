@@ -15,7 +15,9 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    result = {**provenance(), **run_benchmarks(quick=args.quick)}
+    meta, bench = provenance(), run_benchmarks(quick=args.quick)
+    # the machine as every benchmark names it, with what the speed benchmark adds (threads, load)
+    result = {**meta, **bench, "machine": {**meta["machine"], **bench.get("machine", {})}}
     out = Path(__file__).parent / "results" / "speed.json"
     out.write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2))

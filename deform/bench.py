@@ -9,9 +9,7 @@ from __future__ import annotations
 import os
 import platform
 import random
-import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -20,44 +18,6 @@ from deform.config import load_rod_config
 from deform.io.recordings import find_data_root, load_recordings
 from deform.model import DeformModel, ThetaSolver, gripped_indices, load_model
 from deform.synthetic import generate_recording
-
-
-def source_commit() -> str:
-    """Short hash of the checkout's HEAD, which a stored result names ("" outside a git checkout).
-
-    Returns:
-        The hash, or "".
-    """
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent.parent,
-            capture_output=True,
-            text=True,
-            timeout=30,
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return ""
-    return out.stdout.strip()
-
-
-def provenance(script: str) -> dict:
-    """What a stored result names: the command that wrote it (this process's arguments), the
-    commit and the machine.
-
-    Args:
-        script: the script's path in the repository, e.g. ``benchmarks/roofline.py``.
-
-    Returns:
-        ``{"command", "commit", "machine": {"cpus", "platform", "torch"}}``.
-    """
-    import sys
-
-    return {
-        "command": " ".join(["python", script, *sys.argv[1:]]),
-        "commit": source_commit(),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__},
-    }
 
 
 def _trajectory(model: DeformModel, frames: int = 500) -> np.ndarray:
