@@ -211,8 +211,12 @@ class Workers:
                     while queue and len(pending) < cap:
                         key, c = queue.pop(0)
                         pending[self._remote.remote(c.fn, *c.args, **c.kwargs)] = key
-                    (ref,), _ = ray.wait(list(pending), num_returns=1)
-                    key = pending.pop(ref)
+                    # with a timeout: Ctrl-C reaches this process between waits (not while blocked)
+                    ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+                    if not ready:
+                        continue
+                    key = pending.pop(ready[0])
+                    ref = ready[0]
                     try:
                         value = ray.get(ref)
                     except ray.exceptions.RayError as exc:
