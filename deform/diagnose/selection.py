@@ -311,7 +311,7 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
             f"nominal fit at {budget.slow_step_s * 1e3:g} ms",
             from_model,
         )
-    sim, coarse, clamp_restart, c_nom = nominal_future.result()
+    sim, coarse, clamp_restart, c_nom = _gather([nominal_future], pool, "nominal fit")[0]
     nominal = sim.nominal
     e_nom = c_nom.rollout
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[
