@@ -14,7 +14,12 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from concurrent.futures import Future, ProcessPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any
+
+from tqdm import tqdm
 
 from deform.diagnose.checked_fit import CheckErrors, fit_and_check, fit_nominal_at
 from deform.diagnose.spec import Inputs
@@ -54,6 +59,17 @@ def nominal_fit_job(spec, start, budget, max_step_s: float, desc: str, from_mode
     return sim, coarse, restart, CheckErrors.of(sim, inputs.check)
 
 
+@dataclass
+class Job:
+    """One fit of a batch: ``make()`` -> ``(job function, args)``, called when the job is sent (so
+    it may read what ``needs``, a Future, gives); ``cost`` ranks jobs, the costliest first."""
+
+    key: Any
+    cost: float
+    make: Callable[[], tuple]
+    needs: Future | None = None
+
+
 class FitPool:
     """``submit(job, *args)`` -> a Future; ``workers`` 1 runs each job at once, in this process,
     with the progress bars of the fits; more runs them in that many spawned processes, whose fits
@@ -84,6 +100,43 @@ class FitPool:
         except Exception as exc:  # the caller's .result() raises it, as from a process
             out.set_exception(exc)
         return out
+
+    def run(self, jobs: list[Job], desc: str, busy: tuple = ()) -> dict:
+        """Every job's result, by key. Whenever a process is free, the costliest job whose ``needs``
+        is done is sent (longest first: the round does not end on one long fit started last).
+
+        Args:
+            jobs: the batch.
+            desc: the bar's label (worker processes only; inline fits show their own bars).
+            busy: Futures of this pool's still running outside the batch (they hold a process).
+        """
+        pending = sorted(jobs, key=lambda j: -j.cost)
+        running: dict[Future, Any] = {}
+        results: dict = {}
+        bar = tqdm(
+            total=len(jobs), desc=desc, unit="fit", leave=False, disable=True if not self.parallel else None
+        )
+        while pending or running:
+            held = sum(1 for f in busy if not f.done())
+            while pending and len(running) + held < self.workers:
+                ready = [j for j in pending if j.needs is None or j.needs.done()]
+                if not ready:
+                    break
+                job = ready[0]
+                pending.remove(job)
+                fn, args = job.make()
+                running[self.submit(fn, *args)] = job.key
+            waiting = [j.needs for j in pending if j.needs is not None and not j.needs.done()]
+            waiting += [f for f in busy if not f.done()]
+            if not running and not waiting:
+                continue
+            done, _ = wait([*running, *waiting], return_when=FIRST_COMPLETED)
+            for f in done:
+                if f in running:
+                    results[running.pop(f)] = f.result()
+                    bar.update()
+        bar.close()
+        return results
 
     def close(self) -> None:
         if self._executor is not None:

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from deform.diagnose.checked_fit import CheckErrors, fit_and_check
 from deform.diagnose.fitting import FitBudget, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.pool import FitPool, fit_and_check_job, nominal_fit_job
+from deform.diagnose.pool import FitPool, Job, fit_and_check_job, nominal_fit_job
 from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
@@ -261,6 +261,15 @@ def _gather(futures: list, pool: FitPool, desc: str) -> list:
     return [f.result() for f in futures]
 
 
+def fit_cost(tb: FitBudget, candidate: bool = False) -> float:
+    """A fit's relative cost, to send the longest first: model steps per frame (a shorter step
+    takes more), window growth (longer rollouts through the same number of rod-steps), and a
+    candidate's descents from its grid's best points."""
+    cost = MAX_STEP_S / (tb.max_step_s or MAX_STEP_S)
+    cost *= 1.5 if tb.final_horizon else 1.0
+    return cost * (max(1, tb.starts) + 0.5 if candidate else 1.0)
+
+
 def diagnose(
     inputs: Inputs, budget: DiagnoseBudget | None = None, start_model: str | None = None, workers: int = 1
 ) -> Diagnosis:
@@ -373,39 +382,28 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
             tb = budget_for(term)
             from_fine = bool(from_fine_nominal(term, rnd))
             plans.append((name, term, tb, (tb.final_horizon, tb.max_step_s, from_fine)))
+
         # a reference per fit-window kind and step (fitted once per round), and every candidate:
-        # all independent; those from the fine nominal fit are sent once it is there
-        ref_futures: dict[tuple, object] = {}
-        cand_futures: dict[str, object] = {}
-        for fine_pass in (False, True):
-            for name, term, tb, kind in plans:
-                if kind[2] != fine_pass:
-                    continue
-                start_nominal, _ = base_for(kind[2])
-                if kind not in ref_futures:
-                    ref_futures[kind] = pool.submit(
-                        fit_and_check_job,
-                        spec,
-                        start_nominal,
-                        [copy.deepcopy(t) for t in selected],
-                        tb,
-                        f"round {rnd + 1}: reference",
-                        None,
-                    )
-                terms = [copy.deepcopy(t) for t in selected] + [term]
-                cand_futures[name] = pool.submit(
-                    fit_and_check_job,
-                    spec,
-                    start_nominal,
-                    terms,
-                    tb,
-                    f"round {rnd + 1}: {name}",
-                    len(selected),
-                )
-        kinds = list(ref_futures)
-        done = _gather(
-            [ref_futures[k] for k in kinds] + [cand_futures[p[0]] for p in plans], pool, f"round {rnd + 1}"
-        )
+        # all independent; those from the fine nominal fit start once it is there
+        def fit_job(start_from_fine: bool, terms: list, tb: FitBudget, desc: str, new_index):
+            def sent():
+                return fit_and_check_job, (spec, base_for(start_from_fine)[0], terms, tb, desc, new_index)
+
+            return sent
+
+        jobs, kinds = [], []
+        for name, term, tb, kind in plans:
+            needs = fine_future if kind[2] else None
+            if kind not in kinds:
+                kinds.append(kind)
+                refs = [copy.deepcopy(t) for t in selected]
+                make = fit_job(kind[2], refs, tb, f"round {rnd + 1}: reference", None)
+                jobs.append(Job(("reference", kind), fit_cost(tb), make, needs))
+            terms = [copy.deepcopy(t) for t in selected] + [term]
+            make = fit_job(kind[2], terms, tb, f"round {rnd + 1}: {name}", len(selected))
+            jobs.append(Job(("candidate", name), fit_cost(tb, candidate=True), make, needs))
+        out = pool.run(jobs, f"round {rnd + 1}", busy=(fine_future,) if fine_future is not None else ())
+        done = [out[("reference", k)] for k in kinds] + [out[("candidate", p[0])] for p in plans]
         references: dict[tuple, CheckErrors] = {}
         for kind, (_, c) in zip(kinds, done[: len(kinds)]):
             current = base_for(kind[2])[1]
