@@ -8,8 +8,29 @@ import signal
 import sys
 import threading
 
-from deform.argtypes import int_at_least, number
 from service.config import ServiceConfigError, load_config
+
+
+def _argtype(name: str, *args):
+    """The argparse type ``deform.argtypes.<name>(*args)``, imported when a value is parsed rather
+    than when the parser is built: importing ``deform`` imports torch (about 3 s), which ``run``
+    does only once it has started its worker processes (``service.workers.prestart``), so that their
+    imports overlap its own (a number option given, such as ``--domain-id``, imports it earlier)."""
+
+    def parse(text: str):
+        from deform import argtypes
+
+        return getattr(argtypes, name)(*args)(text)
+
+    return parse
+
+
+def int_at_least(minimum: int):
+    return _argtype("int_at_least", minimum)
+
+
+def number(positive: bool):
+    return _argtype("number", positive)
 
 
 def _common(p: argparse.ArgumentParser, default=None) -> argparse.ArgumentParser:

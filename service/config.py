@@ -110,6 +110,17 @@ class Workers(_Strict):
     fusion_yields_to_predict_s: float = Field(default=0.5, ge=0)
 
 
+def _shipped_rods_dir() -> Path | None:
+    """``deform/rods`` (the shipped rods' YAML, package data), found without importing ``deform``;
+    None if it cannot be found so (the caller then asks ``deform.config``)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("deform")
+    locations = list(spec.submodule_search_locations or []) if spec is not None else []
+    rods = [Path(loc) / "rods" for loc in locations if (Path(loc) / "rods").is_dir()]
+    return rods[0] if rods else None
+
+
 def predict_threads(workers: Workers) -> int:
     """The predict worker's thread count: ``workers.predict_threads``, or every core."""
     return workers.predict_threads or os.cpu_count() or 1
@@ -189,6 +200,15 @@ class ServiceConfig(_Strict):
         if v.endswith(".pt"):
             if not Path(v).is_file():
                 raise ValueError(f"rod {v}: no such model file")
+            return v
+        shipped = _shipped_rods_dir()
+        if shipped is not None and not Path(v).suffix:
+            # a shipped rod's name, looked up without importing deform: that imports torch (about
+            # 3 s), which `deform-service run` does only once it has started its worker processes
+            # (service.workers.prestart), so that their imports overlap its own
+            if not (shipped / f"{v}.yaml").is_file():
+                known = ", ".join(sorted(p.stem for p in shipped.glob("*.yaml")))
+                raise ValueError(f"unknown rod {v!r}; known rods: {known}")
             return v
         from deform.config import ConfigError, load_rod_config
 

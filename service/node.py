@@ -27,7 +27,7 @@ from service.estimator import Estimator
 from service.fusion import FusionWorker
 from service.ordering import SequenceBuffer, decode_order
 from service.stats import Stats
-from service.workers import fusion_worker_spec, make_worker
+from service.workers import WorkerError, fusion_worker_spec, make_worker
 
 log = logging.getLogger("deform.service")
 INPUT_TYPES = {
@@ -106,8 +106,6 @@ class PredictReadiness:
 
 def _failure(exc: Exception) -> str:
     """A warm-up's exception as one line (a worker's error already names the remote exception)."""
-    from service.workers import WorkerError
-
     text = str(exc) if isinstance(exc, WorkerError) else f"{type(exc).__name__}: {exc}"
     return text.splitlines()[0] if text else type(exc).__name__
 

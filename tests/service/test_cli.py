@@ -137,3 +137,26 @@ def test_a_model_file_that_is_no_checkpoint_is_one_line_and_exit_2(tmp_path, cap
     assert cli.main(["prebuild", "--rod", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a DEFORM checkpoint" in err[0]
+
+
+def test_run_starts_its_workers_before_it_imports_torch():
+    """`deform-service run` starts its worker processes before it imports torch, so that their
+    imports (3-4 s each) overlap its own (service.workers.prestart): nothing before that may import
+    `deform`, which imports torch (the number types and the rod check once did, 3 s of start-up;
+    a number option given, e.g. --domain-id, still imports it to parse the value)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import subprocess, sys\n"
+        "def started(*args, **kwargs):\n"
+        "    print('torch' in sys.modules, flush=True)\n"
+        "    raise SystemExit(0)\n"
+        "subprocess.Popen = started\n"
+        "from service import cli\n"
+        "cli.main(['run', '--rod', 'DLO4'])\n"
+    )
+    env = dict(os.environ, PYTHONPATH=os.getcwd())
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.stdout.strip() == "False", out.stderr[-2000:]
