@@ -83,11 +83,14 @@ def calibrate_damping(args) -> dict:
 def full_size_timing(args) -> dict:
     """Wall time of `deform diagnose` with the default (full) budget on one independent-simulator case
     of the issue's size (8 + 4 recordings of 500 frames), run as a user runs it: files on disk and
-    the command line. -> the row stored in benchmarks/results/diagnose.timing.EFFECT.json."""
+    the command line, with the default workers (the cores) and, as the same run's baseline, one.
+    -> the row stored in benchmarks/results/diagnose.timing.EFFECT.json."""
+    import os
     import subprocess
     import tempfile
 
     from benchmarks.planted.elastica import generate_elastica
+    from deform.diagnose.pool import default_workers
     from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
@@ -121,22 +124,36 @@ def full_size_timing(args) -> dict:
             str(tmp / "fit"),
             "--check",
             str(tmp / "check"),
-            "--out",
-            str(tmp / "out"),
             "--json",
         ]
-        t0 = time.perf_counter()
-        out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
-        seconds = time.perf_counter() - t0
-    rep = json.loads(out.stdout) if out.returncode == 0 else {}
+        runs = {}
+        # as a user runs it (default workers: the cores), then one process as the same run's baseline
+        for label, extra in (("default", []), ("one_worker", ["--workers", "1"])):
+            load = os.getloadavg()[0]
+            t0 = time.perf_counter()
+            out = subprocess.run(
+                [*cmd, "--out", str(tmp / f"out_{label}"), *extra], capture_output=True, text=True, cwd=REPO
+            )
+            runs[label] = {
+                "seconds_wall": time.perf_counter() - t0,
+                "load_average_1min_at_start": load,
+                "returncode": out.returncode,
+                "selected": (json.loads(out.stdout) if out.returncode == 0 else {}).get("selected"),
+                "stderr_tail": out.stderr[-300:] if out.returncode else "",
+            }
+    d, one = runs["default"], runs["one_worker"]
     row = {
         **provenance(["--full-size-timing", "--rod-kinds", kind, "--effects", effect], script=SCRIPT),
         "case": f"elastica {kind} {effect} seed 0, 8 + 4 recordings x 500 frames",
         "budget": "full (default)",
-        "seconds_wall": seconds,
-        "returncode": out.returncode,
-        "selected": rep.get("selected"),
-        "stderr_tail": out.stderr[-300:] if out.returncode else "",
+        "workers_default": default_workers(),
+        "seconds_wall": d["seconds_wall"],
+        "returncode": d["returncode"],
+        "selected": d["selected"],
+        "seconds_wall_one_worker": one["seconds_wall"],
+        "speedup_over_one_worker": one["seconds_wall"] / d["seconds_wall"],
+        "same_names": d["selected"] == one["selected"],
+        "runs": runs,
     }
     write_atomic(RESULTS / f"diagnose.timing.{effect}.json", json.dumps(row, indent=2))
     return row
