@@ -2,42 +2,18 @@
 
 import pytest
 
-from deform.diagnose.planted import generate_planted
 from deform.diagnose.selection import diagnose
-from deform.diagnose.spec import Inputs
 
-from .conftest import SPEC, tiny_budget
+from .conftest import SPEC, planted_inputs, tiny_budget
 
 CANDIDATES = ("external_force", "aerodynamic_drag", "point_mass")
 
 pytestmark = pytest.mark.slow  # whole diagnoses on the tiny rod: about 25 s on two cores
 
 
-# the truth's linear damping at a rope's material level (under the nominal model's bound), and a strong
-# wind: the tiny coarse model needs about 1 /s of numerical damping of its own, which the bound
-# withholds, so a weak wind (0.8, 0.5 m/s^2) scores +6 % against its 7.7 % threshold here
-WIND = {"ax_m_per_s2": 1.6, "ay_m_per_s2": 1.0}
-
-
-def _inputs(effect, sources):
-    recs, truth = generate_planted(
-        effect,
-        sources,
-        SPEC,
-        n_frames=80,
-        refine=2,
-        substeps=2,
-        settle_s=0.5,
-        seed=1,
-        damping=0.2,
-        truth_override=WIND if effect == "external_force" else None,
-    )
-    return Inputs(spec=SPEC, fit=recs[:3], check=recs[3:]), truth
-
-
 @pytest.fixture(scope="module")
 def wind(sources):
-    inputs, truth = _inputs("external_force", sources)
+    inputs, truth = planted_inputs("external_force", sources)
     return diagnose(inputs, tiny_budget(CANDIDATES)), truth
 
 
@@ -62,7 +38,7 @@ def test_report_has_the_issue_schema(wind):
 
 
 def test_control_gives_none(sources):
-    inputs, _ = _inputs(None, sources)
+    inputs, _ = planted_inputs(None, sources)
     rep = diagnose(inputs, tiny_budget(CANDIDATES)).report
     assert rep["selected"] == []
     assert rep["final_check_l1_m"] == pytest.approx(rep["nominal"]["check_l1_m"])
@@ -72,7 +48,7 @@ def test_report_files_name_what_cannot_be_told_apart(wind, sources, tmp_path):
     from deform.diagnose.report import write_report
 
     diag, _ = wind
-    inputs, _ = _inputs("external_force", sources)
+    inputs, _ = planted_inputs("external_force", sources)
     write_report(diag, inputs.check, tmp_path)
     md = (tmp_path / "report.md").read_text()
     assert (tmp_path / "report.json").is_file() and (tmp_path / "localization.png").is_file()
@@ -93,7 +69,7 @@ def test_slow_terms_grow_their_windows_against_their_own_reference(sources):
     from deform.diagnose.fitting import FitBudget
     from deform.diagnose.selection import DiagnoseBudget
 
-    inputs, _ = _inputs(None, sources)
+    inputs, _ = planted_inputs(None, sources)
     b = DiagnoseBudget(
         nominal_iterations=3,
         candidate=FitBudget(iterations=3, batch=4, horizon=10, starts=1),
@@ -125,7 +101,7 @@ def test_slow_terms_are_fitted_with_the_finer_step_from_a_nominal_fit_of_their_o
     from deform.diagnose.fitting import FitBudget
     from deform.diagnose.selection import DiagnoseBudget
 
-    inputs, _ = _inputs(None, sources)
+    inputs, _ = planted_inputs(None, sources)
     b = DiagnoseBudget(
         nominal_iterations=3,
         candidate=FitBudget(iterations=3, batch=4, horizon=10, starts=1),

@@ -4,32 +4,16 @@ import dataclasses
 
 import pytest
 
-from deform.diagnose.planted import generate_planted
 from deform.diagnose.pool import FitPool, default_workers
 from deform.diagnose.selection import diagnose
-from deform.diagnose.spec import Inputs
 
-from .conftest import SPEC, tiny_budget
+from .conftest import planted_inputs, tiny_budget
 
 pytestmark = pytest.mark.slow  # two whole diagnoses on the tiny rod, one of them in two processes
 
-WIND = {"ax_m_per_s2": 1.6, "ay_m_per_s2": 1.0}
-
 
 def test_workers_give_the_same_names_and_numbers(sources):
-    recs, _ = generate_planted(
-        "external_force",
-        sources,
-        SPEC,
-        n_frames=80,
-        refine=2,
-        substeps=2,
-        settle_s=0.5,
-        seed=1,
-        damping=0.2,
-        truth_override=WIND,
-    )
-    inputs = Inputs(spec=SPEC, fit=recs[:3], check=recs[3:])
+    inputs, _ = planted_inputs("external_force", sources)
     # a slow term (its round-1 start is the nominal fit at the fine step, fitted beside the 10 ms
     # one) and two rounds (the chosen term's refit on other windows runs through the pool too)
     # few iterations, no window growth: the two runs must agree, whatever they name
