@@ -50,6 +50,11 @@ class TrackerConfig:
     velocity_gain: float = (
         0.5  # corrections also nudge velocities: v += gain * shift / time since last update
     )
+    lost_fraction: float = 0.3  # lost when this share of the visible rope points is beyond filter_radius
+    lost_after_s: float = 0.5  # ... or when no cloud showed the rope for this long
+    min_seen_points: int = 10  # rope voxels a cloud needs for the rope to count as seen
+    redetect_gain: float = 0.8  # a shape found from the cloud alone replaces the estimate when its
+    # capped mean point distance is below this fraction of the estimate's
 
 
 @dataclass
@@ -73,6 +78,8 @@ class RenderConfig:
     occlusion_start: float = 0.3  # of the recording
     occlusion_end: float = 0.8
     occluder_gap: float = 0.15  # m between occluder and rope, towards the camera
+    blackout_start_s: float = 1.5  # s into the recording: an occluder hides the whole rope from here ...
+    blackout_s: float = 0.0  # ... for this long (0: no blackout)
 
 
 @dataclass

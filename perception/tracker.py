@@ -3,6 +3,12 @@
 Errors in the loop are contained here: bad gripper inputs, failed model steps and unusable clouds
 leave the tracker running open-loop with vertices marked unobserved; nothing raises and no NaN is
 returned from :meth:`Tracker.step` or :meth:`Tracker.correct`.
+
+A correction can only repair errors within ``filter_radius``. Beyond that (the rope was hidden and
+the model drifted, a motion too fast for it, a model of another rope) every cloud is checked
+(:mod:`perception.recovery`): when most visible rope points are unexplained, or the rope was not
+seen for ``lost_after_s``, the tracker counts the rope as lost and finds it again from the cloud
+alone, anchored at the grippers, then goes on tracking from there (:attr:`Tracker.health`).
 """
 
 from __future__ import annotations
@@ -15,10 +21,11 @@ import torch
 
 from deform import gripped_indices
 from perception.camera import Camera
-from perception.cloud import decimate, depth_image
+from perception.cloud import decimate, depth_image, voxel_downsample
 from perception.config import load_config
 from perception.estimate import correct_vertices
 from perception.initial import initial_guess
+from perception.recovery import TrackingHealth, disagreement, explained_cost, rope_from_points
 from perception.segment import segment_rope
 
 log = logging.getLogger(__name__)
@@ -57,6 +64,7 @@ class Tracker:
         self._observed = np.zeros(self.n, dtype=bool)
         self._since_update = np.inf
         self._grip = None
+        self.health = TrackingHealth()
 
     # ----- public API -----------------------------------------------------------------------
     @property
@@ -68,6 +76,12 @@ class Tracker:
         if self._since_update * self.dt > self.config.tracker.stale_after_s:
             return np.zeros(self.n, dtype=bool)
         return self._observed.copy()
+
+    def status(self) -> dict:
+        """Loss and recovery (see :class:`perception.recovery.TrackingHealth`): ``state``
+        (tracking or lost), ``lost`` / ``recovered`` / ``redetected`` counts, ``since_seen_s`` and
+        the last cloud's ``disagreement``."""
+        return self.health.as_dict(self.dt)
 
     def initialize_from_frames(self, x0: np.ndarray, x1: np.ndarray):
         """State at ``x1`` from two consecutive full observations (the paper's protocol).
@@ -111,6 +125,10 @@ class Tracker:
             pts = camera.to_world(segment_rope(xyz, rgb, self.config.segmentation))
         x = initial_guess(grip, self.rest, pts)
         if pts is not None and len(pts):
+            found = rope_from_points(pts, grip, self.rest)
+            cap = self.config.estimation.filter_radius
+            if found is not None and explained_cost(pts, found, cap) < explained_cost(pts, x, cap):
+                x = found
             depth = depth_image(xyz, camera)
             for _ in range(self.config.tracker.init_em_rounds):
                 x, _ = correct_vertices(
@@ -149,6 +167,7 @@ class Tracker:
         if self.state is None:
             return self.initialize(grip)
         self._since_update += 1
+        self.health.since_seen_steps += 1
         if self.physics:
             try:
                 with torch.no_grad():
@@ -190,8 +209,9 @@ class Tracker:
             small, colours = decimate(xyz, colours, self.config.estimation.max_points)
             pts = camera.to_world(segment_rope(small, colours, self.config.segmentation))
             depth = depth_image(xyz, camera)
+            x_pred = self._find_if_lost(pts)
             x_new, observed = correct_vertices(
-                self.x, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
+                x_pred, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
             )
             if not np.all(np.isfinite(x_new)):
                 raise ValueError("non-finite correction")
@@ -209,6 +229,37 @@ class Tracker:
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
+    def _find_if_lost(self, pts: np.ndarray) -> np.ndarray:
+        """The prediction to correct: the model's, or a shape found from the cloud alone when the
+        rope was lost and that shape explains the points clearly better (then the state is moved
+        there, at rest, and no velocity nudge follows)."""
+        tc, radius = self.config.tracker, self.config.estimation.filter_radius
+        x_pred = self.x
+        seen = voxel_downsample(pts, self.config.estimation.voxel)
+        if len(seen) < tc.min_seen_points:
+            if self.health.since_seen_steps * self.dt > tc.lost_after_s:
+                self.health.lose()
+            return x_pred
+        self.health.since_seen_steps = 0
+        share = disagreement(seen, x_pred, radius)
+        self.health.disagreement = share
+        if share <= tc.lost_fraction:
+            self.health.recover(redetected=False)  # back, or never gone: the camera agrees
+            return x_pred
+        self.health.lose()
+        found = rope_from_points(
+            pts, self._grip if self._grip is not None else x_pred[self.grip_idx], self.rest
+        )
+        if found is None or explained_cost(seen, found, radius) >= tc.redetect_gain * explained_cost(
+            seen, x_pred, radius
+        ):
+            return x_pred
+        x_t = torch.as_tensor(found, dtype=self.state.x.dtype).unsqueeze(0)
+        self.state = self.model.reposition(self.state, x_t, torch.zeros_like(x_t))
+        self._since_update = np.inf
+        self.health.recover(redetected=True)
+        return self.x
+
     def _mark(self, observed: np.ndarray) -> None:
         self._observed = observed & self.movable
         self._since_update = 0
