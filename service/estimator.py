@@ -259,6 +259,12 @@ class Estimator:
             return "tracking"
         return "open-loop"
 
+    def rope_status(self) -> dict | None:
+        """The tracker's loss and recovery counts (state tracking or lost, lost, recovered,
+        redetected, since_seen_s, disagreement); None for a tracker that keeps none."""
+        status = getattr(self.tracker, "status", None)
+        return status() if callable(status) else None
+
     def status(self) -> dict:
         now = self.now()
         snap = self.stats.snapshot()
@@ -277,6 +283,7 @@ class Estimator:
             "deadline_misses": snap["counts"].get("deadline_misses", 0),
             "input_age_s": {k: round(now - v, 4) for k, v in self.arrived.items()},
             "last_fusion_age_s": None if self.fused_at is None else round(now - self.fused_at, 4),
+            "rope": self.rope_status(),
             "rejected": snap["rejected"],
             "dropped": snap["dropped"],
             "counts": snap["counts"],

@@ -395,7 +395,9 @@ class Service:
         if self.rerun is not None:
             last = self.stats.step_s.latest()
             step = last * 1e3 if last is not None and not initial else None
-            self.rerun.submit("estimate", estimate, step, publish_s * 1e3, self.est.mode())
+            self.rerun.submit(
+                "estimate", estimate, step, publish_s * 1e3, self.est.mode(), self.est.rope_status()
+            )
             cloud = getattr(self.est, "last_cloud", None)
             if cloud is not None and cloud is not self._last_logged_cloud:
                 self._last_logged_cloud = cloud

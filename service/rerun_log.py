@@ -18,8 +18,8 @@ NS = 1_000_000_000
 
 
 def blueprint():
-    """The layout a user opens to: the rope in 3D beside the loop's timings, the observed fraction and
-    the mode changes."""
+    """The layout a user opens to: the rope in 3D beside the loop's timings, the observed and
+    unexplained fractions, and the mode changes and rope losses."""
     import rerun.blueprint as rrb
 
     return rrb.Blueprint(
@@ -27,7 +27,7 @@ def blueprint():
             rrb.Spatial3DView(name="rope", origin="/world"),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="timing [ms]", origin="/timing"),
-                rrb.TimeSeriesView(name="observed fraction", origin="/rope"),
+                rrb.TimeSeriesView(name="rope: observed, unexplained", origin="/rope"),
                 rrb.TextLogView(name="mode", origin="/status"),
             ),
             column_shares=[2, 1],
@@ -54,6 +54,7 @@ class RerunLogger(threading.Thread):
         self.queue: queue.Queue = queue.Queue(maxsize=256)
         self._clouds = 0
         self._last_mode = None
+        self._rope_counts = (0, 0)
 
     def submit(self, kind: str, *payload) -> None:
         try:
@@ -81,7 +82,9 @@ class RerunLogger(threading.Thread):
     def _time(self, stamp_ns: int) -> None:
         self.rec.set_time("message_time", timestamp=stamp_ns / NS)
 
-    def _log_estimate(self, est, step_ms: float | None, publish_ms: float | None, mode: str) -> None:
+    def _log_estimate(
+        self, est, step_ms: float | None, publish_ms: float | None, mode: str, rope: dict | None = None
+    ) -> None:
         rr, rec = self.rr, self.rec
         self._time(est.stamp_ns)
         colors = np.where(est.observed[:, None], [[40, 200, 80]], [[230, 80, 60]]).astype(np.uint8)
@@ -101,6 +104,22 @@ class RerunLogger(threading.Thread):
         if mode != self._last_mode:
             rec.log("status/mode", rr.TextLog(f"mode: {mode}"))
             self._last_mode = mode
+        if rope is not None:
+            self._log_rope(rope)
+
+    def _log_rope(self, rope: dict) -> None:
+        """The share of unexplained rope points, and a line whenever the rope is lost or found."""
+        rr, rec = self.rr, self.rec
+        if rope.get("disagreement") is not None:
+            rec.log("rope/unexplained_fraction", rr.Scalars(float(rope["disagreement"])))
+        counts = (rope["lost"], rope["recovered"])
+        if counts != self._rope_counts:
+            if rope["lost"] > self._rope_counts[0]:
+                rec.log("status/rope", rr.TextLog(f"rope lost ({rope['lost']} so far)", level="WARN"))
+            if rope["recovered"] > self._rope_counts[1]:
+                how = f"{rope['redetected']} re-detections from the cloud alone"
+                rec.log("status/rope", rr.TextLog(f"rope found again ({rope['recovered']} so far; {how})"))
+            self._rope_counts = counts
 
     def _log_cloud(self, cloud) -> None:
         self._clouds += 1

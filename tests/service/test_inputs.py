@@ -180,3 +180,19 @@ def test_frames_poses_in_another_frame_refused_a_world_cloud_moved_into_the_came
     as_camera = est.decode_cloud(M.point_cloud(T0 + 1, cam, rgb, frame_id="camera"))
     as_world = est.decode_cloud(M.point_cloud(T0 + 2, world, rgb, frame_id="world"))
     assert np.allclose(as_camera.xyz, cam) and np.allclose(as_world.xyz, cam, atol=1e-6)
+
+
+def test_status_reports_the_rope_lost_and_found_counts_through_a_worker_copy(model):
+    """The tracker's loss counts reach status, also after fusion swapped in a copy of the tracker
+    packed for a worker process."""
+    from perception import Tracker
+    from service.workers import pack_tracker, unpack_tracker
+
+    est = Estimator(make_config(), model, Tracker(model), clock=FakeClock())
+    assert est.status()["rope"]["state"] == "tracking" and est.status()["rope"]["lost"] == 0
+    est.tracker.health.lose()
+    est.tracker.health.recover(redetected=True)
+    est.tracker = unpack_tracker(pack_tracker(est.tracker, model), model)
+    rope = est.status()["rope"]
+    assert (rope["lost"], rope["recovered"], rope["redetected"]) == (1, 1, 1)
+    assert Estimator(make_config(), model, OpenLoopTracker(model), clock=FakeClock()).status()["rope"] is None

@@ -45,6 +45,20 @@ def test_file_and_connect_modes_log_without_loss(tmp_path):
     viewer.disconnect()
 
 
+def test_rope_losses_logged_once_each(tmp_path):
+    logger = RerunLogger(RerunSettings(mode="file", path=str(tmp_path / "rope.rrd")), "deform/rod3")
+    rope = {"state": "tracking", "lost": 0, "recovered": 0, "redetected": 0, "disagreement": 0.0}
+    logger._log_estimate(_estimate(0), None, None, "tracking", rope)
+    assert logger._rope_counts == (0, 0)
+    logger._log_estimate(_estimate(10**7), None, None, "tracking", {**rope, "lost": 1, "disagreement": 0.9})
+    logger._log_estimate(
+        _estimate(2 * 10**7), None, None, "tracking", {**rope, "lost": 1, "recovered": 1, "redetected": 1}
+    )
+    assert logger._rope_counts == (1, 1)
+    logger.rec.flush()
+    logger.rec.disconnect()
+
+
 def _free_port() -> int:
     from service.demo import free_port
 
