@@ -6,11 +6,12 @@ Public API (perception, service and tools use only these names):
   :func:`gripped_indices`: the model, its batched state and the trained models shipped per rod.
 - :func:`load_recording`, :func:`load_recordings`, :func:`save_recording`, :class:`Recording`,
   :class:`RecordingError`, :func:`find_data_root`: safe reading of DEFORM recordings.
-- :class:`RodConfig`, :func:`load_rod_config`, :class:`ConfigError`: rod configuration.
+- :class:`RodConfig`, :func:`load_rod_config`, :class:`ConfigError`: rod configuration;
+  :func:`generic_rod` and :func:`generic_model`: a rope known by its length and mass alone.
 - :func:`generate_recording`: synthetic recordings from the simulator.
 """
 
-from deform.config import ConfigError, RodConfig, available_rods, load_rod_config
+from deform.config import ConfigError, RodConfig, available_rods, generic_rod, load_rod_config
 from deform.io import (
     Recording,
     RecordingError,
@@ -19,7 +20,15 @@ from deform.io import (
     load_recordings,
     save_recording,
 )
-from deform.model import DeformModel, ModelOptions, RodState, gripped_indices, load_model, overstretched
+from deform.model import (
+    DeformModel,
+    ModelOptions,
+    RodState,
+    generic_model,
+    gripped_indices,
+    load_model,
+    overstretched,
+)
 from deform.synthetic import generate_recording
 
 __all__ = [
@@ -33,6 +42,8 @@ __all__ = [
     "available_rods",
     "find_data_root",
     "generate_recording",
+    "generic_model",
+    "generic_rod",
     "gripped_indices",
     "load_model",
     "load_recording",

@@ -7,9 +7,16 @@ from importlib.resources import files
 from pathlib import Path
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 ROD_DIR = Path(str(files("deform") / "rods"))
+
+# A rod known only by its length L and mass m: bending stiffness EI = BEND_PER_LINEAR_DENSITY * m / L
+# (heavier per metre means thicker, so stiffer), the median of EI L / m over the initial guesses of the
+# five shipped rods (0.009-0.017 N m^3/kg); twisting stiffness GJ = TWIST_OVER_BEND * EI, their ratio.
+# A starting point that system identification refines, not a measurement.
+BEND_PER_LINEAR_DENSITY = 0.0124
+TWIST_OVER_BEND = 0.7
 
 
 class ConfigError(ValueError):
@@ -22,15 +29,48 @@ class RodConfig(BaseModel):
     name: str
     length_m: float = Field(gt=0)
     mass_kg: float = Field(gt=0)
-    n_vertices: int = Field(ge=5)
+    n_vertices: int = Field(default=12, ge=5)
     marker_mass_kg: float = Field(default=0.0004, ge=0)
     dt: float = Field(default=0.01, gt=0)
-    # initial guesses of the material parameters (system identification refines them)
-    bend_stiffness: float = Field(gt=0, description="EI [N m^2]")
-    twist_stiffness: float = Field(gt=0, description="GJ [N m^2]")
+    # initial guesses of the material parameters (system identification refines them); left out,
+    # they follow from the length and mass (BEND_PER_LINEAR_DENSITY, TWIST_OVER_BEND)
+    bend_stiffness: float = Field(default=None, gt=0, description="EI [N m^2]")
+    twist_stiffness: float = Field(default=None, gt=0, description="GJ [N m^2]")
     damping: float = Field(default=0.5, ge=0, description="linear velocity damping [1/s]")
     drag: float = Field(default=0.1, ge=0, description="quadratic air drag on the normal velocity [1/m]")
     stiffness_rank: int | None = None
+
+    @model_validator(mode="after")
+    def _stiffness_from_length_and_mass(self) -> RodConfig:
+        if self.bend_stiffness is None:
+            self.bend_stiffness = BEND_PER_LINEAR_DENSITY * self.mass_kg / self.length_m
+        if self.twist_stiffness is None:
+            self.twist_stiffness = TWIST_OVER_BEND * self.bend_stiffness
+        return self
+
+
+def generic_rod(length_m: float, mass_kg: float, n_vertices: int = 12, name: str = "generic") -> RodConfig:
+    """A rod known by its length and mass alone (no markers): what tracking a rope with no trained
+    model, and camera-only calibration, start from.
+
+    Args:
+        length_m: length of the rope [m].
+        mass_kg: its mass [kg].
+        n_vertices: vertices of the discrete rod (including the four gripped ones).
+        name: the rod's name.
+
+    Returns:
+        The :class:`RodConfig`, stiffness from :data:`BEND_PER_LINEAR_DENSITY` and :data:`TWIST_OVER_BEND`.
+
+    Raises:
+        ConfigError: a non-positive length or mass, or fewer than 5 vertices.
+    """
+    try:
+        return RodConfig(
+            name=name, length_m=length_m, mass_kg=mass_kg, n_vertices=n_vertices, marker_mass_kg=0.0
+        )
+    except ValidationError as exc:
+        raise ConfigError(f"generic rod: {str(exc).replace(chr(10), '; ')}") from None
 
 
 def available_rods() -> list[str]:

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from deform.config import RodConfig, load_rod_config
+from deform.config import RodConfig, generic_rod, load_rod_config
 from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
 from deform.rod.convergence import ConvergenceReport
@@ -641,3 +641,18 @@ def load_model(rod: str | Path, options: ModelOptions | None = None) -> DeformMo
     if options is not None:
         model.options = options
     return model
+
+
+def generic_model(length_m: float, mass_kg: float, n_vertices: int = 12) -> DeformModel:
+    """A plain discrete elastic rod (no residual network) for a rope known only by its length and
+    mass (:func:`deform.config.generic_rod`): tracking a rope that has no trained model starts here.
+
+    Args:
+        length_m: length [m].
+        mass_kg: mass [kg].
+        n_vertices: vertices of the rod.
+
+    Returns:
+        The :class:`DeformModel`, in eval mode.
+    """
+    return DeformModel(generic_rod(length_m, mass_kg, n_vertices), ModelOptions(residual=False)).eval()

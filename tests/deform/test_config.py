@@ -22,3 +22,29 @@ def test_bad_rod_files_name_file_and_field(tmp_path):
     )
     with pytest.raises(ConfigError, match=r"r\.yaml.*lenght"):
         load_rod_config(bad)
+
+
+def test_generic_rod_from_length_and_mass():
+    """Stiffness follows the linear density (heavier per metre: stiffer); no markers; bad input is
+    a ConfigError naming the field."""
+    from deform import ConfigError, generic_model, generic_rod
+    from deform.config import BEND_PER_LINEAR_DENSITY, TWIST_OVER_BEND
+
+    light, heavy = generic_rod(1.0, 0.02), generic_rod(1.0, 0.08)
+    assert heavy.bend_stiffness == pytest.approx(4 * light.bend_stiffness)
+    assert light.bend_stiffness == pytest.approx(BEND_PER_LINEAR_DENSITY * 0.02)
+    assert light.twist_stiffness == pytest.approx(TWIST_OVER_BEND * light.bend_stiffness)
+    assert light.marker_mass_kg == 0.0 and light.n_vertices == 12
+    with pytest.raises(ConfigError, match="mass_kg"):
+        generic_rod(1.0, 0.0)
+    model = generic_model(0.8, 0.03, n_vertices=10)
+    assert not model.options.residual and model.n == 10
+    assert float(model.nominal_rest.sum()) == pytest.approx(0.8)
+
+
+def test_rod_yaml_without_stiffness_takes_the_generic_guess(tmp_path):
+    path = tmp_path / "cable.yaml"
+    path.write_text("name: cable\nlength_m: 1.2\nmass_kg: 0.06\n")
+    cfg = load_rod_config(path)
+    assert cfg.bend_stiffness == pytest.approx(0.0124 * 0.05) and cfg.n_vertices == 12
+    assert load_rod_config("DLO1").bend_stiffness == 0.0005  # given values are kept
