@@ -15,7 +15,7 @@ from perception.render.mesh import catmull_rom
 from perception.render.occluder import arc_window, occluder_box
 from perception.render.scene import RenderedFrame, render_frame
 
-__all__ = ["RenderedFrame", "camera_steps", "default_camera", "render_recording"]
+__all__ = ["RenderedFrame", "blacked_out", "camera_steps", "default_camera", "render_recording"]
 
 
 def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:
@@ -58,6 +58,20 @@ def camera_steps(n_steps: int, dt: float, fps: float) -> list[int]:
     return [int(s) for s in steps if s < n_steps]
 
 
+def blacked_out(t: float, cfg: RenderConfig) -> bool:
+    """True when the whole rope is hidden at time ``t`` [s] (``blackout_start_s <= t <
+    blackout_start_s + blackout_s``).
+
+    Args:
+        t: time into the recording [s].
+        cfg: the render settings.
+
+    Returns:
+        bool.
+    """
+    return cfg.blackout_s > 0 and cfg.blackout_start_s <= t < cfg.blackout_start_s + cfg.blackout_s - 1e-9
+
+
 def render_recording(
     positions: np.ndarray,
     dt: float = 0.01,
@@ -66,11 +80,15 @@ def render_recording(
     camera: Camera | None = None,
     seed: int = 0,
     steps=None,
+    obstacles=(),
 ) -> list[RenderedFrame]:
     """Render a trajectory ``positions`` (T, n, 3) (world, metres) at ``fps`` (or at given ``steps``).
 
     With ``occlusion > 0`` an occluder hides about that fraction of the free rope between
-    ``occlusion_start`` and ``occlusion_end`` (fractions of the recording).
+    ``occlusion_start`` and ``occlusion_end`` (fractions of the recording). With ``blackout_s > 0`` an
+    occluder hides the whole rope (and the grippers) from ``blackout_start_s`` for ``blackout_s``
+    seconds: the rope is out of sight, as when a person walks between camera and rope. The table is
+    drawn at ``table_z``; ``obstacles`` are fixed meshes in the scene (e.g. a post the rope catches on).
 
     Args:
         positions: (T, n, 3) world-frame vertices [m], one per model step.
@@ -80,6 +98,8 @@ def render_recording(
         camera: the camera (default: :func:`default_camera` looking at the motion).
         seed: depth noise, dropouts and colour noise.
         steps: the model steps to render (default every ``1 / fps`` seconds).
+        obstacles: fixed world-frame ``(vertices, triangles)`` meshes drawn in the scene (they hide
+            what is behind them and are not rope-coloured); e.g. :func:`perception.render.mesh.cylinder`.
 
     Returns:
         One :class:`RenderedFrame` per rendered step: organised camera-frame points (H, W, 3) float32
@@ -103,12 +123,16 @@ def render_recording(
         occluder = None
         phase = s / max(n_steps - 1, 1)
         active = f > 0 and cfg.occlusion_start <= phase <= cfg.occlusion_end
-        if active:
+        if blacked_out(s * dt, cfg):
+            curve = catmull_rom(x)
+            occluder = occluder_box(curve, curve, camera, cfg.rope_radius, cfg.occluder_gap)
+            active = True
+        elif active:
             n = len(x)
             free = catmull_rom(x[1 : n - 1])
             c = centre0 + 0.04 * math.sin(2 * math.pi * drift_hz * s * dt)
             window = arc_window(free, c - f / 2, c + f / 2)
             occluder = occluder_box(catmull_rom(x), window, camera, cfg.rope_radius, cfg.occluder_gap)
-        xyz, rgb, visible = render_frame(x, camera, cfg, rng, occluder)
+        xyz, rgb, visible = render_frame(x, camera, cfg, rng, occluder, obstacles)
         frames.append(RenderedFrame(xyz, rgb, camera, visible, int(s), active))
     return frames

@@ -153,3 +153,37 @@ def plane(z: float, half: float = 3.0, centre=(0.0, 0.0)) -> tuple[np.ndarray, n
         ]
     )
     return verts, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def cylinder(
+    centre_xy, radius: float, z0: float, z1: float, sides: int = 16
+) -> tuple[np.ndarray, np.ndarray]:
+    """A closed vertical cylinder (a post) around the axis at ``centre_xy`` from height ``z0`` to ``z1``.
+
+    Args:
+        centre_xy: (2,) the axis [m].
+        radius: radius [m].
+        z0: bottom height [m].
+        z1: top height [m].
+        sides: vertices around each ring.
+
+    Returns:
+        ``(vertices (2 sides + 2, 3), triangles (4 sides, 3))``.
+    """
+    ang = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = np.stack([centre_xy[0] + radius * np.cos(ang), centre_xy[1] + radius * np.sin(ang)], -1)
+    bottom = np.concatenate([ring, np.full((sides, 1), z0)], 1)
+    top = np.concatenate([ring, np.full((sides, 1), z1)], 1)
+    caps = np.array([[centre_xy[0], centre_xy[1], z0], [centre_xy[0], centre_xy[1], z1]])
+    verts = np.concatenate([bottom, top, caps])
+    k = np.arange(sides)
+    k1 = (k + 1) % sides
+    tris = np.concatenate(
+        [
+            np.stack([k, k1, k + sides], -1),
+            np.stack([k1, k1 + sides, k + sides], -1),
+            np.stack([np.full(sides, 2 * sides), k1, k], -1),
+            np.stack([np.full(sides, 2 * sides + 1), k + sides, k1 + sides], -1),
+        ]
+    )
+    return verts, tris

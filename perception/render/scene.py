@@ -32,13 +32,15 @@ class RenderedFrame:
     occluded: bool = False
 
 
-def scene_meshes(x: np.ndarray, cfg: RenderConfig, occluder=None):
-    """Vertices, triangles and a per-triangle label of the rope, table, grippers (and occluder).
+def scene_meshes(x: np.ndarray, cfg: RenderConfig, occluder=None, obstacles=()):
+    """Vertices, triangles and a per-triangle label of the rope, table, grippers (and occluder, obstacles).
 
     Args:
         x: (n, 3) rod vertices, world frame [m].
         cfg: the render settings.
         occluder: ``(vertices, triangles)`` of an occluder, or None.
+        obstacles: ``(vertices, triangles)`` of fixed world-frame meshes (e.g. a post), drawn in the
+            occluder's colour.
 
     Returns:
         ``(vertices (V, 3), triangles (T, 3), labels (T,))``.
@@ -54,6 +56,7 @@ def scene_meshes(x: np.ndarray, cfg: RenderConfig, occluder=None):
         parts.append((mesh.box(0.5 * (x[a] + x[b]), mesh.frame_from_axis(axis), half), GRIPPER))
     if occluder is not None:
         parts.append((occluder, OCCLUDER))
+    parts.extend((ob, OCCLUDER) for ob in obstacles or ())
     verts, tris, labels, offset = [], [], [], 0
     for (v, t), lab in parts:
         verts.append(v)
@@ -98,7 +101,9 @@ def vertex_visibility(x: np.ndarray, camera: Camera, verts, tris, labels, radius
     return hit_rope & (t > dist - 3 * radius) & inside
 
 
-def render_frame(x: np.ndarray, camera: Camera, cfg: RenderConfig, rng: np.random.Generator, occluder=None):
+def render_frame(
+    x: np.ndarray, camera: Camera, cfg: RenderConfig, rng: np.random.Generator, occluder=None, obstacles=()
+):
     """(xyz, rgb, visible) of the scene with rod vertices ``x`` (n, 3) in the world frame.
 
     Args:
@@ -107,12 +112,13 @@ def render_frame(x: np.ndarray, camera: Camera, cfg: RenderConfig, rng: np.rando
         cfg: the render settings (noise, colours, edge and dropout model).
         rng: the random generator.
         occluder: ``(vertices, triangles)`` or None.
+        obstacles: fixed world-frame ``(vertices, triangles)`` meshes (see :func:`scene_meshes`).
 
     Returns:
         ``(xyz, rgb, visible)``: xyz (H, W, 3) float32 camera frame with NaN where no depth, rgb
         (H, W, 3) uint8, visible (n,) bool.
     """
-    verts, tris, labels = scene_meshes(x, cfg, occluder)
+    verts, tris, labels = scene_meshes(x, cfg, occluder, obstacles)
     dirs_cam = camera.ray_directions()
     r = camera.world_from_camera[:3, :3]
     dirs = dirs_cam @ r.T
