@@ -70,6 +70,10 @@ KNOWN = {
         "Today's step against an earlier commit's, same run",
         "python benchmarks/ab_commits.py",
     ),
+    "tracking_peers.json": (
+        "Tracking side by side with the published trackers (CPD, CDCPD, TrackDLO, UPETrack)",
+        "python benchmarks/tracking_peers.py",
+    ),
 }
 
 
@@ -691,6 +695,78 @@ def render_float32(d: dict) -> list[str]:
     ] + table(header, rows)
 
 
+TRACKING_LABEL = {
+    "occ0": "no occlusion",
+    "occ25": "25 % occluded",
+    "occ50": "50 % occluded",
+    "blackout": "rope hidden 1 s",
+    "fastest": "fastest motions",
+    "fps10": "clouds at 10 Hz",
+    "table": "on a table (unmodelled)",
+    "post": "caught on a post (unmodelled)",
+    "nocontact": "same motion, no contact",
+    "wrong_model": "DLO3 with DLO1's model",
+    "right_model": "DLO3 with DLO3's model",
+}
+
+
+def render_tracking_peers(d: dict) -> list[str]:
+    methods = d.get("methods", [])
+    args = d.get("args", {})
+    summ = d.get("summary", {})
+    out = [
+        "Mean two-way distance between tracked nodes and the true rope [mm] (TrackDLO's metric), per camera "
+        f"frame, mean over frames and recordings ({args.get('per_rod', '-')} per rod of "
+        f"{', '.join(args.get('rods', [])) or '-'}); every method on the same rendered clouds (30 fps unless "
+        "said), started from the true nodes. Ratios: against the same motion with the right model and no "
+        "contact (target for ours: at most 1.5x).",
+        "",
+    ]
+    rows = []
+    for v, cells in summ.items():
+        n = max((c.get("n_recordings", 0) for c in cells.values()), default=0)
+        rows.append([TRACKING_LABEL.get(v, v), n] + [fmt(get(cells, m, "mean_error_mm"), 1) for m in methods])
+    for v, cells in d.get("ratios", {}).items():
+        rows.append(
+            [f"{TRACKING_LABEL.get(v, v)}: ratio", "-"]
+            + [f"{fmt(get(cells, m, 'ratio'), 2)}x" if m in cells else "-" for m in methods]
+        )
+    black = summ.get("blackout", {})
+    if black:
+        rows.append(
+            ["recovery after the blackout: mean s (within 0.5 s)", "-"]
+            + [
+                f"{fmt(get(black, m, 'recovery_s', 'mean'), 2)} ({get(black, m, 'recovery_s', 'within_target')}/"
+                f"{get(black, m, 'recovery_s', 'n')})"
+                if m in black
+                else "-"
+                for m in methods
+            ]
+        )
+    out += table(["scenario", "n"] + methods, rows)
+    timing = d.get("timing_ms", {})
+    if timing:
+        out += table(
+            ["method", "update p50 [ms]", "update p99 [ms]", "clouds", "model step p50 [ms]"],
+            [
+                [
+                    m,
+                    fmt(get(t, "update", "p50"), 1),
+                    fmt(get(t, "update", "p99"), 1),
+                    get(t, "update", "n"),
+                    fmt(get(t, "step", "p50"), 2),
+                ]
+                for m, t in timing.items()
+            ],
+        )
+    out += [
+        "Update: `Tracker.correct` for ours; for the peers our segmentation plus their `update`. "
+        f"Wall time {fmt(d.get('wall_s'), 0)} s. Plot: `{d.get('plot', '-')}`; detail: `tracking_peers.md`.",
+        "",
+    ]
+    return out
+
+
 RENDER = {
     "service_startup.json": render_startup,
     "roofline.json": render_roofline,
@@ -698,6 +774,7 @@ RENDER = {
     "batched_throughput.json": render_batched_throughput,
     "predict_planning.json": render_predict_planning,
     "ab_commits.json": render_ab_commits,
+    "tracking_peers.json": render_tracking_peers,
     "accuracy.json": render_accuracy,
     "speed.json": render_speed,
     "perception.json": render_perception,
