@@ -54,7 +54,6 @@ def parse(argv=None):
 
 
 def main(argv=None) -> dict:
-    import numpy as np
     import torch
     from tqdm import tqdm
 
@@ -145,7 +144,6 @@ def main(argv=None) -> dict:
     write_atomic(args.out / f"{args.stem}.json", json.dumps(result, indent=1, default=float) + "\n")
     write_atomic(args.out / f"{args.stem}.md", report.markdown(result))
     print(report.markdown(result))
-    np.seterr(all="ignore")
     return result
 
 
