@@ -24,14 +24,21 @@ One frame:
 
    The stretch constraint |y_j - y_i| <= (1 + ε) l_ij is linearised about ŷ, the previous estimate.
 
-Parameters (the authors' ``CDCPD_Parameters`` defaults, in metres): β = 1.0 m, α = 0.5, γ = 1.0,
-w = 0.1, σ² scale 1/8, 100 iterations, tolerance 10⁻⁴, k_vis = 10³, 8 LLE neighbours, 2 cm voxels.
+Parameters (the authors' code, UM-ARM-Lab/cdcpd, in metres): β = 1.0 m, α = 0.5, γ (``lambda``) =
+1.0, w = 0.1, σ² scale 1/8, 100 iterations, tolerance 10⁻⁴ on σ², k_vis = 10³, 8 LLE neighbours,
+2 cm voxels; one node every 3.33 cm (launch files: ``rope_num_points`` 25 on ``max_rope_length``
+0.8 m).
 
 Departures from the paper, and why:
 
-- Stretch limit ε = 0.1: the authors' node takes a maximum segment length from its launch
-  arguments; no default value for a rope was found, so 10 % is assumed.
-- The linearised stretch constraints are re-linearised about the QP's answer and solved again,
+- Stretch limit: the authors bound every edge by ``stretch_lambda`` (their ``lambda``, 1.0) times
+  ``max_rope_length / (num_points - 1)``, the rope's length per edge. Here each edge's bound is its
+  length of rope (arc length along the given nodes between the two nodes, ε = 0), since the
+  resampled edges are not all equal (the gripped ones are short). The two gripped edges (both ends
+  held) are not bounded: their length is the grippers' (on DLO1 it varies by 10 %, which made the
+  QP infeasible when they were bounded).
+- The authors' QP (Gurobi) has the exact quadratic constraints |y_j - y_i|² <= l²; here they are
+  linearised (the 2019 paper's form) and re-linearised about the QP's answer and solved again,
   keeping the earlier linearisations as well (cutting planes, at most 10 rounds), while an edge is
   still longer than (1 + ε) l by more than 0.1 %: one linearisation bounds only the edge's
   projection on its old direction, which lets a turning edge stretch (measured: up to 14 % on a
@@ -187,11 +194,13 @@ class CDCPDTracker(BaselineTracker):
         tol: stop when σ² changes less than this [m²].
         k_vis: visibility-prior sharpness [1/m].
         lle_neighbors: LLE neighbourhood size.
-        stretch: ε, the allowed relative stretch of an edge.
+        stretch: ε, the allowed relative stretch of an edge beyond its length of rope.
         voxel: downsampling cell [m].
+        nodes: node count (default: one every :attr:`node_spacing` metres).
     """
 
     name = "cdcpd"
+    node_spacing = 0.8 / 24  # the authors' launch files: rope_num_points 25, max_rope_length 0.8 m
 
     def __init__(
         self,
@@ -205,10 +214,11 @@ class CDCPDTracker(BaselineTracker):
         tol: float = 1e-4,
         k_vis: float = 1e3,
         lle_neighbors: int = 8,
-        stretch: float = 0.1,
+        stretch: float = 0.0,
         voxel: float = 0.02,
+        nodes: int | None = None,
     ) -> None:
-        super().__init__()
+        super().__init__(nodes)
         self.beta, self.alpha, self.gamma, self.zeta, self.w = beta, alpha, gamma, zeta, w
         self.sigma_scale, self.max_iter, self.tol, self.k_vis = sigma_scale, max_iter, tol, k_vis
         self.lle_neighbors, self.stretch, self.voxel = lle_neighbors, stretch, voxel
@@ -217,7 +227,10 @@ class CDCPDTracker(BaselineTracker):
         self.kernel = gaussian_kernel(x0, self.beta)
         k = min(self.lle_neighbors, len(x0) - 1)
         self.lle = lle_matrix(lle_weights(x0, knn_neighbours(x0, k)))
-        self.limit = (1 + self.stretch) * self.rest
+        # the length of rope between two nodes (>= their chord): the authors' max segment length
+        self.limit = (1 + self.stretch) * np.diff(self.s0)
+        # both nodes of a gripper's edge are held: its length is the grippers', not ours to limit
+        self.limit[[0, -1]] = np.inf
 
     def _register(self, points, grip, depth, camera) -> np.ndarray:
         y_prev = self.x

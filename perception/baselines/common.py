@@ -137,3 +137,40 @@ def mask_image(points: np.ndarray, camera: Camera) -> np.ndarray:
     keep = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     mask[v[keep], u[keep]] = True
     return mask
+
+
+def arc_coordinates(x: np.ndarray) -> np.ndarray:
+    """(n,) arc length [m] from node 0 to each node of the polyline ``x`` (n, 3)."""
+    return np.concatenate([[0.0], np.cumsum(edge_lengths(x))])
+
+
+def node_count(x0: np.ndarray, count: int | None, spacing: float | None) -> int:
+    """How many nodes a peer puts on the rope ``x0`` (n, 3): ``count`` if given, else one every
+    ``spacing`` [m] between the gripped nodes 1 and n-2 (plus the 2 outer gripped nodes), else n."""
+    if count is not None:
+        return max(int(count), 5)
+    if spacing is not None and spacing > 0:
+        inner = float(arc_coordinates(x0[1:-1])[-1])
+        return max(round(inner / spacing), 2) + 3
+    return len(x0)
+
+
+def resample_nodes(x0: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``x0`` (m, 3) resampled to ``n`` nodes along its polyline, keeping the gripped nodes: nodes 0,
+    1, n-2, n-1 are x0[0], x0[1], x0[-2], x0[-1]; nodes 1..n-2 are evenly spaced in arc length
+    between x0[1] and x0[-2].
+
+    Args:
+        x0: (m, 3) nodes [m], m >= 4.
+        n: nodes wanted, n >= 4.
+
+    Returns:
+        ``(nodes, arc)``: (n, 3) nodes and (n,) their arc-length coordinates along ``x0`` [m] (the
+        length of rope between two nodes, which their chord can only underestimate).
+    """
+    x0 = np.asarray(x0, dtype=np.float64)
+    s = arc_coordinates(x0)
+    t = np.concatenate([[s[0]], np.linspace(s[1], s[-2], n - 2), [s[-1]]])
+    out = np.stack([np.interp(t, s, x0[:, d]) for d in range(3)], axis=1)
+    out[[0, 1, -2, -1]] = x0[[0, 1, -2, -1]]
+    return out, t

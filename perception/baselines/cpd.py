@@ -19,12 +19,14 @@ neither the extra M-step terms nor per-node priors.
 
 Departures from the paper, and why:
 
-- Scale: CPD works on point sets normalised to zero mean and unit variance, where β = 2, λ = 2 are
-  its defaults. Here β and λ are those defaults expressed in metres by the initial shape's spread s
+- Nodes: one every 3.33 cm (CDCPD's rope template, 25 nodes on 0.8 m, on which the CDCPD paper
+  runs CPD as its baseline); CPD itself prescribes no template.
+- Scale: CPD works on point sets normalised to zero mean and unit variance, where β = 2, λ = 3 are
+  the authors' defaults (their code's examples; w = 0.1). CPD normalises each set by its own
+  centroid and spread, which for a partly hidden rope shifts the template towards the visible part. Here β and λ are those defaults expressed in metres by the initial shape's spread s
   (β = 2 s, λ = 2 / s²), once at :meth:`initialize`, so a frame's cloud (which can be a fragment of
   the rope) does not change the regularisation from frame to frame.
-- σ² is re-estimated from the data at every frame (as CPD starts); w = 0.1 (the paper's example of
-  noisy data; its code defaults to 0). At most 150 iterations (the authors' default), stopping
+- σ² is re-estimated from the data at every frame (as CPD starts); w = 0.1. At most 150 iterations (the authors' default), stopping
   when no node moves more than 10 µm in an iteration.
 - Gripped nodes: CPD has no constraints. The template's gripped nodes are set to the grippers and
   held there during the EM by a stiff pull (the a/T term above with a = ``hold`` = 10⁴, which is
@@ -145,27 +147,30 @@ class CPDTracker(BaselineTracker):
 
     Args:
         beta: kernel width in CPD's normalised units (2).
-        lam: coherence weight in normalised units (2).
+        lam: coherence weight in normalised units (3).
         w: outlier weight (0.1).
         max_iter: most EM iterations per frame (150).
         tol: stop when no node moves more than this in an iteration [m].
         voxel: downsampling cell [m].
         hold: weight of the pull holding the gripped nodes at the grippers.
+        nodes: node count (default: one every :attr:`node_spacing` metres).
     """
 
     name = "cpd"
+    node_spacing = 0.8 / 24  # CDCPD's rope template (25 nodes on 0.8 m), on which it compares CPD
 
     def __init__(
         self,
         beta: float = 2.0,
-        lam: float = 2.0,
+        lam: float = 3.0,
         w: float = 0.1,
         max_iter: int = 150,
         tol: float = 1e-5,
         voxel: float = 0.008,
         hold: float = 1e4,
+        nodes: int | None = None,
     ) -> None:
-        super().__init__()
+        super().__init__(nodes)
         self.beta, self.lam, self.w, self.hold = beta, lam, w, hold
         self.max_iter, self.tol, self.voxel = max_iter, tol, voxel
 
