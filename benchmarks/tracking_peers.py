@@ -48,6 +48,12 @@ def parse(argv=None):
     ap.add_argument("--rods", nargs="+", default=None, help=f"default {' '.join(RODS)}")
     ap.add_argument("--methods", nargs="+", default=None, help="ours and peer names (default: all)")
     ap.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS)
+    ap.add_argument(
+        "--perception",
+        type=Path,
+        default=None,
+        help="our tracker's settings (YAML; default: the shipped ones)",
+    )
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--stem", default=STEM)
     return ap.parse_args(argv)
@@ -89,6 +95,8 @@ def main(argv=None) -> dict:
     units, ranking = select_units(rods, per_rod, variants)
     store = RunStore(args.out / f"{args.stem}.runs")
     config = dict(per_rod=per_rod, quick=args.quick, variants=variants, methods=methods)
+    if args.perception is not None:  # results of other settings are stored apart
+        config["perception"] = str(args.perception)
     done = store.load(config)
     rows = [done[u.key] for u in units if u.key in done]
     todo = [u for u in units if u.key not in done]
@@ -98,7 +106,12 @@ def main(argv=None) -> dict:
     with tqdm(todo, desc="recordings", unit="rec") as bar:
         for unit in bar:
             row = run_unit(
-                unit, methods, peers, models=models, progress=lambda s: bar.set_postfix_str(s[-60:])
+                unit,
+                methods,
+                peers,
+                config=args.perception,
+                models=models,
+                progress=lambda s: bar.set_postfix_str(s[-60:]),
             )
             row.update(config=config, seconds=round(time.time() - t_start, 1))
             store.save(row)
@@ -106,7 +119,14 @@ def main(argv=None) -> dict:
     rows.sort(key=lambda r: (r["rod"], r["recording"]))
     result = dict(
         **provenance(argv, script="benchmarks/tracking_peers.py"),
-        args=dict(per_rod=per_rod, quick=args.quick, rods=rods, scenarios=scenarios, variants=variants),
+        args=dict(
+            per_rod=per_rod,
+            quick=args.quick,
+            rods=rods,
+            scenarios=scenarios,
+            variants=variants,
+            perception=None if args.perception is None else str(args.perception),
+        ),
         methods=methods,
         wall_s=round(time.time() - t_start, 1),
         blackout=dict(start_s=BLACKOUT_START_S, duration_s=BLACKOUT_S),

@@ -21,9 +21,12 @@ LABEL = {
     "nocontact": "same motion, no contact",
     "wrong_model": "DLO3 with DLO1's model",
     "right_model": "DLO3 with DLO3's model",
+    "generic_model": "generic DER (length and mass only)",
+    "shipped_model": "the rod's shipped model",
 }
 RECOVERY_TARGET_S = 0.5
 RATIO_TARGET = 1.5
+TARGETED = ("table", "post", "wrong_model")  # the ratios the target applies to (generic: measured only)
 
 
 def _pct(values) -> dict:
@@ -66,6 +69,9 @@ def summarize(rows: list[dict], methods: list[str]) -> dict:
                 update_ms=_pct([t for _, g, _ in got for t in g["update_ms_all"]]),
                 failures=int(sum(g["failures"] for _, g, _ in got)),
             )
+            floors = [g["floor_mm"] for _, g, _ in got if "floor_mm" in g]
+            if floors:
+                entry["floor_mm"] = round(float(np.mean(floors)), 3)
             steps = [t for _, g, _ in got for t in g.get("step_ms_all", [])]
             if steps:
                 entry["step_ms"] = _pct(steps)
@@ -103,7 +109,7 @@ def summarize(rows: list[dict], methods: list[str]) -> dict:
                     ratio=round(float(np.mean(num) / np.mean(den)), 3),
                     reference=ref,
                     n=len(common),
-                    target=RATIO_TARGET,
+                    target=RATIO_TARGET if v in TARGETED else None,
                 )
     return dict(summary=summary, ratios=ratios, series=series)
 
@@ -147,7 +153,8 @@ def tables(d: dict) -> list[str]:
     out.append("")
     if d.get("ratios"):
         out += [
-            f"Error against the same motion with the right model and no contact (target for ours: at most {RATIO_TARGET}x):",
+            "Error against the same motion with the right model and no contact (target for ours: at most "
+            f"{RATIO_TARGET}x for contact and the wrong model; the generic DER's ratio is measured, not a target):",
             "",
             "| scenario | against | " + " | ".join(methods) + " |",
             "|---|---|" + "---:|" * len(methods),
@@ -160,6 +167,14 @@ def tables(d: dict) -> list[str]:
                 + " |"
             )
         out.append("")
+        floor = summ.get("wrong_model", {}).get("ours", {}).get("floor_mm")
+        if floor is not None:
+            out += [
+                "DLO1's model has 13 vertices, DLO3's markers are 12: the true shape resampled to 13 "
+                f"vertices is itself {floor:.1f} mm from the true polyline by this metric (what the vertex "
+                "count alone costs ours in that row).",
+                "",
+            ]
     if "blackout" in summ:
         out += [
             f"Recovery after the rope was hidden for 1 s: time from its reappearance until the error is within 2x "

@@ -28,10 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from deform import find_data_root, generate_recording, gripped_indices, load_model, load_recording
+from deform import (
+    find_data_root,
+    generate_recording,
+    generic_model,
+    gripped_indices,
+    load_model,
+    load_recording,
+)
 
 RODS = ("DLO1", "DLO2", "DLO3", "DLO4", "DLO5")
-SCENARIOS = ("occlusion", "blackout", "fastest", "fps10", "contact", "wrong_model")
+SCENARIOS = ("occlusion", "blackout", "fastest", "fps10", "contact", "wrong_model", "generic")
 VARIANTS = {
     "occlusion": ("occ0", "occ25", "occ50"),
     "blackout": ("blackout",),
@@ -39,9 +46,16 @@ VARIANTS = {
     "fps10": ("fps10",),
     "contact": ("table", "post", "nocontact"),
     "wrong_model": ("wrong_model", "right_model"),
+    "generic": ("generic_model", "shipped_model"),
 }
 # what the ratio columns compare: variant -> its reference (same recordings)
-REFERENCE = {"table": "nocontact", "post": "nocontact", "wrong_model": "right_model"}
+REFERENCE = {
+    "table": "nocontact",
+    "post": "nocontact",
+    "wrong_model": "right_model",
+    "generic_model": "shipped_model",
+}
+GENERIC = "generic:"  # a model key: the generic DER of the rod's length and mass (deform.generic_model)
 QUICK_VARIANTS = (
     "occ0",
     "occ50",
@@ -53,6 +67,8 @@ QUICK_VARIANTS = (
     "nocontact",
     "wrong_model",
     "right_model",
+    "generic_model",
+    "shipped_model",
 )
 QUICK_RODS = ("DLO1", "DLO3")
 WRONG = ("DLO3", "DLO1")  # (the rod filmed, the model that tracks it)
@@ -155,6 +171,15 @@ def select_units(rods, per_rod: int, variants, root: Path | None = None, synthet
     return units, ranking
 
 
+def model_of(key: str):
+    """The model a case names: a shipped rod's (``"DLO1"``), or ``"generic:DLO1"``, the generic DER
+    with that rod's length, mass and vertex count and nothing else."""
+    if key.startswith(GENERIC):
+        cfg = load_model(key[len(GENERIC) :]).cfg
+        return generic_model(cfg.length_m, cfg.mass_kg, cfg.n_vertices)
+    return load_model(key)
+
+
 def resample_to(positions: np.ndarray, model) -> np.ndarray:
     """(T, m, 3) a trajectory resampled to ``model``'s vertex count along arc length, at the model's
     typical arc-length fractions (for tracking a rod with another rod's model)."""
@@ -173,11 +198,12 @@ def clouds_of(unit: Unit) -> list[Clouds]:
     out = []
     plain = [
         (c, FPS if c != "fps10" else 10.0)
-        for c in ("occ0", "fps10", "fastest", "wrong_model", "right_model")
+        for c in ("occ0", "fps10", "fastest", "wrong_model", "right_model", "generic_model", "shipped_model")
         if c in v
     ]
     if plain:
-        cases = [(c, fps, WRONG[1] if c == "wrong_model" else unit.rod) for c, fps in plain]
+        tracked_by = {"wrong_model": WRONG[1], "generic_model": GENERIC + unit.rod}
+        cases = [(c, fps, tracked_by.get(c, unit.rod)) for c, fps in plain]
         out.append(Clouds("occ0", unit.positions, {"occlusion": 0.0}, cases=cases))
     for c, occ in (("occ25", 0.25), ("occ50", 0.5)):
         if c in v:
