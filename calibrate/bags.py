@@ -1,0 +1,274 @@
+"""Calibration input: rosbag2 folders or MCAP files -> :class:`Clip` (gripper poses, RGB-D clouds,
+the camera), decoded with the service's own message codecs so that a bag means to calibration what
+it means to the running service.
+
+Topics are found by message type when that is unambiguous (one ``PoseArray``, one organized
+``PointCloud2``, one ``CameraInfo``), chosen with :class:`Topics` otherwise. The camera's pose (its
+optical frame in the world frame of the service config) comes, in this order, from a chosen topic,
+from ``/tf_static`` (the chain from the world frame to CameraInfo's frame), from a lone
+``PoseStamped`` topic, or from the config. Times are the messages' header stamps, never the bag's
+receive times: clouds and poses arrive over different paths with different delays.
+
+Clouds are large (1-5 MB each, 150 per 5 s clip), so a clip keeps only where they are; they are
+decoded one at a time by :meth:`Clip.clouds`.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+
+from calibrate.errors import CalibrationError
+from perception import Camera
+from service import messages as M
+from service.config import ServiceConfig
+from service.geometry import pose_matrix
+
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+
+@dataclass(frozen=True)
+class Topics:
+    """Topics chosen by the user (None: found by message type)."""
+
+    poses: str | None = None
+    points: str | None = None
+    camera_info: str | None = None
+    camera_pose: str | None = None  # a PoseStamped or a TFMessage topic
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One bag: gripper poses with their stamps, where its clouds are, and the camera.
+
+    ``poses`` (P, 2, 7): x y z qx qy qz qw of the first and last gripper, world frame, at
+    ``pose_stamps_ns`` (P,) increasing. ``camera``: intrinsics and ``world_from_camera`` (optical
+    frame). ``camera_source``: where the pose came from (``tf_static``, a topic, ``config``)."""
+
+    name: str
+    path: Path
+    pose_stamps_ns: np.ndarray
+    poses: np.ndarray
+    points_topic: str
+    n_clouds: int
+    camera: Camera
+    camera_source: str
+    world_frame: str
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.pose_stamps_ns[-1] - self.pose_stamps_ns[0]) / 1e9
+
+    def clouds(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """Decoded clouds in stamp order: ``(stamp_ns, xyz (H, W, 3) float32 camera frame, rgb (H, W,
+        3) uint8)``. Clouds the service would refuse (malformed, empty, wrong size) are skipped; a
+        cloud published in the world frame is moved back into the optical frame, as the service does."""
+        T = self.camera.world_from_camera
+        out = []
+        with _open(self.path) as reader:
+            conns = [c for c in reader.connections if c.topic == self.points_topic]
+            for _, _, raw in reader.messages(connections=conns):
+                try:
+                    stamp, xyz, rgb, frame = M.parse_point_cloud(bytes(raw))
+                except M.InputError:
+                    continue
+                if xyz.shape[:2] != (self.camera.height, self.camera.width):
+                    continue
+                if frame == self.world_frame:
+                    xyz = ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+                out.append((stamp, xyz, rgb))
+                if len(out) > 8:  # a little look-ahead sorts clouds recorded slightly out of order
+                    out.sort(key=lambda c: c[0])
+                    yield out.pop(0)
+        yield from sorted(out, key=lambda c: c[0])
+
+
+@contextmanager
+def _open(path: Path) -> Iterator[AnyReader]:
+    """The bag open for reading; a :class:`CalibrationError` naming it when it is no bag."""
+    reader = AnyReader([path], default_typestore=M.TYPESTORE)
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags raises several types for what is not a bag
+        raise CalibrationError(
+            f"{path}: not a readable rosbag2 folder or MCAP file ({type(exc).__name__}: {exc})".replace(
+                "\n", " "
+            )
+        ) from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _pick(path: Path, reader, msgtype: str, chosen: str | None, option: str, what: str, keep=None):
+    """The one connection of ``msgtype`` (or the ``chosen`` topic); None when the bag has none."""
+    if chosen is not None:
+        conns = [c for c in reader.connections if c.topic == chosen]
+        if not conns:
+            topics = ", ".join(sorted({c.topic for c in reader.connections}))
+            raise CalibrationError(f"{path}: no topic {chosen} ({option}); the bag has {topics}")
+        return conns[0]
+    conns = [c for c in reader.connections if c.msgtype == msgtype]
+    if keep is not None and len(conns) > 1:
+        conns = [c for c in conns if keep(c)]
+    if len({c.topic for c in conns}) > 1:
+        names = ", ".join(sorted({c.topic for c in conns}))
+        raise CalibrationError(f"{path}: several {what} topics ({names}): choose one with {option}")
+    return conns[0] if conns else None
+
+
+def _first(reader, conn):
+    for _, _, raw in reader.messages(connections=[conn]):
+        return bytes(raw)
+    return None
+
+
+def _organized(reader, conn) -> bool:
+    """A camera's cloud is organized (height > 1); the service's own ``vertices`` output is not."""
+    raw = _first(reader, conn)
+    try:
+        return raw is not None and M.decode(raw, M.POINT_CLOUD2).height > 1
+    except M.InputError:
+        return False
+
+
+def _tf_graph(reader, conns) -> dict[str, list[tuple[str, np.ndarray]]]:
+    """Frames and the transforms between them (both ways) from TFMessage connections."""
+    graph: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for conn in conns:
+        for _, _, raw in reader.messages(connections=[conn]):
+            for t in reader.deserialize(raw, conn.msgtype).transforms:
+                tr, q = t.transform.translation, t.transform.rotation
+                T = pose_matrix(np.array([tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w], dtype=float))
+                parent, child = t.header.frame_id.strip("/"), t.child_frame_id.strip("/")
+                graph.setdefault(parent, []).append((child, T))  # parent_from_child
+                graph.setdefault(child, []).append((parent, np.linalg.inv(T)))
+    return graph
+
+
+def _world_from(graph, world: str, frame: str) -> np.ndarray | None:
+    """``world_from_frame`` through the transform graph (breadth first), None if unconnected."""
+    seen = {world: np.eye(4)}
+    queue = deque([world])
+    while queue:
+        a = queue.popleft()
+        for b, a_from_b in graph.get(a, []):
+            if b not in seen:
+                seen[b] = seen[a] @ a_from_b
+                queue.append(b)
+    return seen.get(frame.strip("/"))
+
+
+def _camera_pose(path, reader, topics: Topics, info_frame: str, cfg: ServiceConfig) -> tuple[np.ndarray, str]:
+    """(4, 4) world_from_camera and where it came from."""
+    world = cfg.frame_id
+    chosen = None
+    if topics.camera_pose is not None:
+        chosen = _pick(path, reader, "", topics.camera_pose, "--topic-camera-pose", "camera pose")
+    tf = (
+        [chosen]
+        if chosen is not None and chosen.msgtype == TF_MESSAGE
+        else [c for c in reader.connections if c.msgtype == TF_MESSAGE and c.topic == "/tf_static"]
+    )
+    if chosen is None or chosen.msgtype == TF_MESSAGE:
+        if tf:
+            T = _world_from(_tf_graph(reader, tf), world, info_frame)
+            if T is not None:
+                return T, f"{tf[0].topic} ({world} -> {info_frame})"
+            if chosen is not None:
+                raise CalibrationError(
+                    f"{path}: {chosen.topic} has no transform chain {world} -> {info_frame}"
+                )
+        stamped = [c for c in reader.connections if c.msgtype == M.POSE_STAMPED]
+        if len({c.topic for c in stamped}) == 1:
+            chosen = stamped[0]
+    if chosen is not None:
+        if chosen.msgtype != M.POSE_STAMPED:
+            raise CalibrationError(
+                f"{path}: {chosen.topic} is a {chosen.msgtype}, not a PoseStamped or TFMessage camera pose"
+            )
+        try:
+            _, pose = M.parse_pose_stamped(_first(reader, chosen), frame_id=world)
+        except M.InputError as exc:
+            raise CalibrationError(f"{path}: camera pose on {chosen.topic}: {exc}") from None
+        return pose_matrix(pose), chosen.topic
+    return pose_matrix(np.asarray(cfg.camera.pose, dtype=float)), "config (camera.pose)"
+
+
+def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None) -> Clip:
+    """One bag as a :class:`Clip`.
+
+    Args:
+        path: a rosbag2 folder or an ``.mcap`` file.
+        cfg: the service config: the world frame (``frame_id``) and the fallback camera pose.
+        topics: topics chosen by the user (default: found by type).
+
+    Returns:
+        The clip (clouds are read later, by :meth:`Clip.clouds`).
+
+    Raises:
+        CalibrationError: not a bag, no gripper poses, no organized clouds, no camera info, an
+            ambiguous or missing topic.
+    """
+    path = Path(path)
+    topics = topics or Topics()
+    if not path.exists():
+        raise CalibrationError(f"{path}: no such file or folder")
+    with _open(path) as reader:
+        poses_c = _pick(path, reader, M.POSE_ARRAY, topics.poses, "--topic-poses", "gripper pose")
+        if poses_c is None:
+            raise CalibrationError(f"{path}: no gripper poses (no {M.POSE_ARRAY} topic)")
+        points_c = _pick(
+            path,
+            reader,
+            M.POINT_CLOUD2,
+            topics.points,
+            "--topic-points",
+            "point cloud",
+            keep=lambda c: _organized(reader, c),
+        )
+        if points_c is None or points_c.msgcount == 0:
+            raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
+        info_c = _pick(path, reader, M.CAMERA_INFO, topics.camera_info, "--topic-camera-info", "camera info")
+        if info_c is None:
+            raise CalibrationError(f"{path}: no camera intrinsics (no {M.CAMERA_INFO} topic)")
+        try:
+            _, K, width, height = M.parse_camera_info(_first(reader, info_c))
+            info_frame = M.decode(_first(reader, info_c), M.CAMERA_INFO).header.frame_id
+        except M.InputError as exc:
+            raise CalibrationError(f"{path}: camera info on {info_c.topic}: {exc}") from None
+        world_from_camera, source = _camera_pose(path, reader, topics, info_frame, cfg)
+        stamps, poses = [], []
+        for _, _, raw in reader.messages(connections=[poses_c]):
+            try:
+                stamp, p = M.parse_pose_array(bytes(raw), frame_id=cfg.frame_id)
+            except M.InputError:
+                continue  # the service refuses it too
+            stamps.append(stamp)
+            poses.append(p)
+    if len(stamps) < 2:
+        raise CalibrationError(f"{path}: no gripper poses ({poses_c.topic} has {len(stamps)} usable)")
+    order = np.argsort(stamps, kind="stable")
+    stamps_a = np.asarray(stamps, dtype=np.int64)[order]
+    keep = np.concatenate([[True], np.diff(stamps_a) > 0])  # one pose per stamp
+    camera = Camera(
+        float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height, world_from_camera
+    )
+    return Clip(
+        name=path.stem if path.is_file() else path.name,
+        path=path,
+        pose_stamps_ns=stamps_a[keep],
+        poses=np.asarray(poses)[order][keep],
+        points_topic=points_c.topic,
+        n_clouds=int(points_c.msgcount),
+        camera=camera,
+        camera_source=source,
+        world_frame=cfg.frame_id,
+    )

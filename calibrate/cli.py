@@ -1,0 +1,212 @@
+"""``deform calibrate`` (run as ``python -m calibrate``): a model of a new rope from bags of a robot
+moving it in front of an RGB-D camera, with the rope's length and mass.
+
+Bad input (a bag without gripper poses or clouds, a colour range that finds no rope, a length the
+camera contradicts, unreadable settings) is one line on stderr, exit code 2, and nothing is written.
+Clips too short or too still to identify anything get a report that says so, no model, and exit
+code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from calibrate.errors import CalibrationError
+
+PROG = "deform calibrate"
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number: {text!r}")
+    return value
+
+
+def _count(low: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}: {text!r}")
+        return value
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    p.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 folders or .mcap files (one clip each)")
+    p.add_argument("--length", type=_positive, required=True, metavar="METRES", help="the rope's length")
+    p.add_argument("--mass", type=_positive, required=True, metavar="KG", help="the rope's mass (weighed)")
+    p.add_argument(
+        "--diameter",
+        type=_positive,
+        metavar="METRES",
+        help="the rope's diameter: the camera sees its near surface, half of it in front of the centreline",
+    )
+    p.add_argument("--perception", metavar="FILE", help="perception settings (the rope's colour range)")
+    p.add_argument(
+        "--config", metavar="FILE", help="service config: gripper convention, world frame, camera pose"
+    )
+    p.add_argument(
+        "--vertices", type=_count(5), default=12, metavar="N", help="vertices of the model (default 12)"
+    )
+    p.add_argument(
+        "--out", default="calibrated.pt", metavar="MODEL.pt", help="model file (default calibrated.pt)"
+    )
+    p.add_argument(
+        "--report", metavar="DIR", help="report directory (default: MODEL_report beside the model)"
+    )
+    for name, what in (
+        ("poses", "gripper poses (PoseArray)"),
+        ("points", "clouds (PointCloud2)"),
+        ("camera-info", "camera intrinsics (CameraInfo)"),
+        ("camera-pose", "camera pose (PoseStamped or TFMessage)"),
+    ):
+        p.add_argument(
+            f"--topic-{name}", metavar="TOPIC", help=f"the topic of the {what}; default: found by type"
+        )
+    b = p.add_argument_group("budget (defaults: about 10 min for 50 s of clips on one core)")
+    b.add_argument(
+        "--iterations", type=_count(1), default=None, help="training iterations of the first round"
+    )
+    b.add_argument("--refine-iterations", type=_count(1), default=None, help="of each later round")
+    b.add_argument("--rounds", type=_count(1), default=None, help="train-and-track-again rounds at most")
+    b.add_argument("--horizon", type=_count(2), default=None, help="training window [steps]")
+    b.add_argument("--batch", type=_count(1), default=None, help="training windows per iteration")
+    p.add_argument("--threads", type=_count(1), default=1, help="torch threads (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def _settings(args):
+    """(service config, perception config) from the files given; errors as one line."""
+    from perception import load_config as load_perception
+    from service.config import ServiceConfigError
+    from service.config import load_config as load_service
+
+    try:
+        cfg = load_service(args.config)
+    except ServiceConfigError as exc:
+        raise CalibrationError(str(exc)) from None
+    source = args.perception or cfg.perception
+    try:
+        perception = load_perception(source)
+    except (OSError, ValueError, TypeError) as exc:
+        raise CalibrationError(f"perception settings {source}: {exc}".replace("\n", " ")) from None
+    if args.diameter:
+        radius = args.diameter / 2
+        perception = replace(
+            perception,
+            estimation=replace(perception.estimation, surface_offset=radius),
+            tracker=replace(perception.tracker, rope_radius=radius),
+        )
+    return cfg, perception
+
+
+def run(args) -> int:
+    import torch
+
+    from calibrate import report
+    from calibrate.bags import Topics, read_clip
+    from calibrate.fit import Budget, calibrate
+
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    if out.suffix != ".pt":
+        raise CalibrationError(
+            f"{out}: the model file must end in .pt (what deform.load_model reads as a file)"
+        )
+    report_dir = Path(args.report) if args.report else out.with_name(f"{out.stem}_report")
+    cfg, perception = _settings(args)
+    topics = Topics(args.topic_poses, args.topic_points, args.topic_camera_info, args.topic_camera_pose)
+    clips = [read_clip(b, cfg, topics) for b in args.bags]
+    names = [c.name for c in clips]
+    if len(set(names)) < len(names):
+        raise CalibrationError(f"two bags have the same name ({', '.join(names)}): rename one")
+    given = {
+        k: v
+        for k, v in {
+            "iterations": args.iterations,
+            "refine_iterations": args.refine_iterations,
+            "rounds": args.rounds,
+            "horizon": args.horizon,
+            "batch": args.batch,
+        }.items()
+        if v is not None
+    }
+    budget = replace(Budget(seed=args.seed), **given)
+    if args.horizon is not None:
+        budget = replace(budget, curriculum=tuple(h for h in budget.curriculum if h < args.horizon))
+    cal = calibrate(
+        clips,
+        args.length,
+        args.mass,
+        cfg.grippers,
+        perception,
+        n_vertices=args.vertices,
+        budget=budget,
+        name=out.stem,
+    )
+    inputs = {
+        "bags": [str(b) for b in args.bags],
+        "length_m": args.length,
+        "mass_kg": args.mass,
+        "diameter_m": args.diameter,
+        "vertices": args.vertices,
+        "perception": args.perception or cfg.perception,
+        "config": args.config,
+        "out": str(out),
+        "budget": {k: v for k, v in vars(budget).items()},
+    }
+    if cal.model is None:
+        report.write(cal, clips, inputs, report_dir)
+        print(f"{PROG}: error: {cal.problem} (no model written; report in {report_dir})", file=sys.stderr)
+        return 2
+    cal.model.save(
+        out, {"calibration": {"bags": inputs["bags"], "length_m": args.length, "mass_kg": args.mass}}
+    )
+    report.write(cal, clips, inputs, report_dir)
+    last = [r for r in cal.rounds if r.kept][-1]
+    print(
+        json.dumps(
+            {
+                "model": str(out),
+                "report": str(report_dir),
+                "held_out_prediction_fit_m": last.held_out_fit_m,
+                "rounds": len(cal.rounds) - 1,
+                "seconds": round(cal.seconds, 1),
+            }
+        )
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command.
+
+    Args:
+        argv: arguments (None: ``sys.argv``).
+
+    Returns:
+        0, or 2 for bad input (one line on stderr) or clips that identify nothing.
+    """
+    args = build_parser().parse_args(argv)
+    from deform import ConfigError
+
+    try:
+        return run(args)
+    except (CalibrationError, ConfigError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,334 @@
+r"""Identification and residual training from camera tracks, tracking again with the better model.
+
+Round 0 tracks every clip with a plain discrete elastic rod known by the given length and mass
+(:func:`deform.generic_rod`), then each round trains a copy of the best model so far on the tracks
+of the training clips (:func:`deform.train.train`: coarse identification of the stiffness and
+damping in the first round, then the physical parameters and the residual network jointly), tracks
+every clip again with it, and keeps it while the fit on the held-out clips improves.
+
+The held-out fit is scored against the clouds, not against tracks: tracks change with the model
+that made them, the camera's points do not. From the track at step :math:`s` (two frames, as the
+paper's metric starts) the model predicts open loop with the recorded grippers for :math:`H` steps
+(0.5 s); at each cloud :math:`c` in that window the error is the mean over its rope points
+:math:`p` of :math:`\min(d(p, \hat{x}_{k_c}), 5\,\mathrm{cm})`, with :math:`d` the distance to the
+predicted rod's polyline. One-sided (cloud to model), so occlusion hides points without adding
+error; capped, so that stray rope-coloured points cost no more than a missed rope. The points lie
+on the rope's near surface, so a perfect model scores about the rope's radius, not zero.
+
+Training uses the whole track, occluded vertices included (where the tracker's model filled them
+in): the loss has no per-vertex weights. With heavy occlusion the model partly learns its own
+prediction there; the coverage in the report says how much of the rope that concerns.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tempfile
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from calibrate.bags import Clip
+from calibrate.checks import check_length, check_rope_seen, motion_problem
+from calibrate.errors import CalibrationError
+from calibrate.points import polyline_distances
+from calibrate.tracks import Track, cut, track_clip
+from deform import DeformModel, ModelOptions, generic_rod
+from deform.train import TrainConfig, train
+from service.config import Grippers
+
+CAP_M = 0.05  # a point's error is capped here (a stray point costs no more than a missed rope)
+MIN_GAIN = 0.01  # a round is kept when it improves the held-out fit by at least this share
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How much work calibration does. The default takes about 10 min for 50 s of clips on one
+    core (measured: see the report's ``seconds``); ``rounds`` caps the train-and-track-again rounds."""
+
+    iterations: int = 500  # first round: coarse identification, then these training iterations
+    refine_iterations: int = 200  # each later round, from the previous round's model
+    batch: int = 16
+    horizon: int = 100
+    curriculum: tuple[int, ...] = (10, 25, 50)
+    curriculum_iters: int = 40
+    rounds: int = 3
+    round_time_limit_s: float | None = 420.0  # training time per round at most
+    score_horizon: int = 50  # steps of the held-out prediction fit (0.5 s)
+    score_every: int = 25  # steps between its starts
+    held_out_every: int = 5  # every k-th clip (by name) is held out; one clip: its last 30 %
+    seed: int = 0
+
+
+@dataclass
+class Round:
+    """One tracking pass: the model's held-out prediction fit and the tracks' fit to the clouds [m]."""
+
+    index: int
+    held_out_fit_m: float
+    tracking_fit_m: float
+    kept: bool
+    seconds: float
+    train: dict | None = None
+
+
+@dataclass
+class Calibration:
+    """What :func:`calibrate` found. ``model`` is None when the clips cannot identify anything
+    (``problem`` says why)."""
+
+    model: DeformModel | None
+    start: DeformModel
+    tracks: list[Track]
+    train_names: list[str]
+    held_out_names: list[str]
+    rounds: list[Round] = field(default_factory=list)
+    checks: dict = field(default_factory=dict)
+    problem: str | None = None
+    seconds: float = 0.0
+
+
+def rest_lengths(length_m: float, n_vertices: int, grippers: Grippers) -> np.ndarray:
+    """(n-1,) rest lengths: the gripped end edges as the grippers hold them (``|d1 - d0|``), the
+    rest of the length spread evenly over the free edges.
+
+    Raises:
+        CalibrationError: the grippers' end edges leave no rope between them.
+    """
+    e0 = abs(grippers.first.d1 - grippers.first.d0)
+    e1 = abs(grippers.last.d1 - grippers.last.d0)
+    free = length_m - e0 - e1
+    if free <= 0:
+        raise CalibrationError(
+            f"--length {length_m:g} m leaves no rope between the gripped end edges ({e0:g} + {e1:g} m, "
+            "grippers d0/d1 in the config)"
+        )
+    return np.concatenate([[e0], np.full(n_vertices - 3, free / (n_vertices - 3)), [e1]])
+
+
+def start_model(length_m: float, mass_kg: float, rest: np.ndarray, name: str) -> DeformModel:
+    """The plain DER known by length and mass (:func:`deform.generic_rod`), residual off, with
+    ``rest`` as its typical edge lengths (``nominal_rest``, what a tracker starts a rope seen by a
+    camera with; training sets it from the tracks, which keep these lengths)."""
+    model = DeformModel(
+        generic_rod(length_m, mass_kg, len(rest) + 1, name=name), ModelOptions(residual=False)
+    )
+    with torch.no_grad():
+        model.nominal_rest.copy_(torch.as_tensor(rest, dtype=model.nominal_rest.dtype))
+    return model.eval()
+
+
+def split(tracks: list[Track], every: int) -> tuple[list[Track], list[Track]]:
+    """(train, held out): every ``every``-th track by name, at least one of each; a single track
+    is cut in two (its last 30 % held out)."""
+    tracks = sorted(tracks, key=lambda t: t.name)
+    if len(tracks) == 1:
+        t = tracks[0]
+        k = int(0.7 * t.n_frames)
+        return [cut(t, 0, k, f"{t.name}[train]")], [cut(t, k, t.n_frames, f"{t.name}[held out]")]
+    held = tracks[::every]
+    return [t for t in tracks if t not in held], held
+
+
+def tracking_fit(tracks: list[Track]) -> float:
+    """Mean capped distance of the clouds' rope points to the track at their step [m]."""
+    errs = [
+        float(np.minimum(polyline_distances(p, t.positions[k]), CAP_M).mean())
+        for t in tracks
+        for k, p in zip(t.cloud_steps, t.cloud_points)
+        if len(p)
+    ]
+    return float(np.mean(errs)) if errs else math.nan
+
+
+def prediction_fit(model: DeformModel, tracks: list[Track], horizon: int, every: int) -> float:
+    """Open-loop prediction from the tracks scored against the clouds [m] (module docstring).
+
+    Args:
+        model: the model.
+        tracks: tracks to start from (their clouds are the reference).
+        horizon: steps predicted from each start.
+        every: steps between starts.
+
+    Returns:
+        The mean capped point error over every (start, cloud) pair, or NaN when there is none.
+    """
+    errs = []
+    for t in tracks:
+        starts = list(range(1, t.n_frames - horizon, every))
+        if not starts:
+            continue
+        x = torch.as_tensor(t.positions, dtype=torch.float64)
+        g = torch.as_tensor(t.grips, dtype=torch.float64)
+        s = torch.as_tensor(starts)
+        steps = s[:, None] + 1 + torch.arange(horizon)[None]
+        with torch.no_grad():
+            state = model.initial_state(x[s - 1], x[s])
+            pred, _ = model.rollout(state, g[steps])
+        pred = pred.numpy()
+        for k, p in zip(t.cloud_steps, t.cloud_points):
+            if not len(p):
+                continue
+            for b, s0 in enumerate(starts):
+                if s0 < k <= s0 + horizon:
+                    xk = pred[b, k - s0 - 1]
+                    ok = np.all(np.isfinite(xk))
+                    errs.append(float(np.minimum(polyline_distances(p, xk), CAP_M).mean()) if ok else CAP_M)
+    return float(np.mean(errs)) if errs else math.nan
+
+
+def _track_all(clips, model, grippers, perception, rest, progress, label) -> list[Track]:
+    tracks = []
+    for clip in tqdm(clips, desc=label, unit="clip", disable=None if progress else True):
+        t = track_clip(clip, model, grippers, perception, rest=rest)
+        if t is not None:
+            tracks.append(t)
+    if not tracks:
+        raise CalibrationError("no clip has a cloud within the time span of its gripper poses")
+    return tracks
+
+
+def _train(model, train_tracks, held_tracks, budget: Budget, first: bool, progress: bool) -> tuple:
+    cfg = TrainConfig(
+        iterations=budget.iterations if first else budget.refine_iterations,
+        batch=budget.batch,
+        horizon=budget.horizon,
+        curriculum=budget.curriculum if first else (),
+        curriculum_iters=budget.curriculum_iters,
+        seed=budget.seed,
+        time_limit_s=budget.round_time_limit_s,
+        coarse_sysid=first,
+        residual=True,
+        sysid=True,
+    )
+    model.options.residual = True
+    with tempfile.TemporaryDirectory(prefix="deform-calibrate-") as tmp:
+        result = train(
+            model,
+            [t.recording() for t in train_tracks],
+            [t.recording() for t in held_tracks],
+            cfg,
+            tmp,
+            resume=False,
+            progress=progress,
+        )
+        best = DeformModel.load(f"{tmp}/best.pt").eval()
+    return best, result
+
+
+def calibrate(
+    clips: list[Clip],
+    length_m: float,
+    mass_kg: float,
+    grippers: Grippers,
+    perception,
+    n_vertices: int = 12,
+    budget: Budget | None = None,
+    name: str = "calibrated",
+    progress: bool = True,
+) -> Calibration:
+    """A model of the rope in ``clips`` from the camera and the grippers alone.
+
+    Args:
+        clips: the bags (:func:`calibrate.bags.read_clip`).
+        length_m: the rope's length [m].
+        mass_kg: its mass [kg].
+        grippers: the gripper convention (service config).
+        perception: perception settings (:class:`perception.PerceptionConfig`).
+        n_vertices: vertices of the model.
+        budget: how much work (default :class:`Budget`).
+        name: the model's name.
+        progress: progress bars.
+
+    Returns:
+        A :class:`Calibration`; ``model`` None with ``problem`` set when the clips are too short or
+        too still.
+
+    Raises:
+        CalibrationError: the colour range finds no rope, the length disagrees with the camera, no
+            clip has clouds within its poses' time span.
+    """
+    budget = budget or Budget()
+    t_start = time.perf_counter()
+    torch.manual_seed(budget.seed)
+    rest = rest_lengths(length_m, n_vertices, grippers)
+    model = start_model(length_m, mass_kg, rest, name)
+    t0 = time.perf_counter()
+    tracks = _track_all(clips, model, grippers, perception, rest, progress, "track (length and mass only)")
+    check_rope_seen(tracks, perception.segmentation)
+    checks = {"length": check_length(tracks, length_m, float(rest[1:-1].sum()))}
+    train_t, held_t = split(tracks, budget.held_out_every)
+    out = Calibration(
+        model=None,
+        start=model,
+        tracks=tracks,
+        train_names=[t.name for t in train_t],
+        held_out_names=[t.name for t in held_t],
+        checks=checks,
+    )
+    out.problem = motion_problem(tracks, budget.horizon + 2)
+    if out.problem is None and not any(t.n_frames >= budget.score_horizon + 2 for t in held_t):
+        out.problem = f"the held-out clips are shorter than the {budget.score_horizon * model.dt:g} s the fit is scored over"
+    if out.problem is not None:
+        out.seconds = time.perf_counter() - t_start
+        return out
+    best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
+    out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
+    best = model
+    for r in range(1, budget.rounds + 1):
+        t0 = time.perf_counter()
+        usable = [t for t in train_t if t.n_frames >= budget.horizon + 2] or train_t
+        candidate, result = _train(
+            copy.deepcopy(best), usable, held_t, budget, first=r == 1, progress=progress
+        )
+        new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
+        new_train, new_held = split(new_tracks, budget.held_out_every)
+        fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)
+        kept = bool(fit < best_fit * (1 - MIN_GAIN))
+        summary = {
+            k: result.get(k) for k in ("best_val_l1_m", "coarse_identification", "seconds_per_iteration_p50")
+        }
+        summary["iterations"] = result.get("last", {}).get("iteration")
+        out.rounds.append(Round(r, fit, tracking_fit(new_held), kept, time.perf_counter() - t0, summary))
+        if not kept:
+            break
+        best, best_fit, train_t, held_t, out.tracks = candidate, fit, new_train, new_held, new_tracks
+    out.model = best
+    out.seconds = time.perf_counter() - t_start
+    return out
+
+
+def identified(model: DeformModel, start: DeformModel) -> dict:
+    """The physical parameters found, beside where they started, and what the data cannot tell.
+
+    Bending stiffness is per vertex: its spread (min..max) is reported as the range the data left
+    it in. Twist shows in no camera (a rope's material frame is invisible); its stiffness is
+    reported with that caveat.
+    """
+
+    def summary(m: DeformModel) -> dict:
+        beta = m.log_beta.detach().exp().double().numpy()
+        gamma = m.log_gamma.detach().exp().double().numpy()
+        extra = torch.nn.functional.softplus(m.extra_mass_raw.detach()).double().numpy() * 1e-3
+        return {
+            "bend_stiffness_Nm2": float(np.median(beta)),
+            "bend_stiffness_range_Nm2": [float(beta.min()), float(beta.max())],
+            "twist_stiffness_Nm2": float(np.median(gamma)),
+            "damping_per_s": float(m.damping.detach()),
+            "drag_per_m": float(m.drag.detach()),
+            "extra_mass_kg": float(extra.sum()),
+            "residual_network": bool(m.options.residual),
+        }
+
+    return {
+        "found": summary(model),
+        "start": summary(start),
+        "not_identifiable": [
+            "twist_stiffness_Nm2: a camera does not see the material frame; the value is what made the "
+            "bending fit best, not a measurement"
+        ],
+    }

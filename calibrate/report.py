@@ -1,0 +1,197 @@
+"""The calibration report: ``report.json`` (every number), ``report.md`` (the same for a person) and
+two plots (``coverage.png``: how much of the rope the camera saw, per vertex; ``fit.png``: the
+held-out fit per round). A calibration that could not identify anything gets a report that says
+why, and no model.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from calibrate.bags import Clip
+from calibrate.fit import Calibration, identified
+
+
+def build(cal: Calibration, clips: list[Clip], inputs: dict) -> dict:
+    """Everything the report holds, as plain data.
+
+    Args:
+        cal: the calibration.
+        clips: the bags it read.
+        inputs: the command's arguments worth recording (length, mass, files, model path).
+
+    Returns:
+        The ``report.json`` content.
+    """
+    by_name = {c.name: c for c in clips}
+    tracks = [
+        {
+            "clip": t.name,
+            "seconds": round(t.duration_s, 3),
+            "clouds": len(t.cloud_steps),
+            "camera_pose_from": by_name[t.name].camera_source if t.name in by_name else None,
+            "coverage_per_vertex": [round(float(c), 3) for c in t.coverage],
+            "tracker": t.status,
+            "held_out": t.name in cal.held_out_names,
+        }
+        for t in cal.tracks
+    ]
+    coverage = np.mean([t.coverage for t in cal.tracks], axis=0) if cal.tracks else np.zeros(0)
+    return {
+        "inputs": inputs,
+        "model_written": cal.model is not None,
+        "problem": cal.problem,
+        "seconds": round(cal.seconds, 1),
+        "checks": cal.checks,
+        "held_out_clips": cal.held_out_names,
+        "train_clips": cal.train_names,
+        "coverage_per_vertex": [round(float(c), 3) for c in coverage],
+        "rounds": [
+            {
+                "round": r.index,
+                "held_out_prediction_fit_m": r.held_out_fit_m,
+                "held_out_tracking_fit_m": r.tracking_fit_m,
+                "kept": r.kept,
+                "seconds": round(r.seconds, 1),
+                "train": r.train,
+            }
+            for r in cal.rounds
+        ],
+        "identified": identified(cal.model, cal.start) if cal.model is not None else None,
+        "tracks": tracks,
+    }
+
+
+def _plots(data: dict, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    cov = data["coverage_per_vertex"]
+    if cov:
+        fig, ax = plt.subplots(figsize=(6, 3))
+        ax.bar(range(len(cov)), [c * 100 for c in cov], color="tab:orange")
+        ax.set_xlabel("vertex (0, 1, n-2, n-1: held by the grippers)")
+        ax.set_ylabel("clouds that corrected it [%]")
+        ax.set_ylim(0, 100)
+        ax.set_title("camera coverage per vertex")
+        fig.tight_layout()
+        fig.savefig(out / "coverage.png", dpi=100)
+        plt.close(fig)
+        names.append("coverage.png")
+    if data["rounds"]:
+        fig, ax = plt.subplots(figsize=(6, 3))
+        idx = [r["round"] for r in data["rounds"]]
+        ax.plot(
+            idx,
+            [r["held_out_prediction_fit_m"] * 1000 for r in data["rounds"]],
+            "o-",
+            label="0.5 s prediction",
+        )
+        ax.plot(idx, [r["held_out_tracking_fit_m"] * 1000 for r in data["rounds"]], "s--", label="tracking")
+        ax.set_xlabel("round (0: length and mass only)")
+        ax.set_ylabel("held-out fit to the clouds [mm]")
+        ax.set_xticks(idx)
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "fit.png", dpi=100)
+        plt.close(fig)
+        names.append("fit.png")
+    return names
+
+
+def _markdown(data: dict, plots: list[str]) -> str:
+    inp = data["inputs"]
+    lines = [
+        "# Calibration report",
+        "",
+        f"Rope: length {inp['length_m']:g} m, mass {inp['mass_kg']:g} kg, {inp['vertices']} vertices; "
+        f"{len(data['tracks'])} clip(s), {sum(t['seconds'] for t in data['tracks']):.1f} s tracked; "
+        f"{data['seconds']:.0f} s of work.",
+        "",
+    ]
+    if data["problem"]:
+        lines += ["**No model was written**: " + data["problem"] + ".", ""]
+    else:
+        lines += [
+            f"Model: `{inp['out']}` (load with `deform.load_model`, run with `deform-service run --rod`).",
+            "",
+        ]
+    if data["rounds"]:
+        lines += [
+            "## Fit on held-out clips",
+            "",
+            "Mean distance of the held-out clouds' rope points to the model's 0.5 s open-loop prediction "
+            "from the track (capped at 5 cm; the points lie on the rope's near surface, so a perfect model "
+            "scores about its radius), and to the track itself.",
+            "",
+            "| round | prediction [mm] | tracking [mm] | kept | seconds |",
+            "|---:|---:|---:|:--|---:|",
+        ]
+        for r in data["rounds"]:
+            lines.append(
+                f"| {r['round']} | {r['held_out_prediction_fit_m'] * 1000:.2f} | "
+                f"{r['held_out_tracking_fit_m'] * 1000:.2f} | {'yes' if r['kept'] else 'no'} | {r['seconds']:.0f} |"
+            )
+        lines += ["", f"Held out: {', '.join(data['held_out_clips'])}.", ""]
+    if data["identified"]:
+        f, s = data["identified"]["found"], data["identified"]["start"]
+        lines += ["## Identified", "", "| parameter | found | start (length and mass) |", "|---|---:|---:|"]
+        for k in (
+            "bend_stiffness_Nm2",
+            "twist_stiffness_Nm2",
+            "damping_per_s",
+            "drag_per_m",
+            "extra_mass_kg",
+        ):
+            lines.append(f"| {k} | {f[k]:.4g} | {s[k]:.4g} |")
+        lo, hi = f["bend_stiffness_range_Nm2"]
+        lines += [
+            "",
+            f"Bending stiffness varies along the rope within {lo:.3g}..{hi:.3g} N m². Not identifiable: "
+            + "; ".join(data["identified"]["not_identifiable"])
+            + ".",
+            "",
+        ]
+    lines += [
+        "## Coverage",
+        "",
+        "Share of the clouds that corrected each vertex (the gripped ones are inputs):",
+        "",
+    ]
+    lines.append("| clip | seconds | clouds | coverage per vertex [%] |")
+    lines.append("|---|---:|---:|---|")
+    for t in data["tracks"]:
+        cov = " ".join(f"{c * 100:.0f}" for c in t["coverage_per_vertex"])
+        lines.append(
+            f"| {t['clip']}{' (held out)' if t['held_out'] else ''} | {t['seconds']:.1f} | {t['clouds']} | {cov} |"
+        )
+    length = data["checks"].get("length")
+    if length:
+        lines += [
+            "",
+            f"Length check: the camera sees at least {length['reach_bound_m']:.3f} m of rope between the "
+            f"grippers ({length['ratio']:.0%} of the stated free length).",
+        ]
+    lines += [""] + [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def write(cal: Calibration, clips: list[Clip], inputs: dict, out_dir: str | Path) -> Path:
+    """Write ``report.json``, ``report.md`` and the plots into ``out_dir``.
+
+    Returns:
+        The directory.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    data = build(cal, clips, inputs)
+    plots = _plots(data, out)
+    (out / "report.json").write_text(json.dumps(data, indent=2, default=float) + "\n")
+    (out / "report.md").write_text(_markdown(data, plots))
+    return out

@@ -1,0 +1,179 @@
+r"""Offline tracking of one clip: what the motion-capture recordings are to ``deform train``, these
+tracks are to calibration.
+
+The gripper poses are interpolated to the model's step :math:`\Delta t` (10 ms) at
+:math:`t_k = t_0 + k \Delta t` (positions linearly, orientations by normalised linear interpolation
+of the quaternions after aligning their signs: the poses come at 100 Hz or faster, where nlerp and
+slerp differ by far less than a pose's noise), and turned into the gripped vertices by the service's
+gripper convention (:func:`service.geometry.grips_from_poses`). The track starts at the first cloud
+(the tracker's model-free start, :meth:`perception.Tracker.initialize` with that cloud: a clip may
+start in any state); the model steps every :math:`\Delta t`, and each cloud corrects the estimate
+at the first step at or after its stamp, as the service does with a message clock: clouds are not
+synchronous with the poses.
+
+Besides the (T, n, 3) track, a :class:`Track` keeps which vertices each cloud corrected (the
+tracker's ``observed``) and the cloud's rope points (:func:`calibrate.points.rope_points`), the
+model-independent reference the fit is scored against.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from calibrate.bags import Clip
+from calibrate.points import rope_points
+from deform import Recording
+from perception import Tracker
+from service.config import Grippers
+from service.geometry import grips_from_poses
+
+
+@dataclass(frozen=True)
+class Track:
+    """A tracked clip. ``positions`` (T, n, 3) and ``grips`` (T, 4, 3) at ``dt``; ``cloud_steps``
+    (C,) the step each cloud corrected; ``cloud_observed`` (C, n) the vertices it corrected (gripped
+    ones are inputs: never); ``cloud_points`` C arrays (N_c, 3) of world rope points."""
+
+    name: str
+    positions: np.ndarray
+    grips: np.ndarray
+    dt: float
+    cloud_steps: np.ndarray
+    cloud_observed: np.ndarray
+    cloud_points: tuple[np.ndarray, ...]
+    status: dict
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.positions)
+
+    @property
+    def duration_s(self) -> float:
+        return self.n_frames * self.dt
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """(n,) share of the clouds in which the camera corrected each vertex."""
+        if len(self.cloud_observed) == 0:
+            return np.zeros(self.positions.shape[1])
+        return self.cloud_observed.mean(0)
+
+    def recording(self) -> Recording:
+        """The track as a :class:`deform.Recording` (what :func:`deform.train.train` takes)."""
+        return Recording(name=self.name, positions=self.positions, dt=self.dt)
+
+
+def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, times_ns: np.ndarray) -> np.ndarray:
+    """(K, 2, 7) poses at ``times_ns`` (K,) from poses (P, 2, 7) at ``stamps_ns`` (P,), increasing.
+
+    Positions are interpolated linearly; quaternions by nlerp after flipping each onto the
+    hemisphere of its predecessor (q and -q are the same rotation, and interpolating between the two
+    would pass through zero). Times outside the stamps take the nearest pose.
+    """
+    poses = np.asarray(poses, dtype=float).copy()
+    q = poses[..., 3:7]
+    for i in range(1, len(q)):
+        flip = (q[i] * q[i - 1]).sum(-1) < 0
+        q[i, flip] *= -1
+    t = (np.asarray(stamps_ns) - stamps_ns[0]).astype(float)
+    tt = np.clip((np.asarray(times_ns) - stamps_ns[0]).astype(float), t[0], t[-1])
+    flat = poses.reshape(len(poses), -1)
+    out = np.stack([np.interp(tt, t, flat[:, j]) for j in range(flat.shape[1])], axis=1).reshape(
+        (len(tt),) + poses.shape[1:]
+    )
+    out[..., 3:7] /= np.linalg.norm(out[..., 3:7], axis=-1, keepdims=True)
+    return out
+
+
+def track_clip(
+    clip: Clip,
+    model,
+    grippers: Grippers,
+    perception,
+    rest: np.ndarray | None = None,
+    progress: bool = False,
+) -> Track | None:
+    """Track one clip offline with ``model``.
+
+    Args:
+        clip: the bag's poses, clouds and camera.
+        model: a :class:`deform.DeformModel` (its ``dt`` sets the track's step).
+        grippers: the service config's gripper convention.
+        perception: perception settings (:class:`perception.PerceptionConfig`).
+        rest: (n-1,) rest lengths for the tracker's start (None: the model's).
+        progress: a progress bar over the clip's steps.
+
+    Returns:
+        The :class:`Track`, or None when no cloud falls within the poses' time span.
+    """
+    dt = float(model.dt)
+    step_ns = round(dt * 1e9)
+    t_first, t_last = int(clip.pose_stamps_ns[0]), int(clip.pose_stamps_ns[-1])
+    clouds = (c for c in clip.clouds() if t_first <= c[0] <= t_last)
+    first = next(clouds, None)
+    if first is None:
+        return None
+    t0 = first[0]
+    times = np.arange(t0, t_last + 1, step_ns, dtype=np.int64)
+    grips = grips_from_poses(interpolate_poses(clip.pose_stamps_ns, clip.poses, times), grippers)
+    tracker = Tracker(model, camera=clip.camera, config=perception, rest=rest)
+    seg = tracker.config.segmentation
+    x, observed = tracker.initialize(grips[0], (first[1], first[2]), clip.camera)
+    positions = [x]
+    steps, seen, points = [0], [observed], [rope_points(first[1], first[2], clip.camera, seg)]
+    pending = next(clouds, None)
+    bar = tqdm(
+        range(1, len(times)),
+        desc=f"track {clip.name}",
+        unit="step",
+        leave=False,
+        disable=None if progress else True,
+    )
+    for k in bar:
+        x, observed = tracker.step(grips[k])
+        while pending is not None and pending[0] <= times[k]:
+            x, observed = tracker.correct(pending[1], pending[2], clip.camera)
+            steps.append(k)
+            seen.append(observed)
+            points.append(rope_points(pending[1], pending[2], clip.camera, seg))
+            pending = next(clouds, None)
+        positions.append(x)
+    return Track(
+        name=clip.name,
+        positions=np.asarray(positions),
+        grips=grips,
+        dt=dt,
+        cloud_steps=np.asarray(steps),
+        cloud_observed=np.asarray(seen, dtype=bool),
+        cloud_points=tuple(points),
+        status=tracker.status(),
+    )
+
+
+def cut(track: Track, start: int, stop: int, name: str | None = None) -> Track:
+    """Steps ``start`` to ``stop`` of a track as a track of its own (a long recording split into
+    clips, some held out).
+
+    Args:
+        track: the track.
+        start: first step.
+        stop: one past the last step.
+        name: the new track's name (default ``<name>[start:stop]``).
+
+    Returns:
+        The :class:`Track`; its clouds are those whose steps fall inside.
+    """
+    keep = (track.cloud_steps >= start) & (track.cloud_steps < stop)
+    return Track(
+        name=name or f"{track.name}[{start}:{stop}]",
+        positions=track.positions[start:stop],
+        grips=track.grips[start:stop],
+        dt=track.dt,
+        cloud_steps=track.cloud_steps[keep] - start,
+        cloud_observed=track.cloud_observed[keep],
+        cloud_points=tuple(p for p, k in zip(track.cloud_points, keep) if k),
+        status=track.status,
+    )
