@@ -77,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(
             f"--topic-{name}", metavar="TOPIC", help=f"the topic of the {what}; default: found by type"
         )
-    b = p.add_argument_group("budget (defaults: about 10 min for 50 s of clips on one core)")
+    b = p.add_argument_group("budget (defaults: about 13 min for 50 s of clips on one core)")
     b.add_argument(
         "--iterations", type=_count(1), default=None, help="training iterations of the first round"
     )

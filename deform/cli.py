@@ -1,4 +1,4 @@
-"""`deform` command line: train, eval, bench, demo.
+"""`deform` command line: train, eval, bench, demo, calibrate.
 
 Errors on bad input are one line on stderr naming the file and the problem, exit code 2, and
 nothing is written.
@@ -191,6 +191,32 @@ def cmd_demo(args) -> int:
     return int(model_demo() or 0)
 
 
+def cmd_calibrate(argv: list[str]) -> int:
+    """``deform calibrate``: a model of a new rope from bags of camera clouds and gripper poses.
+
+    The calibration package sits above the service (it decodes bags with the service's codecs), a
+    layer above the model: it runs as a program of its own (``python -m calibrate``), not an import,
+    as ``deform demo`` runs the service's demo. The child finds the package where this process does.
+
+    Args:
+        argv: the arguments after ``calibrate``, passed on unchanged.
+
+    Returns:
+        The program's exit code (2: bad input, one line on stderr, nothing written).
+    """
+    import importlib.util
+    import os
+    import subprocess
+
+    spec = importlib.util.find_spec("calibrate")
+    if spec is None or spec.origin is None:
+        raise UsageError("the calibrate package is not installed (reinstall the project: pip install -e .)")
+    env = dict(os.environ)
+    root = str(Path(spec.origin).resolve().parent.parent)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    return subprocess.call([sys.executable, "-m", "calibrate", *argv], env=env)
+
+
 def _add_max_gap(p: argparse.ArgumentParser) -> None:
     """``--max-gap``, the same for every command that reads a user's recordings (deform.io.gaps)."""
     p.add_argument(
@@ -319,6 +345,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--json", action="store_true", help="print report.json")
     g.set_defaults(func=cmd_diagnose)
 
+    c = sub.add_parser(
+        "calibrate",
+        add_help=False,
+        help="a model of a new rope from bags of a robot moving it before an RGB-D camera, given its "
+        "length and mass (deform calibrate --help)",
+    )
+    c.add_argument("args", nargs=argparse.REMAINDER)
+    c.set_defaults(func=lambda args: cmd_calibrate(args.args))
+
     d = sub.add_parser("demo", help="the main job: the service on a demo replay (or the model demo)")
     d.add_argument("--model-only", action="store_true")
     d.set_defaults(func=cmd_demo)
@@ -334,6 +369,13 @@ def main(argv: list[str] | None = None) -> int:
     Returns:
         The exit code: 0, or 2 for bad input (one line on stderr, nothing written).
     """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["calibrate"]:  # every argument, options included, belongs to the calibrate program
+        try:
+            return cmd_calibrate(argv[1:])
+        except UsageError as exc:
+            print(f"deform calibrate: error: {exc}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

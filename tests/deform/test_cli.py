@@ -154,3 +154,23 @@ def test_bad_numbers_stop_at_the_command_line_before_any_work(tmp_path, monkeypa
     assert stop.value.code == 2
     assert [a for a in args if a.startswith("--")][-1] in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_calibrate_runs_the_calibration_program_and_passes_its_errors_on(tmp_path, capfd):
+    """`deform calibrate` runs `python -m calibrate` (a layer above the model): its arguments pass
+    through unchanged, its one-line errors and exit code come back."""
+    code = main(
+        [
+            "calibrate",
+            str(tmp_path / "none.mcap"),
+            "--length",
+            "1",
+            "--mass",
+            "0.1",
+            "--out",
+            str(tmp_path / "m.pt"),
+        ]
+    )
+    err = capfd.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "none.mcap: no such file" in err, err
+    assert [p.name for p in tmp_path.iterdir()] == []

@@ -1,0 +1,117 @@
+"""`python -m calibrate`: a model deform.load_model loads; bad input is one line, exit code 2 and
+nothing written; clips too still give a report that says so and no model."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from calibrate.cli import main
+from deform import load_model
+from service.bag import write_messages
+
+from .conftest import LENGTH, MASS, N
+
+TINY = ["--iterations", "3", "--refine-iterations", "2", "--rounds", "1", "--horizon", "20", "--batch", "2"]
+
+
+def _args(clips, bags, out: Path, *extra):
+    return [
+        *map(str, bags),
+        "--length",
+        str(LENGTH),
+        "--mass",
+        str(MASS),
+        "--vertices",
+        str(N),
+        "--config",
+        str(clips.config),
+        "--out",
+        str(out / "rope.pt"),
+        *TINY,
+        *extra,
+    ]
+
+
+def test_calibrate_writes_a_model_that_load_model_loads(clips, tmp_path):
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run(
+        [sys.executable, "-m", "calibrate", *_args(clips, clips.bags, tmp_path)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(root), OMP_NUM_THREADS="1"),
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    model = load_model(summary["model"])
+    assert model.n == N and model.cfg.length_m == LENGTH and model.cfg.mass_kg == MASS
+    report = json.loads((tmp_path / "rope_report" / "report.json").read_text())
+    assert report["model_written"] and report["held_out_clips"] == ["clip0"]
+    assert len(report["coverage_per_vertex"]) == N and report["rounds"][0]["round"] == 0
+    assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (tmp_path / "rope_report").iterdir()}
+
+
+def _refused(capsys, argv, match: str, out: Path) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("deform calibrate: error:") and match in err, err
+    assert list(out.iterdir()) == []
+
+
+@pytest.mark.parametrize(("drop", "match"), [("ee_poses", "no gripper poses"), ("points", "no clouds")])
+def test_a_bag_without_poses_or_clouds(clips, tmp_path, capsys, drop, match):
+    bag = tmp_path / "in" / "bad.mcap"
+    bag.parent.mkdir()
+    write_messages(bag, "deform/rod1", [m for m in clips.messages if m.name != drop])
+    out = tmp_path / "out"
+    out.mkdir()
+    _refused(capsys, _args(clips, [bag], out), match, out)
+
+
+def test_a_colour_range_that_finds_no_rope(clips, tmp_path, capsys):
+    settings = tmp_path / "blue.yaml"
+    settings.write_text(
+        yaml.safe_dump({"segmentation": {"hsv_low": [100, 120, 60], "hsv_high": [130, 255, 255]}})
+    )
+    out = tmp_path / "out"
+    out.mkdir()
+    _refused(capsys, _args(clips, clips.bags[:1], out, "--perception", str(settings)), "finds no rope", out)
+
+
+@pytest.mark.parametrize(("length", "match"), [("0.6", "more than --length"), ("1.6", "never reaches")])
+def test_a_length_the_camera_contradicts(clips, tmp_path, capsys, length, match):
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = _args(clips, clips.bags[:1], out)
+    argv[argv.index("--length") + 1] = length
+    _refused(capsys, argv, match, out)
+
+
+def test_bad_settings_and_model_name(clips, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    _refused(
+        capsys,
+        _args(clips, clips.bags[:1], out, "--config", str(tmp_path / "none.yaml")),
+        "no such file",
+        out,
+    )
+    argv = _args(clips, clips.bags[:1], out)
+    argv[argv.index("--out") + 1] = str(out / "rope.model")
+    _refused(capsys, argv, "must end in .pt", out)
+
+
+def test_clips_too_still_give_a_report_and_no_model(clips, still_bag, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(_args(clips, [still_bag], out)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "too still" in err
+    assert not (out / "rope.pt").exists()
+    report = json.loads((out / "rope_report" / "report.json").read_text())
+    assert not report["model_written"] and "too still" in report["problem"]
+    assert "No model was written" in (out / "rope_report" / "report.md").read_text()

@@ -1,0 +1,39 @@
+"""Offline tracking of a clip from the model-free start: close to the truth; pose interpolation."""
+
+import numpy as np
+
+from calibrate.bags import read_clip
+from calibrate.tracks import cut, interpolate_poses, track_clip
+from deform import generic_model
+from perception import load_config
+from service.config import ServiceConfig
+
+from .conftest import LENGTH, MASS, N
+
+
+def test_tracking_a_clip_comes_within_a_few_millimetres_of_the_truth(clips):
+    cfg = ServiceConfig(grippers=clips.grippers)
+    clip = read_clip(clips.bags[1], cfg)
+    track = track_clip(clip, generic_model(LENGTH, MASS, N), cfg.grippers, load_config(None))
+    truth = clips.truths[1]
+    assert track.positions.shape == truth.shape
+    err = np.linalg.norm(track.positions - truth, axis=-1)
+    assert err.mean() < 0.004, err.mean(1)
+    assert track.cloud_observed.shape == (15, N) and not track.cloud_observed[:, [0, 1, -2, -1]].any()
+    assert track.coverage[2:-2].min() > 0.8
+    rec = track.recording()
+    assert rec.positions.shape == truth.shape and rec.dt == 0.01
+    half = cut(track, 0, 70)
+    assert half.n_frames == 70 and half.cloud_steps.max() < 70
+
+
+def test_poses_are_interpolated_between_stamps_whatever_the_quaternion_sign():
+    stamps = np.array([0, 20_000_000])
+    q = np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)])
+    poses = np.zeros((2, 2, 7))
+    poses[0, :, 3:] = q
+    poses[1, :, 3:] = -q  # the same rotation
+    poses[1, :, 0] = 0.02
+    mid = interpolate_poses(stamps, poses, np.array([10_000_000]))[0]
+    np.testing.assert_allclose(mid[:, 0], 0.01)
+    np.testing.assert_allclose(np.abs(mid[:, 3:]), np.abs(q[None].repeat(2, 0)), atol=1e-12)
