@@ -25,10 +25,16 @@ API used by the service (keep it stable)::
 - ``rest``: (n-1,) edge rest lengths for ``initialize``; default from the grippers and the rod length.
 
 ``render_recording(positions, dt, fps, config, camera, seed)`` renders test clouds with ground truth.
+
+Also public for tools built on perception (calibration, benchmarks): ``segment_rope(xyz, rgb, cfg)``
+(the rope's points of a cloud, camera frame) and ``segment_distances(points, x)`` (each point's
+distance to the polyline through ``x``).
 """
 
 from perception.camera import Camera, look_at
 from perception.config import PerceptionConfig, load_config
+from perception.estimate import segment_distances
+from perception.segment import segment_rope
 from perception.tracker import Tracker
 
 _RENDERER = ("RenderedFrame", "camera_steps", "default_camera", "render_recording")
@@ -54,4 +60,6 @@ __all__ = [
     "load_config",
     "look_at",
     "render_recording",
+    "segment_distances",
+    "segment_rope",
 ]
