@@ -55,6 +55,9 @@ class TrackerConfig:
     min_seen_points: int = 10  # rope voxels a cloud needs for the rope to count as seen
     redetect_gain: float = 0.8  # a shape found from the cloud alone replaces the estimate when its
     # capped mean point distance is below this fraction of the estimate's
+    refind_cost: float = 0.012  # m: a corrected estimate whose points lie farther than this on average
+    # (capped at filter_radius; the near surface alone is ~ a rope radius) is checked against the shape
+    # the cloud alone gives (0: never)
 
 
 @dataclass

@@ -213,6 +213,11 @@ class Tracker:
             x_new, observed = correct_vertices(
                 x_pred, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
             )
+            found = self._camera_over_model(pts, x_new)
+            if found is not None:
+                x_new, observed = correct_vertices(
+                    found, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
+                )
             if not np.all(np.isfinite(x_new)):
                 raise ValueError("non-finite correction")
         except Exception as exc:
@@ -229,6 +234,37 @@ class Tracker:
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
+    def _explains(self, seen: np.ndarray, found: np.ndarray, better_than: float) -> bool:
+        """Does a shape from the cloud alone explain the rope points below ``better_than`` and as
+        well as a tracked rope does (``refind_cost``)? The second keeps a blob of rope-coloured
+        clutter, through which a path can always be drawn, from becoming the rope."""
+        cost = explained_cost(seen, found, self.config.estimation.filter_radius)
+        limit = self.config.tracker.refind_cost
+        return cost < better_than and (limit <= 0 or cost <= limit)
+
+    def _camera_over_model(self, pts: np.ndarray, x_new: np.ndarray) -> np.ndarray | None:
+        """A shape from the cloud alone when the corrected estimate still does not explain the
+        visible rope (capped mean point distance above ``refind_cost``: the model carried it where
+        one correction cannot bring it back, e.g. through a table it does not know of) and that shape
+        explains the points clearly better. The state is moved there at rest: the model's velocity
+        was what took it away. None: keep the correction."""
+        tc, radius = self.config.tracker, self.config.estimation.filter_radius
+        seen = voxel_downsample(pts, self.config.estimation.voxel)
+        if len(seen) < tc.min_seen_points or tc.refind_cost <= 0:
+            return None
+        cost = explained_cost(seen, x_new, radius)
+        if cost <= tc.refind_cost:
+            return None
+        grip = self._grip if self._grip is not None else x_new[self.grip_idx]
+        found = rope_from_points(pts, grip, self.rest)
+        if found is None or not self._explains(seen, found, tc.redetect_gain * cost):
+            return None
+        x_t = torch.as_tensor(found, dtype=self.state.x.dtype).unsqueeze(0)
+        self.state = self.model.reposition(self.state, x_t, torch.zeros_like(x_t))
+        self._since_update = np.inf
+        self.health.redetected += 1
+        return self.x
+
     def _find_if_lost(self, pts: np.ndarray) -> np.ndarray:
         """The prediction to correct: the model's, or a shape found from the cloud alone when the
         rope was lost and that shape explains the points clearly better (then the state is moved
@@ -247,11 +283,10 @@ class Tracker:
             self.health.recover(redetected=False)  # back, or never gone: the camera agrees
             return x_pred
         self.health.lose()
-        found = rope_from_points(
-            pts, self._grip if self._grip is not None else x_pred[self.grip_idx], self.rest
-        )
-        if found is None or explained_cost(seen, found, radius) >= tc.redetect_gain * explained_cost(
-            seen, x_pred, radius
+        grip = self._grip if self._grip is not None else x_pred[self.grip_idx]
+        found = rope_from_points(pts, grip, self.rest)
+        if found is None or not self._explains(
+            seen, found, tc.redetect_gain * explained_cost(seen, x_pred, radius)
         ):
             return x_pred
         x_t = torch.as_tensor(found, dtype=self.state.x.dtype).unsqueeze(0)
