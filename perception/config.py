@@ -58,6 +58,8 @@ class TrackerConfig:
     refind_cost: float = 0.012  # m: a corrected estimate whose points lie farther than this on average
     # (capped at filter_radius; the near surface alone is ~ a rope radius) is checked against the shape
     # the cloud alone gives (0: never)
+    refind_seen: float = 0.9  # ... and replaced by it only when this share of its free vertices has
+    # rope points within assoc_radius (a hidden stretch is bridged straight: there the model knows better)
 
 
 @dataclass

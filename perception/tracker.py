@@ -246,7 +246,7 @@ class Tracker:
         """A shape from the cloud alone when the corrected estimate still does not explain the
         visible rope (capped mean point distance above ``refind_cost``: the model carried it where
         one correction cannot bring it back, e.g. through a table it does not know of) and that shape
-        explains the points clearly better. The state is moved there at rest: the model's velocity
+        explains the points clearly better, with points near ``refind_seen`` of its free vertices. The state is moved there at rest: the model's velocity
         was what took it away. None: keep the correction."""
         tc, radius = self.config.tracker, self.config.estimation.filter_radius
         seen = voxel_downsample(pts, self.config.estimation.voxel)
@@ -258,6 +258,10 @@ class Tracker:
         grip = self._grip if self._grip is not None else x_new[self.grip_idx]
         found = rope_from_points(pts, grip, self.rest)
         if found is None or not self._explains(seen, found, tc.redetect_gain * cost):
+            return None
+        # only a rope seen nearly whole: where the cloud shows gaps, the shape bridges them straight
+        near = np.linalg.norm(found[2:-2, None] - seen[None], axis=-1).min(1)
+        if np.mean(near < self.config.estimation.assoc_radius) < tc.refind_seen:
             return None
         x_t = torch.as_tensor(found, dtype=self.state.x.dtype).unsqueeze(0)
         self.state = self.model.reposition(self.state, x_t, torch.zeros_like(x_t))
