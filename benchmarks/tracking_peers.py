@@ -128,6 +128,7 @@ def main(argv=None) -> dict:
             perception=None if args.perception is None else str(args.perception),
         ),
         methods=methods,
+        labels=report.LABEL,
         wall_s=round(time.time() - t_start, 1),
         blackout=dict(start_s=BLACKOUT_START_S, duration_s=BLACKOUT_S),
         fastest_ranking=ranking,

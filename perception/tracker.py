@@ -209,11 +209,12 @@ class Tracker:
             small, colours = decimate(xyz, colours, self.config.estimation.max_points)
             pts = camera.to_world(segment_rope(small, colours, self.config.segmentation))
             depth = depth_image(xyz, camera)
-            x_pred = self._find_if_lost(pts)
+            seen = voxel_downsample(pts, self.config.estimation.voxel)
+            x_pred = self._find_if_lost(pts, seen)
             x_new, observed = correct_vertices(
                 x_pred, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
             )
-            found = self._camera_over_model(pts, x_new)
+            found = self._camera_over_model(pts, seen, x_new)
             if found is not None:
                 x_new, observed = correct_vertices(
                     found, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
@@ -242,14 +243,14 @@ class Tracker:
         limit = self.config.tracker.refind_cost
         return cost < better_than and (limit <= 0 or cost <= limit)
 
-    def _camera_over_model(self, pts: np.ndarray, x_new: np.ndarray) -> np.ndarray | None:
+    def _camera_over_model(self, pts: np.ndarray, seen: np.ndarray, x_new: np.ndarray) -> np.ndarray | None:
         """A shape from the cloud alone when the corrected estimate still does not explain the
         visible rope (capped mean point distance above ``refind_cost``: the model carried it where
-        one correction cannot bring it back, e.g. through a table it does not know of) and that shape
-        explains the points clearly better, with points near ``refind_seen`` of its free vertices. The state is moved there at rest: the model's velocity
-        was what took it away. None: keep the correction."""
+        one correction cannot bring it back, e.g. through a table it does not know of) and that
+        shape explains the points clearly better, with points near ``refind_seen`` of its free
+        vertices. The state is moved there at rest: the model's velocity was what took it away.
+        ``seen`` is ``pts`` voxel-downsampled. None: keep the correction."""
         tc, radius = self.config.tracker, self.config.estimation.filter_radius
-        seen = voxel_downsample(pts, self.config.estimation.voxel)
         if len(seen) < tc.min_seen_points or tc.refind_cost <= 0:
             return None
         cost = explained_cost(seen, x_new, radius)
@@ -269,13 +270,12 @@ class Tracker:
         self.health.redetected += 1
         return self.x
 
-    def _find_if_lost(self, pts: np.ndarray) -> np.ndarray:
+    def _find_if_lost(self, pts: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """The prediction to correct: the model's, or a shape found from the cloud alone when the
         rope was lost and that shape explains the points clearly better (then the state is moved
-        there, at rest, and no velocity nudge follows)."""
+        there, at rest, and no velocity nudge follows). ``seen`` is ``pts`` voxel-downsampled."""
         tc, radius = self.config.tracker, self.config.estimation.filter_radius
         x_pred = self.x
-        seen = voxel_downsample(pts, self.config.estimation.voxel)
         if len(seen) < tc.min_seen_points:
             if self.health.since_seen_steps * self.dt > tc.lost_after_s:
                 self.health.lose()

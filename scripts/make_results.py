@@ -695,25 +695,11 @@ def render_float32(d: dict) -> list[str]:
     ] + table(header, rows)
 
 
-TRACKING_LABEL = {
-    "occ0": "no occlusion",
-    "occ25": "25 % occluded",
-    "occ50": "50 % occluded",
-    "blackout": "rope hidden 1 s",
-    "fastest": "fastest motions",
-    "fps10": "clouds at 10 Hz",
-    "table": "on a table (unmodelled)",
-    "post": "caught on a post (unmodelled)",
-    "nocontact": "same motion, no contact",
-    "wrong_model": "DLO3 with DLO1's model",
-    "right_model": "DLO3 with DLO3's model",
-}
-
-
 def render_tracking_peers(d: dict) -> list[str]:
     methods = d.get("methods", [])
     args = d.get("args", {})
     summ = d.get("summary", {})
+    label = d.get("labels", {})  # older stored runs lack them: the variant's key is shown
     out = [
         "Mean two-way distance between tracked nodes and the true rope [mm] (TrackDLO's metric), per camera "
         f"frame, mean over frames and recordings ({args.get('per_rod', '-')} per rod of "
@@ -725,10 +711,10 @@ def render_tracking_peers(d: dict) -> list[str]:
     rows = []
     for v, cells in summ.items():
         n = max((c.get("n_recordings", 0) for c in cells.values()), default=0)
-        rows.append([TRACKING_LABEL.get(v, v), n] + [fmt(get(cells, m, "mean_error_mm"), 1) for m in methods])
+        rows.append([label.get(v, v), n] + [fmt(get(cells, m, "mean_error_mm"), 1) for m in methods])
     for v, cells in d.get("ratios", {}).items():
         rows.append(
-            [f"{TRACKING_LABEL.get(v, v)}: ratio", "-"]
+            [f"{label.get(v, v)}: ratio", "-"]
             + [f"{fmt(get(cells, m, 'ratio'), 2)}x" if m in cells else "-" for m in methods]
         )
     black = summ.get("blackout", {})
