@@ -42,6 +42,18 @@ def config_name(config: dict) -> str:
     return name
 
 
+def source_digest(*packages: str, root: Path | None = None) -> str:
+    """A short hash of the Python sources of ``packages`` (folders under ``root``, by default the
+    checkout): put in a configuration, it keeps rows computed by older code from being reused."""
+    root = root or Path(__file__).resolve().parents[1]
+    h = hashlib.sha1()
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` so that a reader sees the old file or the new one, never a part."""
     path.parent.mkdir(parents=True, exist_ok=True)

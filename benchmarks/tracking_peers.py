@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     from benchmarks.provenance import provenance
-    from benchmarks.store import RunStore, write_atomic
+    from benchmarks.store import RunStore, source_digest, write_atomic
     from benchmarks.tracking import report
     from benchmarks.tracking.runner import OURS, available_peers, run_unit
     from benchmarks.tracking.scenarios import (
@@ -94,7 +94,8 @@ def main(argv=None) -> dict:
     t_start = time.time()
     units, ranking = select_units(rods, per_rod, variants)
     store = RunStore(args.out / f"{args.stem}.runs")
-    config = dict(per_rod=per_rod, quick=args.quick, variants=variants, methods=methods)
+    code = source_digest("deform", "perception", "benchmarks/tracking")  # older code's rows: not reused
+    config = dict(per_rod=per_rod, quick=args.quick, variants=variants, methods=methods, code=code)
     if args.perception is not None:  # results of other settings are stored apart
         config["perception"] = str(args.perception)
     done = store.load(config)

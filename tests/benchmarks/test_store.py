@@ -3,7 +3,7 @@ atomically, and an old append-only runs file is read beside them."""
 
 import json
 
-from benchmarks.store import RunStore, config_name, write_atomic
+from benchmarks.store import RunStore, config_name, source_digest, write_atomic
 
 CONFIG = {"quick": True, "fit": 8, "check": 4, "frames": 300, "tool": 12}
 
@@ -50,3 +50,14 @@ def test_an_atomic_write_replaces_the_whole_file(tmp_path):
     write_atomic(path, "a" * 1000)
     write_atomic(path, "b")
     assert path.read_text() == "b" and [p.name for p in path.parent.iterdir()] == ["r.json"]
+
+
+def test_the_source_digest_changes_with_the_code_and_only_with_it(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "a.py").write_text("x = 1\n")
+    (tmp_path / "pkg" / "notes.txt").write_text("not code")
+    before = source_digest("pkg", root=tmp_path)
+    (tmp_path / "pkg" / "notes.txt").write_text("other")
+    assert source_digest("pkg", root=tmp_path) == before
+    (tmp_path / "pkg" / "a.py").write_text("x = 2\n")
+    assert source_digest("pkg", root=tmp_path) != before
