@@ -113,6 +113,8 @@ def cmd_eval(args) -> int:
     from deform.model import load_model
 
     torch.set_num_threads(args.threads)
+    if args.rod is None and (args.method != "deform" or not (args.model and args.recordings)):
+        raise UsageError("eval needs --rod, or --model and --recordings")
     if args.method == "deform":
         model = load_model(args.model or args.rod)
         if args.no_residual:
@@ -122,9 +124,9 @@ def cmd_eval(args) -> int:
 
         model = load_baseline(args.method, args.rod, args.model)
     directory = _data_dir(args.rod, "eval", args.recordings)
-    recs = load_recordings(directory, model.n)
+    recs = load_recordings(directory)  # other marker counts: compared by arc length (deform.evaluate)
     result = {
-        "rod": args.rod,
+        "rod": args.rod or model.cfg.name,
         "method": args.method,
         "recordings_dir": str(directory),
         **evaluate(model, recs, args.steps),
@@ -133,7 +135,7 @@ def cmd_eval(args) -> int:
         print(json.dumps(result, indent=2))
     else:
         print(
-            f"{args.rod}: L1 {result['l1_m'] * 100:.3f} cm over {result['recordings']} recordings, "
+            f"{result['rod']}: L1 {result['l1_m'] * 100:.3f} cm over {result['recordings']} recordings, "
             f"{result['steps']} steps; step p50 {result['step_ms_p50']:.3f} ms"
         )
     return 0
@@ -287,9 +289,13 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="500-step open-loop prediction of every recording in a directory")
-    e.add_argument("--rod", required=True)
+    e.add_argument("--rod", help="a shipped rod (its model and eval recordings by default)")
     e.add_argument("--recordings", help="directory of .pkl (default: DATA/ROD/eval)")
-    e.add_argument("--model", help="checkpoint (.pt); default: the shipped model of the rod")
+    e.add_argument(
+        "--model",
+        help="checkpoint (.pt); default: the shipped model of the rod. Another vertex count than the "
+        "markers': compared by arc length",
+    )
     e.add_argument("--steps", type=int_at_least(1), default=500)
     e.add_argument("--no-residual", action="store_true")
     e.add_argument("--method", default="deform", help="deform (default) or a baseline: see deform.baselines")

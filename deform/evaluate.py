@@ -3,6 +3,10 @@
 For a recording ``X`` (T, n, 3): start from frames 0 and 1, feed the gripped vertices of every later
 frame, and predict the rest. ``l1_m`` is the mean of ``|prediction - truth|`` over predicted steps, all
 vertices (gripped ones included, as in the paper) and x, y, z.
+
+A model whose vertex count differs from the recording's markers (a calibrated model) is started
+from the markers resampled to its vertices by arc length (:mod:`deform.io.arc_length`), and its
+prediction is resampled back to the markers, where the error is taken.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from deform.io.arc_length import edge_lengths, resample_vertices
 from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
@@ -86,6 +91,8 @@ def predict_recordings(
     """
     idx = gripped_indices(model.n)
     step = step or model.step
+    markers = recordings
+    recordings = [as_model_vertices(r, model) for r in recordings]
     horizon = [min(steps, r.n_frames - 2) for r in recordings]
     groups = (
         list(batches_by_horizon(recordings, steps).values())
@@ -106,9 +113,22 @@ def predict_recordings(
                 preds.append(state.x)
             P = torch.stack(preds, 1).double().numpy()
             for j, i in enumerate(members):
-                r = recordings[i]
-                results[i] = RolloutResult(r.name, P[j], r.positions[2 : s + 2], np.asarray(times))
+                r, pred = markers[i], P[j]
+                if r.n_vertices != model.n:
+                    pred = resample_vertices(pred, r.n_vertices, edge_lengths(r.positions[0]))
+                results[i] = RolloutResult(r.name, pred, r.positions[2 : s + 2], np.asarray(times))
     return results
+
+
+def as_model_vertices(recording: Recording, model) -> Recording:
+    """The recording itself when its marker count is the model's; else its markers resampled by
+    arc length to the model's vertices, placed as the model's typical rest lengths
+    (``nominal_rest``, when it has them) place them."""
+    if recording.n_vertices == model.n:
+        return recording
+    rest = getattr(model, "nominal_rest", None)
+    rest = None if rest is None else rest.detach().double().numpy()
+    return Recording(recording.name, resample_vertices(recording.positions, model.n, rest), recording.dt)
 
 
 def metrics(results: list[RolloutResult]) -> dict:
