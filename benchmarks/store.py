@@ -43,12 +43,14 @@ def config_name(config: dict) -> str:
 
 
 def source_digest(*packages: str, root: Path | None = None) -> str:
-    """A short hash of the Python sources of ``packages`` (folders under ``root``, by default the
-    checkout): put in a configuration, it keeps rows computed by older code from being reused."""
+    """A short hash of the Python sources of ``packages`` (folders or files under ``root``, by
+    default the checkout): put in a configuration, it keeps rows computed by older code from being
+    reused."""
     root = root or Path(__file__).resolve().parents[1]
     h = hashlib.sha1()
     for package in packages:
-        for path in sorted((root / package).rglob("*.py")):
+        where = root / package
+        for path in [where] if where.is_file() else sorted(where.rglob("*.py")):
             h.update(str(path.relative_to(root)).encode())
             h.update(path.read_bytes())
     return h.hexdigest()[:10]

@@ -1,0 +1,191 @@
+"""`deform calibrate` on DLO1..DLO5 (issue 49): a model from rendered camera clips alone, scored on
+held-out motions beside the shipped motion-capture model and the generic DER of the same length and
+mass, in one run.
+
+    python benchmarks/calibrate_rods.py [--rods DLO1 ...] [--seconds 50 120 300] [--tracked 4]
+        [--quick] [--num-cpus N | --address ray://HOST:PORT | --inline]
+
+Per rod and amount of clips (a Ray task each, benchmarks/cluster.py): the clips are cut from the
+rod's training motions (benchmarks/calibration/clips.py: one camera for the session, noise,
+dropouts, an occluder in every other clip), written as MCAP bags, and `deform calibrate BAGS
+--length L --mass M --config service.yaml` runs on them with its defaults, timed. The calibrated,
+shipped and generic models are scored on the held-out motions (eval, or the held-out fifth of
+train for DLO4 and DLO5; benchmarks/calibration/score.py): the paper's 500-step open loop, tracking
+through occlusion, the 1 s prediction from the tracked state. The calibration never reads a model
+file: it knows the rope by the clips, its length and its mass.
+
+Results are stored per rod and amount as they finish (``benchmarks/results/calibrate_rods.runs/``;
+a rerun resumes), with the calibrated model and its report in ``runs/calibrate_rods/``. Summary:
+``benchmarks/results/calibrate_rods.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+if not __package__:  # run as `python benchmarks/calibrate_rods.py`: import the repository's packages
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+from benchmarks.calibration.report import markdown, summarize
+from benchmarks.cluster import Workers, add_arguments, call, repo_path
+from benchmarks.provenance import provenance
+from benchmarks.store import RunStore, source_digest, write_atomic
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+RODS = ("DLO1", "DLO2", "DLO3", "DLO4", "DLO5")
+QUICK_BUDGET = [
+    "--iterations",
+    "3",
+    "--refine-iterations",
+    "2",
+    "--rounds",
+    "1",
+    "--horizon",
+    "20",
+    "--batch",
+    "2",
+]
+QUICK_FRAMES = 250  # 2.5 s clips and held-out motions in --quick
+
+
+def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str) -> dict:
+    """A task: clips of ``seconds`` of the rod's training motions, `deform calibrate` on them, and
+    the three models scored on the held-out motions."""
+    from dataclasses import replace as dc_replace
+
+    import torch
+
+    from benchmarks.calibration.clips import motions, session_camera, write_session
+    from benchmarks.calibration.score import score
+    from deform import DeformModel, generic_model, load_model
+    from perception import load_config
+
+    clips, held = motions(rod, seconds)
+    if quick:
+        clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
+        held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
+    perception = load_config(None)
+    camera = session_camera([r.positions for r in clips + held], perception.render)
+    out = repo_path(runs) / f"{rod}-{int(seconds)}s"
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f"calibrate_{rod}_"))
+    try:
+        t0 = time.perf_counter()
+        session = write_session(rod, clips, work, perception.render, camera)
+        render_s = time.perf_counter() - t0
+        model_path = out / "calibrated.pt"
+        cmd = [
+            sys.executable, "-m", "calibrate", *map(str, session.bags),
+            "--length", f"{session.length_m}", "--mass", f"{session.mass_kg}",
+            "--config", str(session.config), "--out", str(model_path), "--report", str(out / "report"),
+            *(QUICK_BUDGET if quick else []),
+        ]  # fmt: skip
+        t0 = time.perf_counter()
+        done = subprocess.run(cmd, cwd=repo_path("."), capture_output=True, text=True)
+        calibrate_s = time.perf_counter() - t0
+    finally:
+        shutil.rmtree(work, ignore_errors=True)  # the bags: about 200 MB a clip
+    if done.returncode != 0:
+        raise RuntimeError(f"deform calibrate on {rod} exited with {done.returncode}: {done.stderr[-2000:]}")
+    printed = json.loads(done.stdout.strip().splitlines()[-1])
+    report = json.loads((out / "report" / "report.json").read_text())
+    torch.set_num_threads(1)
+    calibrated = DeformModel.load(model_path)
+    cfg = calibrated.cfg
+    models = {
+        "calibrated": calibrated,
+        "shipped": load_model(rod),
+        "generic": generic_model(session.length_m, session.mass_kg),
+    }
+    scores = score(models, held, tracked, camera, perception)
+    return dict(
+        rod=rod,
+        seconds=session.seconds,
+        clips=[c.name for c in clips],
+        held_out=[h.name for h in held],
+        render_s=round(render_s, 1),
+        calibrate_s=round(calibrate_s, 1),
+        calibrate_printed=printed,
+        identified=report.get("identified"),
+        rounds=report.get("rounds"),
+        vertices=cfg.n_vertices,
+        scores=scores,
+        model=str(model_path.relative_to(repo_path("."))),
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rods", nargs="*", default=list(RODS))
+    ap.add_argument("--seconds", nargs="*", type=float, default=[50.0], help="clip time per calibration")
+    ap.add_argument(
+        "--tracked", type=int, default=4, help="held-out motions tracked per rod (all: open loop)"
+    )
+    ap.add_argument("--quick", action="store_true", help="two 2.5 s clips, a tiny budget (a smoke test)")
+    ap.add_argument("--runs", default="runs/calibrate_rods", help="models and reports (in the repository)")
+    ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    add_arguments(ap)
+    args = ap.parse_args(argv)
+    code = source_digest(  # the code a row's numbers depend on (not the summary's)
+        "deform",
+        "perception",
+        "calibrate",
+        "service",
+        "benchmarks/calibration/clips.py",
+        "benchmarks/calibration/score.py",
+    )
+    config = dict(tracked=args.tracked, quick=args.quick, code=code)
+    store = RunStore(args.out / f"{args.stem}.runs")
+    done = store.load(config)
+    keys = {f"{rod}-{int(s)}s": (rod, s) for s in args.seconds for rod in args.rods}
+    tasks = {
+        key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs)
+        for key, (rod, s) in keys.items()
+        if key not in done
+    }
+
+    def stored(key: str, value: dict) -> None:
+        row = {"key": key, "config": config, **value}
+        store.save(row)
+        done[key] = row
+        s = value["scores"]
+        workers.log(
+            f"{key}: open loop {s['calibrated']['open_loop']['l1_cm']} cm "
+            f"(shipped {s['shipped']['open_loop']['l1_cm']}, generic {s['generic']['open_loop']['l1_cm']}); "
+            f"calibrate {value['calibrate_s']:.0f} s"
+        )
+
+    t0 = time.time()
+    with Workers.from_args(args) as workers:
+        failures = workers.run(tasks, stored, desc=args.stem)
+    rows = [done[k] for k in keys if k in done]
+    result = {
+        **provenance(argv, script="benchmarks/calibrate_rods.py", threads=1),
+        "workers": workers.describe(),
+        "args": dict(rods=args.rods, seconds=args.seconds, tracked=args.tracked, quick=args.quick),
+        "wall_s": round(time.time() - t0, 1),
+        "complete": not failures,
+        "summary": summarize(rows),
+        "rows": rows,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_atomic(args.out / f"{args.stem}.json", json.dumps(result, indent=1) + "\n")
+    write_atomic(args.out / f"{args.stem}.md", markdown(result))
+    print(markdown(result))
+    if failures:
+        print(f"{len(failures)} calibration(s) failed: {', '.join(failures)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

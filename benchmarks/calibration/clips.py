@@ -1,0 +1,109 @@
+"""Calibration clips as a lab would record them: a rod's training motions (never its held-out ones),
+filmed by one camera placed once for the whole session, with noise, dropouts and, in every other
+clip, an occluder in front of part of the rope; written as MCAP bags the way ``deform-service
+record`` writes them, with the service config a user would write (the gripper convention).
+
+Without the dataset, the motions are simulated with the rod's shipped model (the pipeline runs, the
+numbers mean little).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from deform import Recording, find_data_root, generate_recording, load_model, load_recording, load_rod_config
+
+DT = 0.01
+FPS = 30.0
+CLIP_S = 5.0
+OCCLUDED = 0.25  # the share of the rope an occluder hides, in every other clip (30-80 % of it)
+CAMERA_DISTANCE_M = 1.2  # from the centre of all the session's motion
+CAMERA_ELEVATION_DEG = 30.0
+
+
+@dataclass(frozen=True)
+class Session:
+    """What a calibration run is given: bags, the service config, the rope's length and mass."""
+
+    bags: list[Path]
+    config: Path
+    length_m: float
+    mass_kg: float
+    seconds: float
+
+
+def _sorted(files):
+    return sorted(files, key=lambda p: (len(p.stem), p.stem))
+
+
+def split_files(root: Path, rod: str) -> tuple[list[Path], list[Path]]:
+    """``(train, held_out)`` files: ``train`` and ``eval``; without ``eval`` (DLO4, DLO5) the held-out
+    fifth of ``train`` (every fifth by name, as training validates on it) and the rest."""
+    train = _sorted((root / rod / "train").glob("*.pkl"))
+    held = _sorted((root / rod / "eval").glob("*.pkl"))
+    if not held:
+        held = train[::5]
+        train = [p for p in train if p not in held]
+    return train, held
+
+
+def motions(rod: str, seconds: float, root: Path | None = None) -> tuple[list[Recording], list[Recording]]:
+    """``(clips, held_out)``: enough training recordings for ``seconds`` of clips (spread over the
+    training set, 5 s each; all of them when there are fewer), and the held-out recordings.
+
+    Without the dataset: simulated motions of the rod's shipped model, the held-out ones with other
+    seeds."""
+    want = max(round(seconds / CLIP_S), 1)
+    root = root or find_data_root()
+    if root is None:
+        model = load_model(rod)
+        clips = [generate_recording(model, 500, seed=2 * s, name=f"sim{s}") for s in range(want)]
+        held = [generate_recording(model, 500, seed=2 * s + 1, name=f"simheld{s}") for s in range(2)]
+        return clips, held
+    train, held = split_files(root, rod)
+    pick = np.unique(np.linspace(0, len(train) - 1, min(want, len(train))).round().astype(int))
+    return [load_recording(train[i]) for i in pick], [load_recording(p) for p in held]
+
+
+def session_camera(positions: list[np.ndarray], render_cfg):
+    """One camera for the session, placed in front of all of its motion, looking down at it (a user
+    sets the camera up once, to see the whole workspace)."""
+    from perception import default_camera
+
+    cfg = replace(render_cfg, camera_distance=CAMERA_DISTANCE_M, camera_elevation_deg=CAMERA_ELEVATION_DEG)
+    return default_camera(np.concatenate(positions, axis=0), cfg)
+
+
+def write_session(rod: str, clips: list[Recording], out: Path, render_cfg, camera) -> Session:
+    """Render ``clips`` and write them as bags in ``out`` with the service config of their grippers.
+
+    Args:
+        rod: the rod (its length and mass are what the user gives).
+        clips: the motions, each one clip.
+        out: a directory (created).
+        render_cfg: perception's render settings (noise, dropouts, colours).
+        camera: the session's camera.
+    """
+    from perception import render_recording
+    from service.bag import write_messages
+    from service.scenario import build_stream, offsets_for
+
+    out.mkdir(parents=True, exist_ok=True)
+    grippers = offsets_for(np.concatenate([c.positions for c in clips], axis=0))
+    bags = []
+    for i, clip in enumerate(clips):
+        cfg = replace(render_cfg, occlusion=OCCLUDED if i % 2 else 0.0)
+        frames = render_recording(clip.positions, dt=DT, fps=FPS, config=cfg, camera=camera, seed=1000 + i)
+        bag = out / f"clip{i:03d}.mcap"
+        write_messages(
+            bag, "deform/rod1", build_stream(clip.positions, grippers, fps=FPS, seed=i, frames=frames)
+        )
+        bags.append(bag)
+    config = out / "service.yaml"
+    config.write_text(yaml.safe_dump({"grippers": grippers.model_dump()}))
+    rod_cfg = load_rod_config(rod)  # the length and mass a user knows, not the shipped model
+    return Session(bags, config, rod_cfg.length_m, rod_cfg.mass_kg, DT * sum(c.n_frames for c in clips))
