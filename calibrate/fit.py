@@ -15,9 +15,11 @@ predicted rod's polyline. One-sided (cloud to model), so occlusion hides points 
 error; capped, so that stray rope-coloured points cost no more than a missed rope. The points lie
 on the rope's near surface, so a perfect model scores about the rope's radius, not zero.
 
-Training uses the whole track, occluded vertices included (where the tracker's model filled them
-in): the loss has no per-vertex weights. With heavy occlusion the model partly learns its own
-prediction there; the coverage in the report says how much of the rope that concerns.
+Training weighs each tracked position by whether a cloud showed it (:meth:`Track.seen`): where an
+occluder hid the rope, the track is the tracker's model's guess, and a loss on it would teach the
+model its own prediction. The windows still start from the whole tracked shape, and the coarse
+identification grid of the first round scores the whole track; the coverage in the report says how
+much of the rope the camera saw.
 """
 
 from __future__ import annotations

@@ -25,10 +25,13 @@ from tqdm import tqdm
 
 from calibrate.bags import Clip
 from calibrate.points import rope_points
-from deform import Recording
+from deform import Recording, gripped_indices
 from perception import Tracker
 from service.config import Grippers
 from service.geometry import grips_from_poses
+
+
+HOLD_S = 0.1  # a correction counts for the steps after it, up to the next cloud or this long
 
 
 @dataclass(frozen=True)
@@ -62,8 +65,21 @@ class Track:
         return self.cloud_observed.mean(0)
 
     def recording(self) -> Recording:
-        """The track as a :class:`deform.Recording` (what :func:`deform.train.train` takes)."""
-        return Recording(name=self.name, positions=self.positions, dt=self.dt)
+        """The track as a :class:`deform.Recording` (what :func:`deform.train.train` takes), weighted
+        by :meth:`seen`: training learns from what the camera showed, not from what the tracker's
+        model filled in behind an occluder."""
+        return Recording(name=self.name, positions=self.positions, dt=self.dt, weights=self.seen())
+
+    def seen(self, hold_s: float = HOLD_S) -> np.ndarray:
+        """(T, n) 1 where a cloud corrected the vertex at most ``hold_s`` before (until the next
+        cloud), else 0; the gripped vertices (inputs, never corrected) 1."""
+        w = np.zeros(self.positions.shape[:2])
+        hold = max(int(round(hold_s / self.dt)), 1)
+        ends = np.append(self.cloud_steps[1:], self.n_frames)
+        for start, end, observed in zip(self.cloud_steps, ends, self.cloud_observed):
+            w[start : min(end, start + hold)] = observed
+        w[:, gripped_indices(w.shape[1])] = 1.0
+        return w
 
 
 def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, times_ns: np.ndarray) -> np.ndarray:

@@ -105,6 +105,14 @@ def long_enough(recordings: list[Recording], horizon: int) -> list[Recording]:
 def sample_windows(
     recordings: list[Recording], batch: int, horizon: int, rng: random.Random, transported: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The windows and start directors of :func:`sample_weighted_windows` (the same draws)."""
+    windows, d1, _ = sample_weighted_windows(recordings, batch, horizon, rng, transported)
+    return windows, d1
+
+
+def sample_weighted_windows(
+    recordings: list[Recording], batch: int, horizon: int, rng: random.Random, transported: bool = True
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """(B, horizon + 2, n, 3) windows (two frames to start from, ``horizon`` frames to predict) and
     the reference directors (B, n-1, 3) to start them in. Recordings shorter than ``horizon + 2``
     frames are skipped; a UsageError when all are.
@@ -121,28 +129,45 @@ def sample_windows(
         transported: start in the directors evaluation carries.
 
     Returns:
-        ``(windows, d1)``: (B, horizon + 2, n, 3) float64 and (B, n-1, 3) or None.
+        ``(windows, d1, weights)``: (B, horizon + 2, n, 3) float64, (B, n-1, 3) or None, and the
+        predicted frames' weights (B, horizon, n) when any recording has ``weights``, else None.
     """
     usable = long_enough(recordings, horizon)  # too short for a window: not sampled
-    out, frames = [], []
+    weighted = any(r.weights is not None for r in usable)
+    out, frames, weights = [], [], []
     for _ in range(batch):
         r = rng.choice(usable)
         s = rng.randrange(0, r.n_frames - horizon - 2 + 1)
         out.append(r.positions[s : s + horizon + 2])
         if transported:
             frames.append(r.reference_frames[s + 1])
+        if weighted:
+            w = np.ones(r.positions.shape[:2]) if r.weights is None else r.weights
+            weights.append(w[s + 2 : s + horizon + 2])
     X = torch.tensor(np.stack(out), dtype=torch.float64)
-    return X, (torch.tensor(np.stack(frames), dtype=torch.float64) if transported else None)
+    return (
+        X,
+        torch.tensor(np.stack(frames), dtype=torch.float64) if transported else None,
+        torch.tensor(np.stack(weights), dtype=torch.float64) if weighted else None,
+    )
 
 
-def rollout_loss(model: DeformModel, windows: torch.Tensor, d1: torch.Tensor | None = None) -> torch.Tensor:
-    """Open-loop L1 of the model over windows, from their first two frames with the gripped vertices
-    given (the paper's protocol), differentiable.
+def rollout_loss(
+    model: DeformModel,
+    windows: torch.Tensor,
+    d1: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    r"""Open-loop L1 of the model over windows, from their first two frames with the gripped vertices
+    given (the paper's protocol), differentiable. With ``weights`` :math:`w_{bkv}` the mean is
+    weighted: :math:`\sum w \, |\hat{x} - x| / (3 \sum w)`, so positions nobody saw (weight 0)
+    teach nothing.
 
     Args:
         model: the model.
         windows: (B, h + 2, n, 3).
         d1: (B, n-1, 3) start directors or None.
+        weights: (B, h, n) per predicted position, or None (all 1).
 
     Returns:
         A scalar [m].
@@ -150,7 +175,11 @@ def rollout_loss(model: DeformModel, windows: torch.Tensor, d1: torch.Tensor | N
     idx = gripped_indices(model.n)
     state = model.initial_state(windows[:, 0], windows[:, 1], d1=d1)
     pred, _ = model.rollout(state, windows[:, 2:, idx], create_graph=True)
-    return (pred - windows[:, 2:]).abs().mean()
+    err = (pred - windows[:, 2:]).abs()
+    if weights is None:
+        return err.mean()
+    w = weights.to(err.dtype).unsqueeze(-1)
+    return (w * err).sum() / (3 * w.sum()).clamp_min(1e-12)
 
 
 def coarse_identification(
@@ -374,6 +403,7 @@ def train_step(
     windows: torch.Tensor,
     d1: torch.Tensor | None,
     cfg: TrainConfig,
+    weights: torch.Tensor | None = None,
 ) -> tuple[float, bool]:
     """One update on a batch of windows (B, h + 2, n, 3). Returns the fit loss [m] and whether the
     update was applied: a non-finite loss or gradient (an unstable window) skips it rather than
@@ -385,12 +415,13 @@ def train_step(
         windows: (B, h + 2, n, 3) from :func:`sample_windows`.
         d1: (B, n-1, 3) start directors or None.
         cfg: the training settings (penalty, tied parameters).
+        weights: (B, h, n) per predicted position (:func:`rollout_loss`), or None.
 
     Returns:
         ``(loss_m, applied)``.
     """
     opt.zero_grad(set_to_none=True)
-    fit = rollout_loss(model, windows, d1)
+    fit = rollout_loss(model, windows, d1, weights)
     loss = fit + cfg.rest_curvature_penalty * model.wbar.pow(2).mean()
     params = [p for g in opt.param_groups for p in g["params"]]
     if torch.isfinite(loss):
@@ -487,8 +518,10 @@ def train(
         for it in bar:
             t0 = time.perf_counter()
             horizon = horizon_at(it, cfg)
-            windows, d1 = sample_windows(train_recs, cfg.batch, horizon, rng, cfg.transported_frames)
-            fit, ok = train_step(model, opt, windows, d1, cfg)
+            windows, d1, weights = sample_weighted_windows(
+                train_recs, cfg.batch, horizon, rng, cfg.transported_frames
+            )
+            fit, ok = train_step(model, opt, windows, d1, cfg, weights)
             state.skipped += not ok
             state.iteration = it + 1
             iter_times.append(time.perf_counter() - t0)

@@ -38,6 +38,9 @@ class EstimationConfig:
         0.25  # support on both sides of a vertex along the rope, as a fraction of the half edge
     )
     surface_offset: float = 0.004  # m, points lie on the camera-facing surface: push means back by this
+    along_rope: float = 1.0  # share of a correction's component along the rope that is applied (0: only
+    # across it). A rope without features shows where it lies across, not how far along it a vertex sits:
+    # that component of a GMM mean mostly comes from the components sharing evenly spread points
 
 
 @dataclass

@@ -80,6 +80,14 @@ def _two_sided(points, resp, j, x_pred, idx, frac) -> bool:
     return bool(s.max() > frac * half and s.min() < -frac * half)
 
 
+def along_rope(shift: np.ndarray, x: np.ndarray, i: int) -> np.ndarray:
+    """The component of ``shift`` along the rope at vertex ``i`` of ``x`` (n, 3): along the central
+    difference :math:`x_{i+1} - x_{i-1}` (one-sided at the ends)."""
+    t = x[min(i + 1, len(x) - 1)] - x[max(i - 1, 0)]
+    norm = np.linalg.norm(t)
+    return np.zeros(3) if norm < 1e-12 else (shift @ t) / norm**2 * t
+
+
 def correct_vertices(
     x_pred: np.ndarray,
     rope_world: np.ndarray,
@@ -134,9 +142,11 @@ def correct_vertices(
             if mass[j] < cfg.min_points or not _two_sided(gp, resp, j, x_pred, i, cfg.two_sided):
                 continue
             ray = mu[j] - eye
-            target = mu[j] + cfg.surface_offset * ray / max(np.linalg.norm(ray), 1e-12)
-            if np.linalg.norm(target - x_pred[i]) > MAX_SHIFT or not np.all(np.isfinite(target)):
+            shift = mu[j] + cfg.surface_offset * ray / max(np.linalg.norm(ray), 1e-12) - x_pred[i]
+            if cfg.along_rope < 1:
+                shift = shift - (1 - cfg.along_rope) * along_rope(shift, x_pred, i)
+            if np.linalg.norm(shift) > MAX_SHIFT or not np.all(np.isfinite(shift)):
                 continue
-            x_new[i] = target
+            x_new[i] = x_pred[i] + shift
             observed[i] = True
     return x_new, observed

@@ -28,6 +28,9 @@ class Recording:
     name: str
     positions: np.ndarray  # (T, n, 3) float64, metres, z up
     dt: float = DT
+    # (T, n) how much each position is to be trusted in training's loss, 0..1 (None: all fully): a
+    # camera track's vertices that no cloud showed were filled in by the tracker's model
+    weights: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:

@@ -3,7 +3,7 @@ import json
 import pytest
 import torch
 
-from deform import DeformModel, generate_recording, load_rod_config
+from deform import DeformModel, Recording, generate_recording, load_rod_config
 from deform.train import TrainConfig, coarse_identification, train, validation_l1
 
 
@@ -101,3 +101,43 @@ def test_a_horizon_longer_than_every_recording_is_a_clear_error_before_any_work(
     assert X.shape[1] == 52 and all(
         (X[b, 0].numpy() == long.positions).all(axis=(1, 2)).any() for b in range(6)
     )
+
+
+def test_a_weighted_loss_learns_nothing_from_positions_of_weight_zero():
+    """Positions nobody saw (weight 0, e.g. a camera track behind an occluder) change neither the
+    loss nor its gradient; all weights 1 is the plain mean; windows carry their own weights."""
+    import random
+
+    import numpy as np
+
+    from deform.train import rollout_loss, sample_weighted_windows
+
+    cfg = load_rod_config("DLO2")
+    model = DeformModel(cfg)
+    rec = generate_recording(model, n_frames=60, seed=4)
+    weights = np.ones(rec.positions.shape[:2])
+    weights[:, 5] = 0.0
+    weights[30:, 6] = 0.0
+    bad = rec.positions.copy()
+    bad[:, 5] += 0.05  # what an occluded vertex's track may be
+    bad[30:, 6] -= 0.03
+    X, d1, W = sample_weighted_windows([Recording("w", rec.positions, weights=weights)], 4, 20, random.Random(1))
+    Xb, d1b, Wb = sample_weighted_windows([Recording("w", bad, weights=weights)], 4, 20, random.Random(1))
+    assert W.shape == (4, 20, cfg.n_vertices) and torch.equal(W, Wb)
+    starts = [int(np.flatnonzero((rec.positions == X[b, 0].numpy()).all(axis=(1, 2)))[0]) for b in range(4)]
+    for b, s in enumerate(starts):
+        assert torch.equal(W[b], torch.tensor(weights[s + 2 : s + 22]))
+    Xb[:, :2] = X[:, :2]  # the same start: only the predicted frames' targets differ
+
+    def loss_and_grad(windows, w):
+        model.zero_grad()
+        loss = rollout_loss(model, windows, d1, w)
+        loss.backward()
+        return float(loss), model.log_beta.grad.clone()
+
+    clean, g_clean = loss_and_grad(X, W)
+    corrupted, g_bad = loss_and_grad(Xb, W)
+    assert clean == pytest.approx(corrupted, rel=1e-12) and torch.allclose(g_clean, g_bad, rtol=1e-10)
+    assert float(rollout_loss(model, Xb, d1)) > 2 * clean  # unweighted, the corruption dominates
+    ones = torch.ones_like(W)
+    assert float(rollout_loss(model, X, d1, ones)) == pytest.approx(float(rollout_loss(model, X, d1)), rel=1e-12)

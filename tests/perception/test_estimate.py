@@ -76,3 +76,30 @@ def test_update_moves_visible_and_keeps_occluded(recording, occluded_frames):
     err_before = np.linalg.norm(pred - truth, axis=1)[observed].mean()
     err_after = np.linalg.norm(x - truth, axis=1)[observed].mean()
     assert err_after < 0.6 * err_before
+
+
+def test_a_correction_across_the_rope_only_has_no_share_along_it(recording, occluded_frames):
+    """``along_rope`` 0: each corrected vertex moves perpendicular to the predicted rope at it (the
+    camera shows where a featureless rope lies, not how far along it a vertex sits), and still
+    towards the truth; 1 (the full shift) moves some along it."""
+    from dataclasses import replace
+
+    f = occluded_frames[0]
+    truth = recording.positions[f.step]
+    n = len(truth)
+    rng = np.random.default_rng(5)
+    pred = truth + np.concatenate([np.zeros((2, 3)), rng.normal(0, 0.01, (n - 4, 3)), np.zeros((2, 3))])
+    cfg = load_config()
+    pts = f.camera.to_world(segment_rope(f.xyz, f.rgb, cfg.segmentation))
+    depth = depth_image(f.xyz, f.camera)
+    tangent = pred[2:] - pred[:-2]
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+
+    def along(x):
+        return np.abs(((x - pred)[1:-1] * tangent).sum(1))
+
+    across, obs = correct_vertices(pred, pts, depth, f.camera, replace(cfg.estimation, along_rope=0.0), _movable(n))
+    full, _ = correct_vertices(pred, pts, depth, f.camera, replace(cfg.estimation, along_rope=1.0), _movable(n))
+    assert obs.sum() >= 4 and along(across).max() < 1e-12 and along(full).max() > 1e-3
+    # the true observed vertices' distance to the estimated rope: the error across it
+    assert segment_distances(truth[obs], across).mean() < 0.6 * segment_distances(truth[obs], pred).mean()
