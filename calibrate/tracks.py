@@ -30,7 +30,6 @@ from perception import Tracker
 from service.config import Grippers
 from service.geometry import grips_from_poses
 
-
 HOLD_S = 0.1  # a correction counts for the steps after it, up to the next cloud or this long
 
 
@@ -74,7 +73,7 @@ class Track:
         """(T, n) 1 where a cloud corrected the vertex at most ``hold_s`` before (until the next
         cloud), else 0; the gripped vertices (inputs, never corrected) 1."""
         w = np.zeros(self.positions.shape[:2])
-        hold = max(int(round(hold_s / self.dt)), 1)
+        hold = max(round(hold_s / self.dt), 1)
         ends = np.append(self.cloud_steps[1:], self.n_frames)
         for start, end, observed in zip(self.cloud_steps, ends, self.cloud_observed):
             w[start : min(end, start + hold)] = observed

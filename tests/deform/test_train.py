@@ -121,8 +121,10 @@ def test_a_weighted_loss_learns_nothing_from_positions_of_weight_zero():
     bad = rec.positions.copy()
     bad[:, 5] += 0.05  # what an occluded vertex's track may be
     bad[30:, 6] -= 0.03
-    X, d1, W = sample_weighted_windows([Recording("w", rec.positions, weights=weights)], 4, 20, random.Random(1))
-    Xb, d1b, Wb = sample_weighted_windows([Recording("w", bad, weights=weights)], 4, 20, random.Random(1))
+    X, d1, W = sample_weighted_windows(
+        [Recording("w", rec.positions, weights=weights)], 4, 20, random.Random(1)
+    )
+    Xb, _, Wb = sample_weighted_windows([Recording("w", bad, weights=weights)], 4, 20, random.Random(1))
     assert W.shape == (4, 20, cfg.n_vertices) and torch.equal(W, Wb)
     starts = [int(np.flatnonzero((rec.positions == X[b, 0].numpy()).all(axis=(1, 2)))[0]) for b in range(4)]
     for b, s in enumerate(starts):
@@ -140,4 +142,6 @@ def test_a_weighted_loss_learns_nothing_from_positions_of_weight_zero():
     assert clean == pytest.approx(corrupted, rel=1e-12) and torch.allclose(g_clean, g_bad, rtol=1e-10)
     assert float(rollout_loss(model, Xb, d1)) > 2 * clean  # unweighted, the corruption dominates
     ones = torch.ones_like(W)
-    assert float(rollout_loss(model, X, d1, ones)) == pytest.approx(float(rollout_loss(model, X, d1)), rel=1e-12)
+    assert float(rollout_loss(model, X, d1, ones)) == pytest.approx(
+        float(rollout_loss(model, X, d1)), rel=1e-12
+    )

@@ -98,8 +98,12 @@ def test_a_correction_across_the_rope_only_has_no_share_along_it(recording, occl
     def along(x):
         return np.abs(((x - pred)[1:-1] * tangent).sum(1))
 
-    across, obs = correct_vertices(pred, pts, depth, f.camera, replace(cfg.estimation, along_rope=0.0), _movable(n))
-    full, _ = correct_vertices(pred, pts, depth, f.camera, replace(cfg.estimation, along_rope=1.0), _movable(n))
+    across, obs = correct_vertices(
+        pred, pts, depth, f.camera, replace(cfg.estimation, along_rope=0.0), _movable(n)
+    )
+    full, _ = correct_vertices(
+        pred, pts, depth, f.camera, replace(cfg.estimation, along_rope=1.0), _movable(n)
+    )
     assert obs.sum() >= 4 and along(across).max() < 1e-12 and along(full).max() > 1e-3
     # the true observed vertices' distance to the estimated rope: the error across it
     assert segment_distances(truth[obs], across).mean() < 0.6 * segment_distances(truth[obs], pred).mean()
