@@ -47,8 +47,20 @@ def _count(low: int):
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     p.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 folders or .mcap files (one clip each)")
-    p.add_argument("--length", type=_positive, required=True, metavar="METRES", help="the rope's length")
-    p.add_argument("--mass", type=_positive, required=True, metavar="KG", help="the rope's mass (weighed)")
+    p.add_argument(
+        "--length",
+        type=_positive,
+        required=True,
+        metavar="METRES",
+        help="the rope's length between the grippers' grip points (what the model spans)",
+    )
+    p.add_argument(
+        "--mass",
+        type=_positive,
+        required=True,
+        metavar="KG",
+        help="the mass of that length (weighed; a rope running on beyond the grippers: its share)",
+    )
     p.add_argument(
         "--diameter",
         type=_positive,

@@ -105,5 +105,16 @@ def write_session(rod: str, clips: list[Recording], out: Path, render_cfg, camer
         bags.append(bag)
     config = out / "service.yaml"
     config.write_text(yaml.safe_dump({"grippers": grippers.model_dump()}))
-    rod_cfg = load_rod_config(rod)  # the length and mass a user knows, not the shipped model
-    return Session(bags, config, rod_cfg.length_m, rod_cfg.mass_kg, DT * sum(c.n_frames for c in clips))
+    length, mass = held_length_and_mass(rod, clips)
+    return Session(bags, config, length, mass, DT * sum(c.n_frames for c in clips))
+
+
+def held_length_and_mass(rod: str, clips: list[Recording]) -> tuple[float, float]:
+    """What a user gives ``--length`` and ``--mass``: the rope between the grippers, measured with a
+    tape from grip point to grip point (the end markers: the median over the clips of the first
+    frame's marker polyline), and its share of the weighed mass. The DEFORM ropes run on beyond the
+    grippers: DLO1's 1.152 m spans 1.04 m between its end markers."""
+    rod_cfg = load_rod_config(rod)  # the rope's length and mass, not the shipped model
+    held = float(np.median([np.linalg.norm(np.diff(c.positions[0], axis=0), axis=-1).sum() for c in clips]))
+    held = min(held, rod_cfg.length_m)
+    return round(held, 3), round(rod_cfg.mass_kg * held / rod_cfg.length_m, 5)

@@ -2,8 +2,9 @@
 never from the held-out ones it is scored on, and the targets of issue 49 are read off correctly."""
 
 import numpy as np
+import pytest
 
-from benchmarks.calibration.clips import motions, split_files
+from benchmarks.calibration.clips import held_length_and_mass, motions, split_files
 from benchmarks.calibration.report import markdown, summarize
 from deform import save_recording
 
@@ -27,6 +28,17 @@ def test_clips_are_training_motions_and_never_held_out_ones(tmp_path):
     assert len({c.name for c in clips}) == 10  # spread over the training set, none twice
     clips, held = motions("DLO1", 1000.0, root=tmp_path)  # more time than recorded: all of train
     assert len(clips) == 20 and [h.name for h in held] == ["0", "1", "2"]
+
+
+def test_the_user_gives_the_length_and_mass_between_the_grippers():
+    from deform import Recording, load_rod_config
+
+    x = np.zeros((3, 12, 3))
+    x[..., 0] = np.linspace(0, 0.8, 12)  # 0.8 m between the end markers
+    length, mass = held_length_and_mass("DLO4", [Recording("a", x), Recording("b", x * 1.01)])
+    cfg = load_rod_config("DLO4")
+    assert length == pytest.approx(0.808, abs=1e-3)
+    assert mass / length == pytest.approx(cfg.mass_kg / cfg.length_m, rel=1e-3)  # the same rope
 
 
 def _row(key, calibrated, shipped, generic, seconds=600.0):
