@@ -836,6 +836,12 @@ def renderer(name: str):
         return RENDER[name]
     if name.startswith("diagnose.") and name.endswith(".json"):
         return render_diagnose
+    for stem, render in (
+        ("tracking_peers.", render_tracking_peers),
+        ("calibrate_rods.", render_calibrate_rods),
+    ):
+        if name.startswith(stem):
+            return render
     return render_generic
 
 
