@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from deform import Recording, find_data_root, generate_recording, load_model, load_recording, load_rod_config
+from deform.io.arc_length import edge_lengths
 
 DT = 0.01
 FPS = 30.0
@@ -115,6 +116,6 @@ def held_length_and_mass(rod: str, clips: list[Recording]) -> tuple[float, float
     frame's marker polyline), and its share of the weighed mass. The DEFORM ropes run on beyond the
     grippers: DLO1's 1.152 m spans 1.04 m between its end markers."""
     rod_cfg = load_rod_config(rod)  # the rope's length and mass, not the shipped model
-    held = float(np.median([np.linalg.norm(np.diff(c.positions[0], axis=0), axis=-1).sum() for c in clips]))
+    held = float(np.median([edge_lengths(c.positions[0]).sum() for c in clips]))
     held = min(held, rod_cfg.length_m)
     return round(held, 3), round(rod_cfg.mass_kg * held / rod_cfg.length_m, 5)

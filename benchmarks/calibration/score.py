@@ -21,7 +21,7 @@ import torch
 
 from benchmarks.tracking.metric import two_way_error
 from deform import Recording, gripped_indices
-from deform.evaluate import metrics, predict_recordings
+from deform.evaluate import as_model_vertices, metrics, predict_recordings
 from deform.io.arc_length import edge_lengths, resample_vertices
 
 OCCLUSION = 0.25
@@ -39,18 +39,12 @@ def open_loop(model, held_out: list[Recording]) -> dict:
     )
 
 
-def _as_model(positions: np.ndarray, model) -> np.ndarray:
-    if positions.shape[-2] == model.n:
-        return positions
-    return resample_vertices(positions, model.n, model.nominal_rest.detach().double().numpy())
-
-
 def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
     """Track ``frames`` (rendered from ``truth`` (T, m, 3)) with ``model``; the tracking errors per
     cloud [m] and the 1 s prediction errors [m]."""
     from perception import Tracker
 
-    own = _as_model(truth, model)  # the truth at the model's vertices: its start and its grippers
+    own = as_model_vertices(Recording("truth", truth), model).positions  # its start and grippers
     gi = gripped_indices(model.n)
     markers = edge_lengths(truth[0])
     tracker = Tracker(model, config=perception)
