@@ -37,23 +37,50 @@ def _args(clips, bags, out: Path, *extra):
     ]
 
 
-def test_calibrate_writes_a_model_that_load_model_loads(clips, tmp_path):
+@pytest.fixture(scope="module")
+def calibrated(clips, tmp_path_factory) -> tuple[dict, Path]:
+    """``python -m calibrate`` run once on the clips, as a user runs it: (its summary line, out dir)."""
+    out_dir = tmp_path_factory.mktemp("calibrated")
     root = Path(__file__).resolve().parents[2]
     out = subprocess.run(
-        [sys.executable, "-m", "calibrate", *_args(clips, clips.bags, tmp_path)],
+        [sys.executable, "-m", "calibrate", *_args(clips, clips.bags, out_dir)],
         capture_output=True,
         text=True,
         env=dict(os.environ, PYTHONPATH=str(root), OMP_NUM_THREADS="1"),
         timeout=300,
     )
     assert out.returncode == 0, out.stderr
-    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    return json.loads(out.stdout.strip().splitlines()[-1]), out_dir
+
+
+def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
+    summary, out_dir = calibrated
     model = load_model(summary["model"])
     assert model.n == N and model.cfg.length_m == LENGTH and model.cfg.mass_kg == MASS
-    report = json.loads((tmp_path / "rope_report" / "report.json").read_text())
+    report = json.loads((out_dir / "rope_report" / "report.json").read_text())
     assert report["model_written"] and report["held_out_clips"] == ["clip0"]
     assert len(report["coverage_per_vertex"]) == N and report["rounds"][0]["round"] == 0
-    assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (tmp_path / "rope_report").iterdir()}
+    assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (out_dir / "rope_report").iterdir()}
+
+
+@pytest.mark.zenoh
+def test_the_service_serves_a_calibrated_model(calibrated):
+    """``deform-service run --rod MODEL.pt`` with the file calibrate wrote: the service starts on it,
+    answers ``vertices`` with its vertex count and a predict that moves the rope as planned."""
+    from service.demo import free_port
+    from tests.service.conftest import make_config
+    from tests.service.test_every_model import serve_and_predict
+
+    summary, _ = calibrated
+    cfg = make_config(
+        f"tcp/127.0.0.1:{free_port()}",
+        namespace="deform/calibrated",
+        rod=summary["model"],
+        workers={"processes": False, "compile_predict": False, "predict_processes": 1},
+    )
+    status, shapes = serve_and_predict(cfg, plans=3, steps=10, ready_s=60.0)
+    assert status["predict_failed"] is None and shapes.shape == (3, 10, N, 3)
+    assert shapes[2, -1, :, 2].mean() > shapes[0, -1, :, 2].mean()
 
 
 def _refused(capsys, argv, match: str, out: Path) -> None:

@@ -63,7 +63,7 @@ class Feeder:
         self.thread.join()
 
 
-def _serve_and_predict(cfg, plans: int, steps: int, ready_s: float) -> tuple[dict, np.ndarray]:
+def serve_and_predict(cfg, plans: int, steps: int, ready_s: float) -> tuple[dict, np.ndarray]:
     """Start the service with ``cfg`` (its own model: ``cfg.rod``), wait until predict is ready,
     feed poses, and ask for ``vertices`` and a predict of ``plans`` x ``steps``. -> (status once
     ready, predicted vertices)."""
@@ -101,7 +101,7 @@ def test_the_service_answers_vertices_and_a_float32_predict(name, checkpoints, e
         workers={"processes": processes, "compile_predict": False, "predict_processes": 1},
     )
     assert cfg.workers.predict_dtype == "float32"
-    status, shapes = _serve_and_predict(cfg, plans=3, steps=10, ready_s=60.0)
+    status, shapes = serve_and_predict(cfg, plans=3, steps=10, ready_s=60.0)
     assert status["predict_mode"] == "eager" and status["predict_failed"] is None
     # plans lifting further end higher: the rollout moved the rope as asked
     assert shapes[2, -1, :, 2].mean() > shapes[0, -1, :, 2].mean()
@@ -153,5 +153,5 @@ def test_a_prebuilt_rod_starts_on_its_compiled_steps(rod, endpoint):
             f"{rod}: {', '.join(missing)} not prebuilt for this source in {USER_CACHE} "
             "(`python -m service prebuild --all-rods`, which `make install` runs)"
         )
-    status, _ = _serve_and_predict(cfg, plans=64, steps=100, ready_s=60.0)
+    status, _ = serve_and_predict(cfg, plans=64, steps=100, ready_s=60.0)
     assert status["predict_mode"] == "compiled" and status["step"] == "compiled", status
