@@ -37,7 +37,7 @@ from perception.estimate import segment_distances
 from perception.segment import segment_rope
 from perception.tracker import Tracker
 
-_RENDERER = ("RenderedFrame", "camera_steps", "default_camera", "render_recording")
+_RENDERER = ("RenderedFrame", "camera_steps", "default_camera", "render_recording", "rope_centreline")
 
 
 def __getattr__(name: str):
@@ -60,6 +60,7 @@ __all__ = [
     "load_config",
     "look_at",
     "render_recording",
+    "rope_centreline",
     "segment_distances",
     "segment_rope",
 ]

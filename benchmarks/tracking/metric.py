@@ -89,19 +89,3 @@ def recovery_time(times: np.ndarray, errors: np.ndarray, start: float, end: floa
     if len(after) == 0:
         return None, ref
     return float(times[after[0]] - end), ref
-
-
-def resample_arclength(polyline: np.ndarray, fractions: np.ndarray) -> np.ndarray:
-    """Points at arc-length fractions (0..1) along a polyline.
-
-    Args:
-        polyline: (n, 3) vertices.
-        fractions: (k,) in [0, 1].
-
-    Returns:
-        (k, 3).
-    """
-    p = np.asarray(polyline, dtype=np.float64)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-    target = np.clip(np.asarray(fractions, dtype=np.float64), 0.0, 1.0) * s[-1]
-    return np.stack([np.interp(target, s, p[:, d]) for d in range(3)], -1)

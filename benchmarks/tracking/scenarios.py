@@ -36,6 +36,7 @@ from deform import (
     load_model,
     load_recording,
 )
+from deform.io.arc_length import resample_vertices
 
 RODS = ("DLO1", "DLO2", "DLO3", "DLO4", "DLO5")
 SCENARIOS = ("occlusion", "blackout", "fastest", "fps10", "contact", "wrong_model", "generic")
@@ -181,13 +182,23 @@ def model_of(key: str):
 
 
 def resample_to(positions: np.ndarray, model) -> np.ndarray:
-    """(T, m, 3) a trajectory resampled to ``model``'s vertex count along arc length, at the model's
-    typical arc-length fractions (for tracking a rod with another rod's model)."""
-    from benchmarks.tracking.metric import resample_arclength
+    """(T, m, 3) a trajectory as ``model``'s vertices (for tracking a rod with another rod's model):
+    the gripped vertices where the grippers hold the rope, the inner ones along the marker polyline
+    at the model's rest-length fractions (:func:`deform.io.arc_length.resample_vertices`)."""
+    return resample_vertices(positions, model.n, model.nominal_rest.detach().double().numpy())
 
-    rest = model.nominal_rest.detach().double().numpy()
-    frac = np.concatenate([[0.0], np.cumsum(rest)]) / rest.sum()
-    return np.stack([resample_arclength(f, frac) for f in positions])
+
+def on_rendered_rope(x: np.ndarray, model, per_segment: int = 8) -> np.ndarray:
+    """(n, 3) ``model``'s vertices laid on the rope the camera sees (the renderer's smooth curve
+    through the markers ``x`` (m, 3)), gripped ones at the gripped markers: a tracker that followed
+    the camera exactly with this model. The tracking error of this shape is the least a model of
+    another vertex count can score against the marker polyline."""
+    from perception import rope_centreline
+
+    m = len(x)
+    curve = rope_centreline(x, per_segment)
+    source = np.concatenate([x[:1], curve[per_segment : (m - 2) * per_segment + 1], x[-1:]])
+    return resample_vertices(source, model.n, model.nominal_rest.detach().double().numpy())
 
 
 def clouds_of(unit: Unit) -> list[Clouds]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from deform import gripped_indices
+from deform.io.arc_length import resample_vertices
 from perception.camera import Camera
 from perception.cloud import voxel_downsample, window_min
 
@@ -171,6 +172,4 @@ def resample_nodes(x0: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     x0 = np.asarray(x0, dtype=np.float64)
     s = arc_coordinates(x0)
     t = np.concatenate([[s[0]], np.linspace(s[1], s[-2], n - 2), [s[-1]]])
-    out = np.stack([np.interp(t, s, x0[:, d]) for d in range(3)], axis=1)
-    out[[0, 1, -2, -1]] = x0[[0, 1, -2, -1]]
-    return out, t
+    return resample_vertices(x0, n), t

@@ -15,7 +15,21 @@ from perception.render.mesh import catmull_rom
 from perception.render.occluder import arc_window, occluder_box
 from perception.render.scene import RenderedFrame, render_frame
 
-__all__ = ["RenderedFrame", "blacked_out", "camera_steps", "default_camera", "render_recording"]
+__all__ = [
+    "RenderedFrame",
+    "blacked_out",
+    "camera_steps",
+    "default_camera",
+    "render_recording",
+    "rope_centreline",
+]
+
+
+def rope_centreline(x: np.ndarray, samples_per_segment: int = 8) -> np.ndarray:
+    """(M, 3) the rope's centreline as the renderer draws it: a smooth curve through the vertices
+    ``x`` (n, 3), vertex j at point ``j * samples_per_segment``. A real rope bends smoothly between
+    its markers; what a camera shows is this curve, not the marker polyline."""
+    return catmull_rom(x, samples_per_segment)
 
 
 def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:

@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from benchmarks.tracking import contact, report, scenarios
-from benchmarks.tracking.metric import recovery_time, resample_arclength, two_way_error
+from benchmarks.tracking.metric import recovery_time, two_way_error
 from benchmarks.tracking.runner import OURS, run_unit
 from deform import generate_recording, gripped_indices, load_model
+from deform.io.arc_length import resample_vertices
 from perception import load_config, render_recording
 
 
@@ -41,7 +42,7 @@ def test_metric_is_zero_for_identical_and_hand_computed_for_shifted():
     # only x = 0 is off the tracked polyline [0.1, 1.1], by 0.1
     assert two_way_error(line + [0.1, 0, 0], line) == pytest.approx(0.5 * (0.05 + 0.1 / 11))
     # node counts may differ: a finer tracked polyline along the same rope scores 0
-    fine = resample_arclength(truth, np.linspace(0, 1, 25))
+    fine = resample_vertices(truth, 25)
     assert two_way_error(fine, truth) < 1e-3
 
 
