@@ -36,7 +36,7 @@ if not __package__:  # run as `python benchmarks/calibrate_rods.py`: import the 
 from benchmarks.calibration.report import markdown, summarize
 from benchmarks.cluster import Workers, add_arguments, call, repo_path
 from benchmarks.provenance import provenance
-from benchmarks.store import RunStore, source_digest, write_atomic
+from benchmarks.store import RunStore, source_digest, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -130,7 +130,11 @@ def main(argv: list[str] | None = None) -> int:
         "--tracked", type=int, default=4, help="held-out motions tracked per rod (all: open loop)"
     )
     ap.add_argument("--quick", action="store_true", help="two 2.5 s clips, a tiny budget (a smoke test)")
-    ap.add_argument("--runs", default="runs/calibrate_rods", help="models and reports (in the repository)")
+    ap.add_argument(
+        "--runs",
+        default="runs/calibrate_rods",
+        help="models and reports (a relative path is inside the repository)",
+    )
     ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
     ap.add_argument("--out", type=Path, default=RESULTS)
     add_arguments(ap)
@@ -177,14 +181,8 @@ def main(argv: list[str] | None = None) -> int:
         "summary": summarize(rows),
         "rows": rows,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_atomic(args.out / f"{args.stem}.json", json.dumps(result, indent=1) + "\n")
-    write_atomic(args.out / f"{args.stem}.md", markdown(result))
     print(markdown(result))
-    if failures:
-        print(f"{len(failures)} calibration(s) failed: {', '.join(failures)}", file=sys.stderr)
-        return 1
-    return 0
+    return write_result(args.out / args.stem, result, failures, "calibration(s)", markdown(result))
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import hashlib
 import json
 import os
 import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -67,6 +68,20 @@ def write_atomic(path: Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_result(
+    stem: Path, result: dict, failures, what: str, markdown: str | None = None, indent: int = 1
+) -> int:
+    """A run's end: ``<stem>.json`` (and ``<stem>.md`` when given), the tasks that failed named on
+    stderr. -> the exit code (1 when any failed: their rows are not stored, a rerun does them)."""
+    write_atomic(stem.with_name(stem.name + ".json"), json.dumps(result, indent=indent) + "\n")
+    if markdown is not None:
+        write_atomic(stem.with_name(stem.name + ".md"), markdown)
+    if failures:
+        print(f"{len(failures)} {what} failed, not stored: {', '.join(failures)}", file=sys.stderr)
+        return 1
+    return 0
 
 
 class RunStore:

@@ -28,7 +28,7 @@ if not __package__:  # run as `python benchmarks/train_rods.py`: import the repo
 
 from benchmarks.cluster import Workers, add_arguments, call, repo_path
 from benchmarks.provenance import provenance
-from benchmarks.store import RunStore, write_atomic
+from benchmarks.store import RunStore, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -88,24 +88,15 @@ def main(argv: list[str] | None = None) -> int:
 
         for row in rows:
             DeformModel.load(ROOT / row["result"]["out"] / "best.pt").save(MODEL_DIR / f"{row['rod']}.pt")
-    write_atomic(
-        RESULTS / f"{args.stem}.json",
-        json.dumps(
-            {
-                **provenance(argv, threads=1),
-                "workers": workers.describe(),
-                "train_args": train_args,
-                "installed": bool(args.install),
-                "complete": not failures,
-                "rows": rows,
-            },
-            indent=2,
-        ),
-    )
-    if failures:
-        print(f"{len(failures)} rod(s) failed, not stored: {', '.join(failures)}", file=sys.stderr)
-        return 1
-    return 0
+    result = {
+        **provenance(argv, threads=1),
+        "workers": workers.describe(),
+        "train_args": train_args,
+        "installed": bool(args.install),
+        "complete": not failures,
+        "rows": rows,
+    }
+    return write_result(RESULTS / args.stem, result, failures, "rod(s)", indent=2)
 
 
 if __name__ == "__main__":

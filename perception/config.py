@@ -66,6 +66,10 @@ class TrackerConfig:
     # the cloud alone gives (0: never)
     refind_seen: float = 0.9  # ... and replaced by it only when this share of its free vertices has
     # rope points within assoc_radius (a hidden stretch is bridged straight: there the model knows better)
+    length_gain: float = 0.1  # weight of each cloud that shows the free rope whole in the running
+    # measure of its length against the rest length (perception.length; 0: the model's length is kept)
+    length_trigger: float = 0.015  # the rest lengths take the camera's length when the two differ by more
+    length_bounds: tuple[float, float] = (0.8, 1.25)  # ... within these factors of the starting rest length
 
 
 @dataclass

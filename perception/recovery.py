@@ -130,7 +130,9 @@ class TrackingHealth:
     ``"lost"`` (the visible rope is mostly outside what a correction can reach, or the rope has not
     been seen for ``lost_after_s``). ``lost`` and ``recovered`` count the transitions;
     ``since_seen_steps`` counts model steps since a cloud last showed the rope;
-    ``disagreement`` is the last cloud's share of unexplained rope points."""
+    ``disagreement`` is the last cloud's share of unexplained rope points; ``length_scale`` the free
+    rope's rest length over the model's own, after the camera's length replaced it
+    (:mod:`perception.length`; 1 while the two agree)."""
 
     state: str = "tracking"
     lost: int = 0
@@ -138,6 +140,7 @@ class TrackingHealth:
     redetected: int = 0
     since_seen_steps: float = float("inf")
     disagreement: float | None = None
+    length_scale: float = 1.0
 
     def lose(self) -> None:
         if self.state != "lost":
@@ -160,4 +163,5 @@ class TrackingHealth:
             "redetected": self.redetected,
             "since_seen_s": None if not np.isfinite(since) else round(float(since), 4),
             "disagreement": None if self.disagreement is None else round(self.disagreement, 4),
+            "length_scale": round(float(self.length_scale), 4),
         }

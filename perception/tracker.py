@@ -25,6 +25,7 @@ from perception.cloud import decimate, depth_image, voxel_downsample
 from perception.config import load_config
 from perception.estimate import correct_vertices
 from perception.initial import initial_guess
+from perception.length import seen_length
 from perception.recovery import TrackingHealth, disagreement, explained_cost, rope_from_points
 from perception.segment import segment_rope
 
@@ -65,6 +66,8 @@ class Tracker:
         self._since_update = np.inf
         self._grip = None
         self.health = TrackingHealth()
+        self._length_ratio = 1.0  # running camera length / rest length of the free rope
+        self._rest_start = None  # the free rest lengths before the camera's length replaced them
 
     # ----- public API -----------------------------------------------------------------------
     @property
@@ -98,6 +101,7 @@ class Tracker:
         with torch.no_grad():
             self.state = self.model.initial_state(x0, x1)
         self.rest = self.state.rest[0].numpy().copy()
+        self._length_ratio, self._rest_start = 1.0, None
         self._grip = x1[0, self.grip_idx].numpy().copy()
         self._mark(np.ones(self.n, dtype=bool))
         return self.x, self.observed
@@ -143,6 +147,7 @@ class Tracker:
             if self.physics:
                 state = self.model.settle(state, g, max_steps=tc.settle_max_steps, tol=tc.settle_tol)
         self.state = replace(state, v=torch.zeros_like(state.x))
+        self._length_ratio, self._rest_start = 1.0, None
         self._grip = grip
         self._observed[:] = False
         self._since_update = np.inf  # no velocity nudge from the corrections below
@@ -221,6 +226,7 @@ class Tracker:
                 )
             if not np.all(np.isfinite(x_new)):
                 raise ValueError("non-finite correction")
+            self._follow_length(seen, x_new)
         except Exception as exc:
             log.warning("camera update skipped: %s", exc)
             self._observed[:] = False
@@ -235,6 +241,31 @@ class Tracker:
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
+    def _follow_length(self, seen: np.ndarray, x_new: np.ndarray) -> None:
+        """The camera's length of the free rope over the rest length (:mod:`perception.length`),
+        averaged over the clouds that show it whole; when it strays beyond ``length_trigger`` the
+        free rest lengths take it (a model of another rope, a length given wrong), within
+        ``length_bounds`` of where they started. The projection in the coming ``reposition``
+        then keeps the camera's length instead of bending the rope into a sag the cloud never showed."""
+        tc = self.config.tracker
+        if tc.length_gain <= 0 or not self.physics or len(seen) < tc.min_seen_points:
+            return
+        length = seen_length(seen, x_new, self.config.estimation.assoc_radius)
+        if length is None:
+            return
+        rest = self.state.rest[0].double().numpy().copy()
+        self._length_ratio += tc.length_gain * (length / rest[1:-1].sum() - self._length_ratio)
+        if abs(self._length_ratio - 1.0) <= tc.length_trigger:
+            return
+        if self._rest_start is None:
+            self._rest_start = rest[1:-1].copy()
+        lo, hi = tc.length_bounds
+        rest[1:-1] = np.clip(rest[1:-1] * self._length_ratio, lo * self._rest_start, hi * self._rest_start)
+        self.state = replace(self.state, rest=torch.as_tensor(rest, dtype=self.state.rest.dtype).unsqueeze(0))
+        self.rest = rest
+        self._length_ratio = 1.0
+        self.health.length_scale = float(rest[1:-1].sum() / self._rest_start.sum())
+
     def _explains(self, seen: np.ndarray, found: np.ndarray, better_than: float) -> bool:
         """Does a shape from the cloud alone explain the rope points below ``better_than`` and as
         well as a tracked rope does (``refind_cost``)? The second keeps a blob of rope-coloured

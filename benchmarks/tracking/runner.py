@@ -76,6 +76,9 @@ def run_ours(model, truth: np.ndarray, frames, config) -> dict:
                 floor.append(two_way_error(track[k], truth[k]))
                 camera_floor.append(two_way_error(on_rendered_rope(truth[k], model), truth[k]))
     out = dict(errors=errors, update_ms=correct_ms, step_ms=step_ms, failures=0)
+    out["length_scale"] = tracker.status()[
+        "length_scale"
+    ]  # 1: the camera never disagreed with the rest length
     if floor:
         out["floor_mm"] = 1e3 * float(np.mean(floor))
         out["camera_floor_mm"] = 1e3 * float(np.mean(camera_floor))
@@ -128,7 +131,7 @@ def summarize(result: dict, times: np.ndarray, info: dict) -> dict:
         update_ms_all=[round(float(v), 2) for v in result["update_ms"]],
         failures=result["failures"],
     )
-    for key in ("floor_mm", "camera_floor_mm"):
+    for key in ("floor_mm", "camera_floor_mm", "length_scale"):
         if key in result:
             out[key] = round(result[key], 3)
     if "step_ms" in result:

@@ -59,17 +59,22 @@ def test_gmm_moves_free_means_only():
     assert np.linalg.norm(mu_sk[1] - [0.1, 0, 0]) < 0.003
 
 
-def test_update_moves_visible_and_keeps_occluded(recording, occluded_frames):
-    f = [fr for fr in occluded_frames if fr.occluded][3]
+def _perturbed(recording, f, sd: float, seed: int):
+    """(truth, a prediction with the free vertices off by ``sd``, rope points, depth image, config)
+    for frame ``f``."""
     truth = recording.positions[f.step]
     n = len(truth)
-    rng = np.random.default_rng(4)
-    pred = truth + np.concatenate([np.zeros((2, 3)), rng.normal(0, 0.012, (n - 4, 3)), np.zeros((2, 3))])
+    rng = np.random.default_rng(seed)
+    pred = truth + np.concatenate([np.zeros((2, 3)), rng.normal(0, sd, (n - 4, 3)), np.zeros((2, 3))])
     cfg = load_config()
     pts = f.camera.to_world(segment_rope(f.xyz, f.rgb, cfg.segmentation))
-    x, observed = correct_vertices(
-        pred, pts, depth_image(f.xyz, f.camera), f.camera, cfg.estimation, _movable(n)
-    )
+    return truth, pred, pts, depth_image(f.xyz, f.camera), cfg
+
+
+def test_update_moves_visible_and_keeps_occluded(recording, occluded_frames):
+    f = [fr for fr in occluded_frames if fr.occluded][3]
+    truth, pred, pts, depth, cfg = _perturbed(recording, f, 0.012, 4)
+    x, observed = correct_vertices(pred, pts, depth, f.camera, cfg.estimation, _movable(len(truth)))
     assert observed.sum() >= 2
     assert not np.any(observed & ~f.visible)  # never claims a hidden vertex
     assert np.array_equal(x[~observed], pred[~observed])  # occluded ones keep the prediction
@@ -85,13 +90,8 @@ def test_a_correction_across_the_rope_only_has_no_share_along_it(recording, occl
     from dataclasses import replace
 
     f = occluded_frames[0]
-    truth = recording.positions[f.step]
+    truth, pred, pts, depth, cfg = _perturbed(recording, f, 0.01, 5)
     n = len(truth)
-    rng = np.random.default_rng(5)
-    pred = truth + np.concatenate([np.zeros((2, 3)), rng.normal(0, 0.01, (n - 4, 3)), np.zeros((2, 3))])
-    cfg = load_config()
-    pts = f.camera.to_world(segment_rope(f.xyz, f.rgb, cfg.segmentation))
-    depth = depth_image(f.xyz, f.camera)
     tangent = pred[2:] - pred[:-2]
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
 
