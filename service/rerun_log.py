@@ -55,6 +55,7 @@ class RerunLogger(threading.Thread):
         self._clouds = 0
         self._last_mode = None
         self._rope_counts = (0, 0)
+        self._length_scale = 1.0
 
     def submit(self, kind: str, *payload) -> None:
         try:
@@ -108,7 +109,8 @@ class RerunLogger(threading.Thread):
             self._log_rope(rope)
 
     def _log_rope(self, rope: dict) -> None:
-        """The share of unexplained rope points, and a line whenever the rope is lost or found."""
+        """The share of unexplained rope points, and a line whenever the rope is lost or found, or
+        the camera's length of the rope replaces the model's."""
         rr, rec = self.rr, self.rec
         if rope.get("disagreement") is not None:
             rec.log("rope/unexplained_fraction", rr.Scalars(float(rope["disagreement"])))
@@ -120,6 +122,17 @@ class RerunLogger(threading.Thread):
                 how = f"{rope['redetected']} re-detections from the cloud alone"
                 rec.log("status/rope", rr.TextLog(f"rope found again ({rope['recovered']} so far; {how})"))
             self._rope_counts = counts
+        scale = rope.get("length_scale")
+        if scale is not None and scale != self._length_scale:
+            rec.log("rope/length_scale", rr.Scalars(float(scale)))
+            rec.log(
+                "status/rope",
+                rr.TextLog(
+                    f"the camera's rope length replaced the model's: {scale:.3f}x its rest length",
+                    level="WARN",
+                ),
+            )
+            self._length_scale = scale
 
     def _log_cloud(self, cloud) -> None:
         self._clouds += 1

@@ -21,6 +21,8 @@ LABEL = {
     "nocontact": "same motion, no contact",
     "wrong_model": "DLO3 with DLO1's model",
     "right_model": "DLO3 with DLO3's model",
+    "long_model": "DLO3, its model's rest length 6 % long",
+    "short_model": "DLO3, its model's rest length 6 % short",
     "generic_model": "generic DER (length and mass only)",
     "shipped_model": "the rod's shipped model",
 }

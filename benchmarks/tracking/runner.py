@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import time
 import zlib
+from dataclasses import replace
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from benchmarks.tracking.scenarios import (
     on_rendered_rope,
     render_config,
     resample_to,
+    rest_scale_of,
 )
 from deform import gripped_indices
 from perception import Tracker, camera_steps, load_config, render_recording
@@ -54,12 +56,18 @@ def _ms(values) -> dict:
     )
 
 
-def run_ours(model, truth: np.ndarray, frames, config) -> dict:
-    """Our tracker on ``frames``; errors against ``truth`` (T, n, 3) after each cloud's correction."""
+def run_ours(model, truth: np.ndarray, frames, config, rest_scale: float = 1.0) -> dict:
+    """Our tracker on ``frames``; errors against ``truth`` (T, n, 3) after each cloud's correction.
+    ``rest_scale``: a factor on the free rest lengths the tracker starts with (a length given wrong)."""
     track = truth if model.n == truth.shape[1] else resample_to(truth, model)
     gi = gripped_indices(model.n)
     tracker = Tracker(model, config=config)
     tracker.initialize_from_frames(track[0], track[1])
+    if rest_scale != 1.0:
+        rest = tracker.state.rest.clone()
+        rest[:, 1:-1] *= rest_scale
+        tracker.state = replace(tracker.state, rest=rest)
+        tracker.rest = rest[0].double().numpy().copy()
     by_step = {f.step: f for f in frames}
     errors, correct_ms, step_ms, floor, camera_floor = [], [], [], [], []
     for k in range(2, len(truth)):
@@ -192,7 +200,7 @@ def run_unit(
                 if name == OURS:
                     if (fps, rod) not in done_ours:
                         model = models.setdefault(rod, model_of(rod))
-                        done_ours[(fps, rod)] = run_ours(model, clouds.truth, fr, config)
+                        done_ours[(fps, rod)] = run_ours(model, clouds.truth, fr, config, rest_scale_of(rod))
                     res = done_ours[(fps, rod)]
                 elif name in peers:
                     if fps not in done_peers.setdefault(name, {}):

@@ -15,6 +15,9 @@ Scenarios and their variants:
 - ``contact``: truth simulated with a table (``table``) or a post (``post``) the tracker's model does
   not know, and ``nocontact``, the same gripper motion simulated without contact (the reference);
 - ``wrong_model``: DLO3 tracked with DLO1's model; ``right_model`` the same clouds with DLO3's.
+- ``wrong_length``: DLO3 tracked with DLO3's model whose free rest lengths are ``LENGTH_ERROR`` too
+  long (``long_model``) or too short (``short_model``): a rope given the wrong length; reference
+  ``right_model``.
 
 Recordings: the ``eval`` split of DLO1..DLO3; DLO4 and DLO5 have none, so their held-out validation
 recordings (every fifth training recording, as `deform train` holds them out) stand in. Without the
@@ -39,7 +42,7 @@ from deform import (
 from deform.io.arc_length import resample_vertices
 
 RODS = ("DLO1", "DLO2", "DLO3", "DLO4", "DLO5")
-SCENARIOS = ("occlusion", "blackout", "fastest", "fps10", "contact", "wrong_model", "generic")
+SCENARIOS = ("occlusion", "blackout", "fastest", "fps10", "contact", "wrong_model", "wrong_length", "generic")
 VARIANTS = {
     "occlusion": ("occ0", "occ25", "occ50"),
     "blackout": ("blackout",),
@@ -47,6 +50,7 @@ VARIANTS = {
     "fps10": ("fps10",),
     "contact": ("table", "post", "nocontact"),
     "wrong_model": ("wrong_model", "right_model"),
+    "wrong_length": ("long_model", "short_model", "right_model"),
     "generic": ("generic_model", "shipped_model"),
 }
 # what the ratio columns compare: variant -> its reference (same recordings)
@@ -54,6 +58,8 @@ REFERENCE = {
     "table": "nocontact",
     "post": "nocontact",
     "wrong_model": "right_model",
+    "long_model": "right_model",
+    "short_model": "right_model",
     "generic_model": "shipped_model",
 }
 GENERIC = "generic:"  # a model key: the generic DER of the rod's length and mass (deform.generic_model)
@@ -73,6 +79,9 @@ QUICK_VARIANTS = (
 )
 QUICK_RODS = ("DLO1", "DLO3")
 WRONG = ("DLO3", "DLO1")  # (the rod filmed, the model that tracks it)
+ONLY_WRONG_ROD = ("wrong_model", "right_model", "long_model", "short_model")  # variants of WRONG[0] only
+LENGTH_ERROR = 0.06  # of the free rest length, in ``long_model`` / ``short_model``
+RESCALED = "@"  # a model key "DLO3@1.06": the rod's model, its free rest lengths times 1.06
 BLACKOUT_START_S = 1.5
 BLACKOUT_S = 1.0
 FPS = 30.0
@@ -148,7 +157,7 @@ def select_units(rods, per_rod: int, variants, root: Path | None = None, synthet
     plain = tuple(v for v in variants if v != "fastest")
     units, ranking = [], {}
     for rod in rods:
-        own = tuple(v for v in plain if v not in ("wrong_model", "right_model") or rod == WRONG[0])
+        own = tuple(v for v in plain if v not in ONLY_WRONG_ROD or rod == WRONG[0])
         if root is None:
             model = load_model(rod)
             for seed in range(synthetic_seeds or max(per_rod, 1)):
@@ -174,11 +183,19 @@ def select_units(rods, per_rod: int, variants, root: Path | None = None, synthet
 
 def model_of(key: str):
     """The model a case names: a shipped rod's (``"DLO1"``), or ``"generic:DLO1"``, the generic DER
-    with that rod's length, mass and vertex count and nothing else."""
+    with that rod's length, mass and vertex count and nothing else (``"DLO3@1.06"``: DLO3's; the
+    rest-length factor is :func:`rest_scale_of`'s)."""
+    key = key.split(RESCALED)[0]
     if key.startswith(GENERIC):
         cfg = load_model(key[len(GENERIC) :]).cfg
         return generic_model(cfg.length_m, cfg.mass_kg, cfg.n_vertices)
     return load_model(key)
+
+
+def rest_scale_of(key: str) -> float:
+    """The factor on the free rest lengths a model key names (``"DLO3@1.06"``: 1.06; else 1)."""
+    _, _, scale = key.partition(RESCALED)
+    return float(scale) if scale else 1.0
 
 
 def resample_to(positions: np.ndarray, model) -> np.ndarray:
@@ -209,11 +226,16 @@ def clouds_of(unit: Unit) -> list[Clouds]:
     out = []
     plain = [
         (c, FPS if c != "fps10" else 10.0)
-        for c in ("occ0", "fps10", "fastest", "wrong_model", "right_model", "generic_model", "shipped_model")
+        for c in ("occ0", "fps10", "fastest", *ONLY_WRONG_ROD, "generic_model", "shipped_model")
         if c in v
     ]
     if plain:
-        tracked_by = {"wrong_model": WRONG[1], "generic_model": GENERIC + unit.rod}
+        tracked_by = {
+            "wrong_model": WRONG[1],
+            "long_model": f"{unit.rod}{RESCALED}{1 + LENGTH_ERROR:g}",
+            "short_model": f"{unit.rod}{RESCALED}{1 - LENGTH_ERROR:g}",
+            "generic_model": GENERIC + unit.rod,
+        }
         cases = [(c, fps, tracked_by.get(c, unit.rod)) for c, fps in plain]
         out.append(Clouds("occ0", unit.positions, {"occlusion": 0.0}, cases=cases))
     for c, occ in (("occ25", 0.25), ("occ50", 0.5)):

@@ -134,3 +134,19 @@ def test_runner_with_a_stand_in_peer_gives_the_json_fields(model, recording, mon
     assert "| no occlusion | 1 |" in md and "hold" in md
     json.dumps(res)
     assert report.plot(res, tmp_path / "p.png").stat().st_size > 1000
+
+
+def test_a_model_key_with_a_rest_length_factor():
+    assert scenarios.rest_scale_of("DLO3@1.06") == 1.06 and scenarios.rest_scale_of("DLO3") == 1.0
+    assert scenarios.model_of("DLO3@0.94").n == load_model("DLO3").n
+
+
+def test_ours_given_a_length_6_percent_long_takes_the_cameras(model, recording):
+    """``long_model``: the tracker starts with its free rest lengths 6 % long and the camera's
+    length replaces them (``length_scale`` in its result)."""
+    pos = recording.positions[:120]
+    unit = scenarios.Unit("DLO2", "tiny", pos, 0.01, ("long_model", "right_model"))
+    row = run_unit(unit, [OURS], {}, models={"DLO2": model, "DLO2@1.06": model})
+    by = {c["variant"]: c["methods"][OURS] for c in row["cases"]}
+    long, right = by["long_model"], by["right_model"]
+    assert right["length_scale"] == 1.0 and 0.9 < long["length_scale"] < 0.98

@@ -48,6 +48,7 @@ def _track(model, recording, frames, grip_idx, rest_scale: float, gain: float):
     rest = tracker.state.rest.clone()
     rest[0, 1:-1] *= rest_scale  # a model of a rope this much longer than the one filmed
     tracker.state = replace(tracker.state, rest=rest)
+    tracker.rest = rest[0].double().numpy().copy()
     by_step = {f.step: f for f in frames}
     errors = []
     for k in range(2, len(p)):
