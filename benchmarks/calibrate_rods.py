@@ -118,7 +118,11 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
         rounds=report.get("rounds"),
         vertices=cfg.n_vertices,
         scores=scores,
-        model=str(model_path.relative_to(repo_path("."))),
+        model=str(
+            model_path.relative_to(repo_path("."))
+            if model_path.is_relative_to(repo_path("."))
+            else model_path
+        ),
     )
 
 

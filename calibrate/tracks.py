@@ -18,7 +18,7 @@ model-independent reference the fit is scored against.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from tqdm import tqdm
@@ -134,7 +134,10 @@ def track_clip(
     t0 = first[0]
     times = np.arange(t0, t_last + 1, step_ns, dtype=np.int64)
     grips = grips_from_poses(interpolate_poses(clip.pose_stamps_ns, clip.poses, times), grippers)
-    tracker = Tracker(model, camera=clip.camera, config=perception, rest=rest)
+    # the rope's length is the user's (checked against the camera by calibrate.checks): every clip
+    # tracked at that one length, not at lengths the tracker took from the camera clip by clip
+    keep_length = replace(perception, tracker=replace(perception.tracker, length_gain=0.0))
+    tracker = Tracker(model, camera=clip.camera, config=keep_length, rest=rest)
     seg = tracker.config.segmentation
     x, observed = tracker.initialize(grips[0], (first[1], first[2]), clip.camera)
     positions = [x]

@@ -17,6 +17,7 @@ def test_tracking_a_clip_comes_within_a_few_millimetres_of_the_truth(clips):
     track = track_clip(clip, generic_model(LENGTH, MASS, N), cfg.grippers, load_config(None))
     truth = clips.truths[1]
     assert track.positions.shape == truth.shape
+    assert track.status["length_scale"] == 1.0  # the user's length, not the camera's
     err = np.linalg.norm(track.positions - truth, axis=-1)
     assert err.mean() < 0.004, err.mean(1)
     assert track.cloud_observed.shape == (15, N) and not track.cloud_observed[:, [0, 1, -2, -1]].any()
@@ -25,6 +26,20 @@ def test_tracking_a_clip_comes_within_a_few_millimetres_of_the_truth(clips):
     assert rec.positions.shape == truth.shape and rec.dt == 0.01
     half = cut(track, 0, 70)
     assert half.n_frames == 70 and half.cloud_steps.max() < 70
+
+
+def test_a_clip_is_tracked_at_the_given_length_even_where_the_camera_disagrees(clips):
+    """Every clip at the user's one length (calibrate.checks compares it with the camera), where
+    the service's tracker would take the camera's (perception/length.py)."""
+    cfg = ServiceConfig(grippers=clips.grippers)
+    clip = read_clip(clips.bags[1], cfg)
+    model = generic_model(LENGTH, MASS, N)
+    rest = model.rest_lengths().numpy().copy()
+    rest[1:-1] *= 1.06
+    track = track_clip(clip, model, cfg.grippers, load_config(None), rest=rest)
+    assert track.status["length_scale"] == 1.0
+    free = np.linalg.norm(np.diff(track.positions[-1], axis=0), axis=1)[1:-1].sum()
+    assert abs(free / rest[1:-1].sum() - 1.0) < 0.01
 
 
 def test_poses_are_interpolated_between_stamps_whatever_the_quaternion_sign():
