@@ -5,7 +5,9 @@
                                             "torch", "torch_threads"}}
 
 The command is this process's (``sys.argv``) in the form the docs give it, ``python
-benchmarks/NAME.py ARGS``, whether the script was run so or as ``python -m benchmarks.NAME``.
+benchmarks/NAME.py ARGS``, whether the script was run so or as ``python -m benchmarks.NAME``. The
+commit is the one checked out when this module was first imported (the run's start): a commit made
+while a long run goes on is not the code it ran.
 """
 
 from __future__ import annotations
@@ -28,6 +30,16 @@ def source_commit() -> str:
     except (OSError, subprocess.TimeoutExpired):
         return ""
     return out.stdout.strip()
+
+
+_AT_START: list[str] = []
+
+
+def start_commit() -> str:
+    """:func:`source_commit` as it was when this module was first imported."""
+    if not _AT_START:
+        _AT_START.append(source_commit())
+    return _AT_START[0]
 
 
 def command_line(argv: list[str] | None = None, script: str | None = None) -> str:
@@ -79,6 +91,9 @@ def provenance(
     :func:`machine`)."""
     return {
         "command": command_line(argv, script),
-        "commit": source_commit(),
+        "commit": start_commit(),
         "machine": machine(threads, **machine_extra),
     }
+
+
+start_commit()  # at import: the run's start

@@ -1,0 +1,378 @@
+"""Renderers of the results page (scripts/make_results.py) for the model, its speed and the service:
+one function per results file, the file's dict in, markdown lines out."""
+
+from __future__ import annotations
+
+import statistics
+
+from results_common import fmt, get, machine_text, table
+
+
+def render_accuracy(d: dict) -> list[str]:
+    rows = []
+    for rod, r in d.items():
+        if not isinstance(r, dict) or "l1_m" not in r:
+            continue
+        paper = r.get("paper_deform_cm")
+        l1 = r["l1_m"] * 100
+        hz = r.get("l1_by_horizon_m", {})
+        rows.append(
+            [
+                rod,
+                f"{r.get('recordings', '-')} {str(r.get('split', '')).split(' ')[0]}",
+                f"{l1:.3f}",
+                fmt(paper),
+                f"{l1 / paper:.2f}" if paper else "-",
+                fmt(r.get("paper_der_cm")),
+                fmt(r.get("mean_vertex_dist_m"), 3, 100),
+                " / ".join(fmt(hz.get(h), 2, 100) for h in ("1", "10", "100", "500")),
+                f"{fmt(r.get('step_ms_p50'))} / {fmt(r.get('step_ms_p99'))}",
+            ]
+        )
+    out = [
+        "L1 = mean |prediction - truth| over the predicted steps, all vertices and x, y, z (the paper's metric). "
+        "Split `train` = the held-out fifth of the train recordings (DLO4 and DLO5 have no eval split).",
+        "",
+    ]
+    return out + table(
+        [
+            "rod",
+            "recordings",
+            "L1 [cm]",
+            "paper DEFORM [cm]",
+            "ratio",
+            "paper DER [cm]",
+            "interior vertex dist [cm]",
+            "L1 at 1/10/100/500 steps [cm]",
+            "step p50 / p99 [ms]",
+        ],
+        rows,
+    )
+
+
+def render_speed(d: dict) -> list[str]:
+    rows = []
+    for key, label in (
+        ("single_rollout_1_thread", "single rollout, eager step, 1 thread"),
+        ("single_rollout_compiled_1_thread", "single rollout, compiled step, 1 thread"),
+        ("single_rollout_theseus_theta_1_thread", "single rollout, Theseus twist solver, 1 thread"),
+    ):
+        r = d.get(key)
+        if isinstance(r, dict):
+            rows.append(
+                [
+                    label,
+                    f"p50 {fmt(r.get('p50_ms'))} ms, p99 {fmt(r.get('p99_ms'))} ms ({r.get('steps', '-')} steps)",
+                ]
+            )
+    for key, label in (
+        ("throughput_rod_steps_per_s_2_threads", "batched throughput, eager, 2 threads [rod-steps/s]"),
+        (
+            "throughput_compiled_rod_steps_per_s_2_threads",
+            "batched throughput, compiled, 2 threads [rod-steps/s]",
+        ),
+    ):
+        r = d.get(key)
+        if isinstance(r, dict):
+            rows.append([label, ", ".join(f"B={b}: {v:,.0f}" for b, v in r.items())])
+    vs = d.get("vertex_scaling_1_thread")
+    if isinstance(vs, dict):
+        rows.append(
+            [
+                "step against vertex count, eager, 1 thread (p50 / p99 ms)",
+                ", ".join(f"n={n}: {fmt(r.get('p50_ms'))} / {fmt(r.get('p99_ms'))}" for n, r in vs.items()),
+            ]
+        )
+    tr = d.get("training_iteration_2_threads")
+    if isinstance(tr, dict):
+        rows.append(
+            [
+                f"training iteration (batch {tr.get('batch')}, horizon {tr.get('horizon')}, forward + backward), 2 threads",
+                f"{fmt(tr.get('seconds_p50'))} s (median of {tr.get('iterations')})",
+            ]
+        )
+    th = d.get("training_theta_solver_2_threads")
+    if isinstance(th, dict):
+        rows.append(
+            [
+                f"training, Theseus over Newton twist solver (batch {th.get('batch')}, horizon {th.get('horizon')})",
+                f"{fmt(th.get('theseus_over_newton'), 1)}x",
+            ]
+        )
+    out = [
+        f"Rod {d.get('rod', '-')} ({d.get('n_vertices', '-')} vertices); compiled step active: "
+        f"{fmt(d.get('compiled_active'))}; compiled steps redone eagerly: {fmt(d.get('single_rollout_compiled_redone'))}.",
+        "",
+    ]
+    return out + table(["measure", "result"], rows)
+
+
+def _predict_row(label: str, p: dict | None) -> list:
+    if not isinstance(p, dict):
+        return [label] + ["-"] * 6
+    return [
+        label,
+        fmt(p.get("p50_ms"), 1),
+        fmt(p.get("p90_ms"), 1),
+        fmt(p.get("max_ms"), 1),
+        fmt(get(p, "worker_ms", "p50"), 1),
+        fmt(p.get("steps_redone")),
+        fmt(p.get("loop_deadline_misses")),
+    ]
+
+
+def render_service(d: dict) -> list[str]:
+    out = [
+        f"Tracker {d.get('tracker', '-')}, feeder {d.get('feeder', 'not recorded')}, loop step "
+        f"{d.get('loop_step', '-')}, predict plans start at: {d.get('plans_start', 'not recorded')}; "
+        f"predict worker warm-up {fmt(d.get('predict_warmup_s'), 1)} s. Workers: {machine_text(d.get('workers'))}.",
+        "",
+    ]
+    lp = d.get("loop")
+    if isinstance(lp, dict):
+        rows = [
+            ["seconds / ticks", f"{fmt(lp.get('seconds'), 0)} s / {fmt(lp.get('ticks'))}"],
+            ["rate", f"{fmt(lp.get('rate_hz'), 1)} Hz"],
+            ["deadline misses", f"{fmt(lp.get('deadline_misses'))} ({fmt(lp.get('deadline_miss_pct'))} %)"],
+            [
+                "tick-to-publish p50 / p99 / max [ms]",
+                " / ".join(fmt(get(lp, "tick_to_publish_ms", k)) for k in ("p50", "p99", "max")),
+            ],
+            [
+                "model step p50 / p99 / max [ms]",
+                " / ".join(fmt(get(lp, "step_ms", k)) for k in ("p50", "p99", "max")),
+            ],
+            [
+                "cloud fusion p50 / p99 [ms]",
+                " / ".join(fmt(get(lp, "fusion_ms", k), 1) for k in ("p50", "p99")),
+            ],
+            ["clouds fused (per s)", f"{fmt(lp.get('clouds_fused'))} ({fmt(lp.get('clouds_per_s'), 1)})"],
+            ["compiled steps redone", fmt(lp.get("compiled_steps_redone"))],
+            ["dropped / rejected", f"{lp.get('dropped', {})} / {lp.get('rejected', {})}"],
+        ]
+        out += ["Loop (100 Hz, clouds at 30 Hz):", ""] + table(["measure", "result"], rows)
+    out += ["Predict, 64 plans x 100 steps, timed at a client process from request to reply [ms]:", ""]
+    out += table(
+        ["condition", "p50", "p90", "max", "worker p50", "steps redone", "loop misses meanwhile"],
+        [
+            _predict_row("service idle", d.get("predict_64x100")),
+            _predict_row("while the loop runs", d.get("predict_64x100_live")),
+        ],
+    )
+    sk = d.get("soak")
+    if isinstance(sk, dict):
+        out += [
+            f"Soak: {fmt(sk.get('seconds'), 0)} s, RSS of the service and its workers {fmt(sk.get('rss_start_mb'), 1)} -> "
+            f"{fmt(sk.get('rss_end_mb'), 1)} MB ({fmt(sk.get('growth_pct'))} %), {fmt(sk.get('ticks'))} ticks, "
+            f"{fmt(sk.get('deadline_misses_total'))} deadline misses.",
+            "",
+        ]
+    return out
+
+
+def render_baselines(d: dict) -> list[str]:
+    res = d.get("results", {})
+    rods = list(res)
+    methods: list[str] = []
+    for r in res.values():
+        methods += [m for m in r if m not in methods]
+    paper = d.get("paper_cm", {})
+    paper_step = d.get("paper_step_ms", {})
+    alias = {"der_initial": "der", "der_identified": "der"}
+    rows = []
+    for m in methods:
+        cells = []
+        for rod in rods:
+            r = res[rod].get(m)
+            p = get(paper, alias.get(m, m), rod)
+            cells.append(
+                "-" if not r else f"{r['l1_m'] * 100:.2f}" + (f" ({fmt(p)})" if p is not None else "")
+            )
+        steps = sorted(
+            res[rod][m].get("step_ms", res[rod][m].get("step_ms_p50")) for rod in rods if m in res[rod]
+        )
+        med = steps[len(steps) // 2] if steps else None
+        ps = paper_step.get(m)
+        rows.append([m] + cells + [fmt(med) + (f" ({fmt(ps, 1)})" if ps is not None else "")])
+    out = [
+        "L1 [cm] on the same splits as the accuracy table (paper's Table 1 in brackets); step p50 = median over "
+        "rods, batch of one, one thread.",
+        "",
+    ]
+    return out + table(["method"] + [f"{r} L1 [cm]" for r in rods] + ["step p50 [ms]"], rows)
+
+
+def render_ablations(d: dict) -> list[str]:
+    rods, variants, cells, budget = [], [], {}, {}
+    for r in d["rows"]:
+        rods += [r["rod"]] if r["rod"] not in rods else []
+        variants += [r["variant"]] if r["variant"] not in variants else []
+        cells[(r["variant"], r["rod"])] = r["l1_m"] * 100
+        budget.setdefault(r["variant"], set()).add((r.get("iterations"), r.get("batch")))
+    rows = [
+        [v]
+        + [fmt(cells.get((v, rod)), 3) for rod in rods]
+        + [", ".join(f"{i} x {b}" for i, b in sorted(budget[v], key=str))]
+        for v in variants
+    ]
+    return [
+        "L1 [cm] on the eval recordings; every trained variant with the same budget (iterations x batch), "
+        "so the rows compare with each other, not with the accuracy table.",
+        "",
+    ] + table(["variant"] + rods + ["iterations x batch"], rows)
+
+
+def render_startup(d: dict) -> list[str]:
+    out = [
+        "`deform-service run` in a fresh process, a feeder at 100 Hz (poses) and 30 Hz (clouds); ready ="
+        " status says predict_ready and step_ready. Cold: empty compile caches; warm: the same caches again."
+        " Medians over the runs.",
+        "",
+    ]
+    rows = []
+    for kind, v in d.get("summary", {}).items():
+        rows.append(
+            [
+                kind,
+                fmt(v.get("ready_s"), 1),
+                fmt(v.get("predict_ready_s"), 1),
+                fmt(v.get("step_ready_s"), 1),
+                fmt(v.get("warmup_miss_pct"), 2),
+                fmt(v.get("warmup_vertex_gap_max_ms"), 1),
+                fmt(v.get("first_predict_64x100_ms"), 1),
+            ]
+        )
+    header = ["start", "ready [s]", "predict ready [s]", "step ready [s]", "loop misses while warming [%]"]
+    header += ["longest vertex gap [ms]", "first predict 64x100 [ms]"]
+    return out + table(header, rows)
+
+
+def render_roofline(d: dict) -> list[str]:
+    phases = d.get("ops_per_rod_step_by_phase", {})
+    total = d.get("ops_per_rod_step") or 1
+    out = [
+        f"One branch-free step of {d.get('batch')} rods ({d.get('rod')}, {d.get('n_vertices')} vertices),"
+        f" counted op by op: {d.get('ops_per_rod_step')} operations per rod-step;"
+        f" eager traffic {d.get('eager_bytes_per_rod_step')} B per rod-step (state alone:"
+        f" {d.get('state_bytes_per_rod_step')} B). Peaks measured in the same run (2 threads):"
+        f" {get(d, 'peaks_2_threads', 'gemm_gflops')} GFLOP/s float64 GEMM,"
+        f" {get(d, 'peaks_2_threads', 'copy_gb_per_s')} GB/s copy.",
+        "",
+    ]
+    out += table(
+        ["phase", "operations per rod-step", "share"],
+        [[p, v, f"{100 * v / total:.1f} %"] for p, v in phases.items()],
+    )
+    rows = []
+    rates = {
+        "eager": ("eager_here", "float64"),
+        "compiled": ("compiled_speed_json", "float64"),
+        "predict_float32": ("predict_float32_batched_throughput_json", "float32"),
+    }
+    for label, (key, dtype) in rates.items():
+        a = d.get(f"achieved_{label}")
+        if a:
+            rate = get(d, "rates_rod_steps_per_s", key)
+            frac = f"{100 * a.get('fraction_of_gemm_peak', 0):.1f} %"
+            rows.append([label, rate, a.get("gops"), f"{frac} ({dtype})"])
+    out += [""] + table(["step", "rod-steps/s", "achieved Gop/s", "of the GEMM peak"], rows)
+    prof = d.get("profile_predict_float32")
+    if prof:
+        out += [
+            "",
+            f"Where predict's float32 step spends its time (torch.compile, inductor kernel profiling;"
+            f" {prof.get('rod_steps_per_s_torch_compile')} rod-steps/s while profiled,"
+            f" {prof.get('ms_per_step_in_kernels_and_products')} ms per step in kernels and library calls):",
+            "",
+        ]
+        out += table(
+            ["kernel or call", "kind", "ms per step", "calls per step"],
+            [[f"`{t['name']}`", t["kind"], t["ms_per_step"], t["calls"]] for t in prof.get("top", [])],
+        )
+    return out
+
+
+def render_batched_throughput(d: dict) -> list[str]:
+    rates, ratios = d.get("rod_steps_per_s", {}), d.get("ratio_to_compiled_checked", {})
+    rows = [
+        [name, r.get("median"), ratios.get(name), min(r.get("all", [0])), max(r.get("all", [0]))]
+        for name, r in rates.items()
+    ]
+    return [
+        f"B = {d.get('batch')} rods, {d.get('steps')} steps per timing, repeats interleaved; medians.",
+        "",
+    ] + table(["step", "rod-steps/s", "ratio to compiled_checked", "min", "max"], rows)
+
+
+def render_ab_commits(d: dict) -> list[str]:
+    rounds = d.get("rounds", {})
+
+    def med(name, key, sub=None):
+        vals = [r[key][sub] if sub else r[key] for r in rounds.get(name, [])]
+        return statistics.median(vals) if vals else None
+
+    rows = [
+        ["predict's step, 1024 rods, float32, 1 thread [rod-steps/s]", "predict_step_rod_steps_per_s", None],
+        ["predict's rollout, 512 plans x 100 steps, 1 thread, median [ms]", "rollout_512_median_ms", None],
+        ["the 100 Hz loop's step, one rod, p50 [ms]", "loop_step", "p50_ms"],
+        ["the 100 Hz loop's step, one rod, p99 [ms]", "loop_step", "p99_ms"],
+    ]
+    body = [[label, fmt(med("base", key, sub), 3), fmt(med("head", key, sub), 3)] for label, key, sub in rows]
+    speed = d.get("speedup", {})
+    return [
+        f"Processes of both checkouts alternated, {len(rounds.get('head', []))} rounds; medians over rounds. "
+        f"Base: {d.get('base')}. Speed-up (base time / today's): step {fmt(speed.get('predict_step_ratio'))}x, "
+        f"rollout {fmt(speed.get('rollout_512_ratio'))}x, loop step {fmt(speed.get('loop_step_p50_ratio'))}x.",
+        "",
+    ] + table(["measure", "base", "today"], body)
+
+
+def render_predict_planning(d: dict) -> list[str]:
+    targets = d.get("targets_p50_ms", {})
+    compared = d.get("compared", {})
+    header = ["request", "p50 [ms]", "p90 [ms]", "max [ms]", "target p50 [ms]"]
+    header += [f"p50 with {name} [ms] (ratio)" for name in compared]
+    rows = []
+    for label, r in d.get("requests", {}).items():
+        row = [label, r.get("p50_ms"), r.get("p90_ms"), r.get("max_ms"), targets.get(label)]
+        for c in compared.values():
+            other = c.get("requests", {}).get(label, {})
+            row.append(f"{other.get('p50_ms')} ({c.get('p50_ratio_to_headline', {}).get(label)})")
+        rows.append(row)
+    loop = d.get("loop", {})
+    out = [
+        f"Default configuration ({d.get('rounds')} services, interleaved with each variant);"
+        f" loop meanwhile: {loop.get('miss_pct')} % of {loop.get('ticks')} ticks missed,"
+        f" tick-to-publish p99 {get(d, 'loop', 'tick_to_publish_ms', 'p99')} ms."
+        + (
+            f" Rod-steps the one-graph step left unconverged: {d['redone_pct_of_rod_steps']} %."
+            if "redone_pct_of_rod_steps" in d
+            else ""
+        ),
+        "",
+    ]
+    return out + table(header, rows)
+
+
+def render_float32(d: dict) -> list[str]:
+    names = [
+        ("float32", "eager float32"),
+        ("predict_float64", "predict's step"),
+        ("predict_float32", "predict's step, float32"),
+        ("predict_float32_bf16_network", "predict's step, float32, bfloat16 network"),
+    ]
+    names = [(k, label) for k, label in names if any(f"{k}_l1_cm" in r for r in d.get("rods", {}).values())]
+    rows = []
+    for rod, r in d.get("rods", {}).items():
+        row = [rod, r.get("recordings"), fmt(r.get("float64_l1_cm"), 4)]
+        for k, _ in names:
+            gap = r.get(f"{k}_l1_difference_mm", r.get("l1_difference_mm") if k == "float32" else None)
+            row += [fmt(r.get(f"{k}_l1_cm"), 4), "" if gap is None else f"{gap:.1e}"]
+        rows.append(row)
+    header = ["rod", "eval recordings", "eager float64 L1 [cm]"]
+    for _, label in names:
+        header += [f"{label} L1 [cm]", "|difference| [mm]"]
+    return [
+        "The paper's metric, 500 steps, same model; differences to the eager float64 step; bound 0.1 mm.",
+        "",
+    ] + table(header, rows)
