@@ -65,7 +65,7 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
 
     from benchmarks.calibration.clips import motions, session_camera, write_session
     from benchmarks.calibration.score import score
-    from deform import DeformModel, generic_model, load_model
+    from deform import DeformModel, bend_per_linear_density, generic_model, load_model
     from perception import load_config
 
     clips, held = motions(rod, seconds)
@@ -86,6 +86,7 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
             sys.executable, "-m", "calibrate", *map(str, session.bags),
             "--length", f"{session.length_m}", "--mass", f"{session.mass_kg}",
             "--config", str(session.config), "--out", str(model_path), "--report", str(out / "report"),
+            "--prior-without", rod,  # the rope under test has no part in its own prior
             *(QUICK_BUDGET if quick else []),
         ]  # fmt: skip
         t0 = time.perf_counter()
@@ -103,7 +104,7 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
     models = {
         "calibrated": calibrated,
         "shipped": load_model(rod),
-        "generic": generic_model(session.length_m, session.mass_kg),
+        "generic": generic_model(session.length_m, session.mass_kg, prior=bend_per_linear_density([rod])),
     }
     scores = score(models, held, tracked, camera, perception)
     return dict(

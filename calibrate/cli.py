@@ -97,6 +97,14 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rounds", type=_count(1), default=None, help="train-and-track-again rounds at most")
     b.add_argument("--horizon", type=_count(2), default=None, help="training window [steps]")
     b.add_argument("--batch", type=_count(1), default=None, help="training windows per iteration")
+    p.add_argument(
+        "--prior-without",
+        nargs="+",
+        default=[],
+        metavar="ROD",
+        help="shipped rods (DLO1..DLO5) left out of the starting stiffness prior: when the rope "
+        "calibrated is one of them, it then has no part in its own prior",
+    )
     p.add_argument("--threads", type=_count(1), default=1, help="torch threads (default 1)")
     p.add_argument("--seed", type=int, default=0)
     return p
@@ -127,6 +135,18 @@ def _settings(args):
     return cfg, perception
 
 
+def _prior(leave_out: list[str]) -> float:
+    """The starting stiffness prior without ``leave_out``; an unknown rod name is one line."""
+    from deform import available_rods, bend_per_linear_density
+
+    unknown = sorted(set(leave_out) - set(available_rods()))
+    if unknown:
+        raise CalibrationError(
+            f"--prior-without {' '.join(unknown)}: not a shipped rod ({', '.join(available_rods())})"
+        )
+    return bend_per_linear_density(leave_out)
+
+
 def run(args) -> int:
     import torch
 
@@ -142,6 +162,7 @@ def run(args) -> int:
         )
     report_dir = Path(args.report) if args.report else out.with_name(f"{out.stem}_report")
     cfg, perception = _settings(args)
+    prior = _prior(args.prior_without)
     topics = Topics(args.topic_poses, args.topic_points, args.topic_camera_info, args.topic_camera_pose)
     clips = [read_clip(b, cfg, topics) for b in args.bags]
     names = [c.name for c in clips]
@@ -170,6 +191,7 @@ def run(args) -> int:
         n_vertices=args.vertices,
         budget=budget,
         name=out.stem,
+        prior=prior,
     )
     inputs = {
         "bags": [str(b) for b in args.bags],
@@ -177,6 +199,7 @@ def run(args) -> int:
         "mass_kg": args.mass,
         "diameter_m": args.diameter,
         "vertices": args.vertices,
+        "stiffness_prior": {"without": list(args.prior_without), "bend_per_linear_density": prior},
         "perception": args.perception or cfg.perception,
         "config": args.config,
         "out": str(out),

@@ -114,12 +114,14 @@ def rest_lengths(length_m: float, n_vertices: int, grippers: Grippers) -> np.nda
     return np.concatenate([[e0], np.full(n_vertices - 3, free / (n_vertices - 3)), [e1]])
 
 
-def start_model(length_m: float, mass_kg: float, rest: np.ndarray, name: str) -> DeformModel:
-    """The plain DER known by length and mass (:func:`deform.generic_rod`), residual off, with
-    ``rest`` as its typical edge lengths (``nominal_rest``, what a tracker starts a rope seen by a
-    camera with; training sets it from the tracks, which keep these lengths)."""
+def start_model(
+    length_m: float, mass_kg: float, rest: np.ndarray, name: str, prior: float | None = None
+) -> DeformModel:
+    """The plain DER known by length and mass (:func:`deform.generic_rod`, stiffness from ``prior``),
+    residual off, with ``rest`` as its typical edge lengths (``nominal_rest``, what a tracker starts a
+    rope seen by a camera with; training sets it from the tracks, which keep these lengths)."""
     model = DeformModel(
-        generic_rod(length_m, mass_kg, len(rest) + 1, name=name), ModelOptions(residual=False)
+        generic_rod(length_m, mass_kg, len(rest) + 1, name=name, prior=prior), ModelOptions(residual=False)
     )
     with torch.no_grad():
         model.nominal_rest.copy_(torch.as_tensor(rest, dtype=model.nominal_rest.dtype))
@@ -234,6 +236,7 @@ def calibrate(
     budget: Budget | None = None,
     name: str = "calibrated",
     progress: bool = True,
+    prior: float | None = None,
 ) -> Calibration:
     """A model of the rope in ``clips`` from the camera and the grippers alone.
 
@@ -247,6 +250,8 @@ def calibrate(
         budget: how much work (default :class:`Budget`).
         name: the model's name.
         progress: progress bars.
+        prior: bending stiffness per linear density of the start [N m^3/kg] (None: the shipped
+            rods' median, :func:`deform.bend_per_linear_density`).
 
     Returns:
         A :class:`Calibration`; ``model`` None with ``problem`` set when the clips are too short or
@@ -260,7 +265,7 @@ def calibrate(
     t_start = time.perf_counter()
     torch.manual_seed(budget.seed)
     rest = rest_lengths(length_m, n_vertices, grippers)
-    model = start_model(length_m, mass_kg, rest, name)
+    model = start_model(length_m, mass_kg, rest, name, prior)
     t0 = time.perf_counter()
     tracks = _track_all(clips, model, grippers, perception, rest, progress, "track (length and mass only)")
     check_rope_seen(tracks, perception.segmentation)

@@ -11,7 +11,14 @@ Public API (perception, service and tools use only these names):
 - :func:`generate_recording`: synthetic recordings from the simulator.
 """
 
-from deform.config import ConfigError, RodConfig, available_rods, generic_rod, load_rod_config
+from deform.config import (
+    ConfigError,
+    RodConfig,
+    available_rods,
+    bend_per_linear_density,
+    generic_rod,
+    load_rod_config,
+)
 from deform.io import (
     Recording,
     RecordingError,
@@ -40,6 +47,7 @@ __all__ = [
     "RodConfig",
     "RodState",
     "available_rods",
+    "bend_per_linear_density",
     "find_data_root",
     "generate_recording",
     "generic_model",

@@ -3,6 +3,7 @@ data, found through importlib.resources so an installed wheel has them too)."""
 
 from __future__ import annotations
 
+import statistics
 from importlib.resources import files
 from pathlib import Path
 
@@ -49,7 +50,39 @@ class RodConfig(BaseModel):
         return self
 
 
-def generic_rod(length_m: float, mass_kg: float, n_vertices: int = 12, name: str = "generic") -> RodConfig:
+def bend_per_linear_density(leave_out: tuple[str, ...] | list[str] = ()) -> float:
+    """The stiffness prior of a rod known by length and mass: the median of :math:`EI L / m` over the
+    initial guesses of the shipped rods (``deform/rods/*.yaml``) not named in ``leave_out``. With
+    none left out it is :data:`BEND_PER_LINEAR_DENSITY` (rounded); a benchmark that calibrates one
+    of these rods leaves it out, so that the rod under test has no part in its own prior.
+
+    Args:
+        leave_out: rod names.
+
+    Returns:
+        The prior [N m^3/kg].
+
+    Raises:
+        ConfigError: every shipped rod left out.
+    """
+    values = []
+    for name in available_rods():
+        if name in set(leave_out):
+            continue
+        cfg = load_rod_config(name)
+        values.append(cfg.bend_stiffness * cfg.length_m / cfg.mass_kg)
+    if not values:
+        raise ConfigError(f"no shipped rod is left for the stiffness prior once {sorted(leave_out)} are out")
+    return float(statistics.median(values))
+
+
+def generic_rod(
+    length_m: float,
+    mass_kg: float,
+    n_vertices: int = 12,
+    name: str = "generic",
+    prior: float | None = None,
+) -> RodConfig:
     """A rod known by its length and mass alone (no markers): what tracking a rope with no trained
     model, and camera-only calibration, start from.
 
@@ -58,16 +91,21 @@ def generic_rod(length_m: float, mass_kg: float, n_vertices: int = 12, name: str
         mass_kg: its mass [kg].
         n_vertices: vertices of the discrete rod (including the four gripped ones).
         name: the rod's name.
+        prior: bending stiffness per linear density [N m^3/kg] (None: :data:`BEND_PER_LINEAR_DENSITY`;
+            see :func:`bend_per_linear_density`).
 
     Returns:
-        The :class:`RodConfig`, stiffness from :data:`BEND_PER_LINEAR_DENSITY` and :data:`TWIST_OVER_BEND`.
+        The :class:`RodConfig`, stiffness from the prior and :data:`TWIST_OVER_BEND`.
 
     Raises:
-        ConfigError: a non-positive length or mass, or fewer than 5 vertices.
+        ConfigError: a non-positive length, mass or prior, or fewer than 5 vertices.
     """
+    if prior is not None and not prior > 0:
+        raise ConfigError(f"generic rod: a stiffness prior of {prior} (must be positive)")
+    extra = {} if prior is None or not length_m > 0 else {"bend_stiffness": prior * mass_kg / length_m}
     try:
         return RodConfig(
-            name=name, length_m=length_m, mass_kg=mass_kg, n_vertices=n_vertices, marker_mass_kg=0.0
+            name=name, length_m=length_m, mass_kg=mass_kg, n_vertices=n_vertices, marker_mass_kg=0.0, **extra
         )
     except ValidationError as exc:
         raise ConfigError(f"generic rod: {str(exc).replace(chr(10), '; ')}") from None

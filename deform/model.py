@@ -643,7 +643,9 @@ def load_model(rod: str | Path, options: ModelOptions | None = None) -> DeformMo
     return model
 
 
-def generic_model(length_m: float, mass_kg: float, n_vertices: int = 12) -> DeformModel:
+def generic_model(
+    length_m: float, mass_kg: float, n_vertices: int = 12, prior: float | None = None
+) -> DeformModel:
     """A plain discrete elastic rod (no residual network) for a rope known only by its length and
     mass (:func:`deform.config.generic_rod`): tracking a rope that has no trained model starts here.
 
@@ -651,8 +653,11 @@ def generic_model(length_m: float, mass_kg: float, n_vertices: int = 12) -> Defo
         length_m: length [m].
         mass_kg: mass [kg].
         n_vertices: vertices of the rod.
+        prior: bending stiffness per linear density [N m^3/kg] (None: the default prior).
 
     Returns:
         The :class:`DeformModel`, in eval mode.
     """
-    return DeformModel(generic_rod(length_m, mass_kg, n_vertices), ModelOptions(residual=False)).eval()
+    return DeformModel(
+        generic_rod(length_m, mass_kg, n_vertices, prior=prior), ModelOptions(residual=False)
+    ).eval()

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from calibrate.cli import main
-from deform import load_model
+from deform import bend_per_linear_density, load_model
 from service.bag import write_messages
 
 from .conftest import LENGTH, MASS, N
@@ -43,7 +43,7 @@ def calibrated(clips, tmp_path_factory) -> tuple[dict, Path]:
     out_dir = tmp_path_factory.mktemp("calibrated")
     root = Path(__file__).resolve().parents[2]
     out = subprocess.run(
-        [sys.executable, "-m", "calibrate", *_args(clips, clips.bags, out_dir)],
+        [sys.executable, "-m", "calibrate", *_args(clips, clips.bags, out_dir, "--prior-without", "DLO3")],
         capture_output=True,
         text=True,
         env=dict(os.environ, PYTHONPATH=str(root), OMP_NUM_THREADS="1"),
@@ -58,6 +58,10 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     model = load_model(summary["model"])
     assert model.n == N and model.cfg.length_m == LENGTH and model.cfg.mass_kg == MASS
     report = json.loads((out_dir / "rope_report" / "report.json").read_text())
+    prior = report["inputs"]["stiffness_prior"]
+    assert prior["without"] == ["DLO3"] and prior["bend_per_linear_density"] == bend_per_linear_density(
+        ["DLO3"]
+    )
     assert report["model_written"] and report["held_out_clips"] == ["clip0"]
     assert len(report["coverage_per_vertex"]) == N and report["rounds"][0]["round"] == 0
     assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (out_dir / "rope_report").iterdir()}
@@ -122,6 +126,7 @@ def test_a_length_the_camera_contradicts(clips, tmp_path, capsys, length, match)
 def test_bad_settings_and_model_name(clips, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
+    _refused(capsys, _args(clips, clips.bags[:1], out, "--prior-without", "DLO9"), "not a shipped rod", out)
     _refused(
         capsys,
         _args(clips, clips.bags[:1], out, "--config", str(tmp_path / "none.yaml")),

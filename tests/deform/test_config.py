@@ -42,6 +42,28 @@ def test_generic_rod_from_length_and_mass():
     assert float(model.nominal_rest.sum()) == pytest.approx(0.8)
 
 
+def test_the_stiffness_prior_leaves_out_the_rods_named():
+    """The prior is the shipped rods' median EI L / m (the constant, rounded); a rod left out has no
+    part in it; a rod built from another prior has EI = prior m / L."""
+    from deform import ConfigError, available_rods, bend_per_linear_density, generic_rod
+    from deform.config import BEND_PER_LINEAR_DENSITY
+
+    assert bend_per_linear_density() == pytest.approx(BEND_PER_LINEAR_DENSITY, rel=0.01)
+    without = {rod: bend_per_linear_density([rod]) for rod in available_rods()}
+    own = {
+        rod: (c := load_rod_config(rod)).bend_stiffness * c.length_m / c.mass_kg for rod in available_rods()
+    }
+    lowest = min(own, key=own.get)
+    assert without[lowest] > bend_per_linear_density()  # the softest out: the median rises
+    assert generic_rod(1.0, 0.05, prior=without["DLO3"]).bend_stiffness == pytest.approx(
+        without["DLO3"] * 0.05
+    )
+    with pytest.raises(ConfigError, match="no shipped rod"):
+        bend_per_linear_density(available_rods())
+    with pytest.raises(ConfigError, match="prior"):
+        generic_rod(1.0, 0.05, prior=0.0)
+
+
 def test_rod_yaml_without_stiffness_takes_the_generic_guess(tmp_path):
     path = tmp_path / "cable.yaml"
     path.write_text("name: cable\nlength_m: 1.2\nmass_kg: 0.06\n")
