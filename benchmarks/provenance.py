@@ -32,14 +32,7 @@ def source_commit() -> str:
     return out.stdout.strip()
 
 
-_AT_START: list[str] = []
-
-
-def start_commit() -> str:
-    """:func:`source_commit` as it was when this module was first imported."""
-    if not _AT_START:
-        _AT_START.append(source_commit())
-    return _AT_START[0]
+START_COMMIT = source_commit()  # at import: the run's start
 
 
 def command_line(argv: list[str] | None = None, script: str | None = None) -> str:
@@ -91,9 +84,6 @@ def provenance(
     :func:`machine`)."""
     return {
         "command": command_line(argv, script),
-        "commit": start_commit(),
+        "commit": START_COMMIT,
         "machine": machine(threads, **machine_extra),
     }
-
-
-start_commit()  # at import: the run's start
