@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 from benchmarks.cluster import Workers, call
@@ -89,6 +90,7 @@ def run_benchmark(args, results: Path = RESULTS, argv: list[str] | None = None) 
     config = run_config(args)
     workers = Workers.from_args(args)
     failures: dict[str, str] = {}
+    ran: dict = {}
     if not args.summary_only:
 
         def stored(key: str, row: dict) -> None:
@@ -96,7 +98,11 @@ def run_benchmark(args, results: Path = RESULTS, argv: list[str] | None = None) 
             workers.log(json.dumps(summary_of(row)))
 
         with workers:
-            failures = workers.run(tasks_of(workers, args, store), stored, desc=stem)
+            tasks = tasks_of(workers, args, store)
+            start = time.perf_counter()
+            failures = workers.run(tasks, stored, desc=stem)
+            # the wall time of this invocation's datasets (the resumed ones not counted)
+            ran = {"datasets_run": len(tasks), "run_wall_s": round(time.perf_counter() - start, 1)}
     prov = {
         **provenance(
             [a for a in (sys.argv[1:] if argv is None else argv) if a != "--summary-only"],
@@ -104,6 +110,7 @@ def run_benchmark(args, results: Path = RESULTS, argv: list[str] | None = None) 
             threads=1,
         ),
         "workers": workers.describe(),
+        **ran,
     }
     write(result_of(store.load(config), args, prov, store.where(config)), stem, results)
     if failures:
