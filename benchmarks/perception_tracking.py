@@ -101,10 +101,16 @@ def main(argv=None):
     ap.add_argument("--per-rod", type=int, default=2, help="eval recordings per rod (0 = all)")
     ap.add_argument("--rods", nargs="+", default=["DLO1", "DLO2", "DLO3"])
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--perception",
+        type=Path,
+        default=None,
+        help="the tracker's settings (YAML; default: the shipped ones)",
+    )
     args = ap.parse_args(argv)
     per_rod = 1 if args.quick else args.per_rod
     torch.set_num_threads(1)
-    base = load_config()
+    base = load_config(args.perception)
     rows, latencies, hidden = [], [], {}
     t_start = time.time()
     models = {}
@@ -156,7 +162,11 @@ def main(argv=None):
 
     result = dict(
         **provenance(argv, script="benchmarks/perception_tracking.py"),
-        args=dict(per_rod=per_rod, rods=args.rods),
+        args=dict(
+            per_rod=per_rod,
+            rods=args.rods,
+            perception=None if args.perception is None else str(args.perception),
+        ),
         wall_s=round(time.time() - t_start, 1),
         hidden_fraction_of_free_vertices=dict((str(k), float(np.mean(v))) for k, v in hidden.items()),
         mean_l1_cm=[

@@ -70,6 +70,9 @@ class TrackerConfig:
     # measure of its length against the rest length (perception.length; 0: the model's length is kept)
     length_trigger: float = 0.015  # the rest lengths take the camera's length when the two differ by more
     length_bounds: tuple[float, float] = (0.8, 1.25)  # ... within these factors of the starting rest length
+    camera_residual: float = 0.5  # share of the correction across the rope at the observed vertices
+    # that the estimate keeps beyond the state's projection onto the rest lengths (0: the model state;
+    # 0.5 weighs the camera and the model alike)
 
 
 @dataclass

@@ -132,7 +132,9 @@ class TrackingHealth:
     ``since_seen_steps`` counts model steps since a cloud last showed the rope;
     ``disagreement`` is the last cloud's share of unexplained rope points; ``length_scale`` the free
     rope's rest length over the model's own, after the camera's length replaced it
-    (:mod:`perception.length`; 1 while the two agree)."""
+    (:mod:`perception.length`; 1 while the two agree); ``camera_over_model_mm`` how far across the
+    rope the last cloud put its observed vertices from where the model's rest lengths let the state
+    lie (mean, mm: the camera's depth noise alone, or a model that cannot take the shape seen)."""
 
     state: str = "tracking"
     lost: int = 0
@@ -141,6 +143,7 @@ class TrackingHealth:
     since_seen_steps: float = float("inf")
     disagreement: float | None = None
     length_scale: float = 1.0
+    camera_over_model_mm: float | None = None
 
     def lose(self) -> None:
         if self.state != "lost":
@@ -164,4 +167,7 @@ class TrackingHealth:
             "since_seen_s": None if not np.isfinite(since) else round(float(since), 4),
             "disagreement": None if self.disagreement is None else round(self.disagreement, 4),
             "length_scale": round(float(self.length_scale), 4),
+            "camera_over_model_mm": None
+            if self.camera_over_model_mm is None
+            else round(float(self.camera_over_model_mm), 3),
         }

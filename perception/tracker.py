@@ -68,11 +68,20 @@ class Tracker:
         self.health = TrackingHealth()
         self._length_ratio = 1.0  # running camera length / rest length of the free rope
         self._rest_start = None  # the free rest lengths before the camera's length replaced them
+        self._residual = np.zeros((self.n, 3))  # camera over model at the observed vertices (see x)
 
     # ----- public API -----------------------------------------------------------------------
     @property
     def x(self) -> np.ndarray:
-        return self.state.x[0].numpy().astype(np.float64).copy()
+        """The estimate (n, 3) [m]: the model's state, plus at the vertices the last cloud observed
+        (while it is fresh, ``stale_after_s``) ``camera_residual`` of what the projection onto the
+        rest lengths took back from the correction. The state itself stays on its rest lengths (the
+        model steps from it); where the model cannot take the shape the camera shows (another rope's
+        rest lengths, a contact it does not know), the estimate keeps the camera's."""
+        x = self._model_x()
+        if self._since_update * self.dt <= self.config.tracker.stale_after_s:
+            x += self._residual
+        return x
 
     @property
     def observed(self) -> np.ndarray:
@@ -102,6 +111,7 @@ class Tracker:
             self.state = self.model.initial_state(x0, x1)
         self.rest = self.state.rest[0].numpy().copy()
         self._length_ratio, self._rest_start = 1.0, None
+        self._residual[:] = 0.0
         self._grip = x1[0, self.grip_idx].numpy().copy()
         self._mark(np.ones(self.n, dtype=bool))
         return self.x, self.observed
@@ -148,6 +158,7 @@ class Tracker:
                 state = self.model.settle(state, g, max_steps=tc.settle_max_steps, tol=tc.settle_tol)
         self.state = replace(state, v=torch.zeros_like(state.x))
         self._length_ratio, self._rest_start = 1.0, None
+        self._residual[:] = 0.0
         self._grip = grip
         self._observed[:] = False
         self._since_update = np.inf  # no velocity nudge from the corrections below
@@ -238,9 +249,28 @@ class Tracker:
             v_t = v_t + gain * (x_t - self.state.x) / (self._since_update * self.dt)
         self.state = self.model.reposition(self.state, x_t, v_t)
         self._mark(observed)
+        self._residual = self._across_rope(x_new, observed)
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
+    def _across_rope(self, x_new: np.ndarray, observed: np.ndarray) -> np.ndarray:
+        """``camera_residual`` of what the projection took back from the correction ``x_new``, at the
+        observed free vertices, across the rope only: the camera shows where a featureless rope lies
+        across, not how far along it a vertex sits (that component the state's projection keeps)."""
+        x = self._model_x()
+        r = x_new - x
+        tangent = np.gradient(x, axis=0)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+        r -= np.sum(r * tangent, axis=1, keepdims=True) * tangent
+        kept = observed & self.movable
+        if kept.any():
+            self.health.camera_over_model_mm = 1e3 * float(np.linalg.norm(r[kept], axis=1).mean())
+        return np.where(kept[:, None], r, 0.0) * self.config.tracker.camera_residual
+
+    def _model_x(self) -> np.ndarray:
+        """The model state's vertices (n, 3): what the model predicts and steps from."""
+        return self.state.x[0].numpy().astype(np.float64).copy()
+
     def _follow_length(self, seen: np.ndarray, x_new: np.ndarray) -> None:
         """The camera's length of the free rope over the rest length (:mod:`perception.length`),
         averaged over the clouds that show it whole; when it strays beyond ``length_trigger`` the
@@ -299,14 +329,14 @@ class Tracker:
         self.state = self.model.reposition(self.state, x_t, torch.zeros_like(x_t))
         self._since_update = np.inf
         self.health.redetected += 1
-        return self.x
+        return self._model_x()
 
     def _find_if_lost(self, pts: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """The prediction to correct: the model's, or a shape found from the cloud alone when the
         rope was lost and that shape explains the points clearly better (then the state is moved
         there, at rest, and no velocity nudge follows). ``seen`` is ``pts`` voxel-downsampled."""
         tc, radius = self.config.tracker, self.config.estimation.filter_radius
-        x_pred = self.x
+        x_pred = self._model_x()
         if len(seen) < tc.min_seen_points:
             if self.health.since_seen_steps * self.dt > tc.lost_after_s:
                 self.health.lose()
@@ -328,7 +358,7 @@ class Tracker:
         self.state = self.model.reposition(self.state, x_t, torch.zeros_like(x_t))
         self._since_update = np.inf
         self.health.recover(redetected=True)
-        return self.x
+        return self._model_x()
 
     def _mark(self, observed: np.ndarray) -> None:
         self._observed = observed & self.movable

@@ -109,11 +109,14 @@ class RerunLogger(threading.Thread):
             self._log_rope(rope)
 
     def _log_rope(self, rope: dict) -> None:
-        """The share of unexplained rope points, and a line whenever the rope is lost or found, or
-        the camera's length of the rope replaces the model's."""
+        """The share of unexplained rope points, how far the camera puts the rope from the model's
+        shape, and a line whenever the rope is lost or found, or the camera's length of the rope
+        replaces the model's."""
         rr, rec = self.rr, self.rec
         if rope.get("disagreement") is not None:
             rec.log("rope/unexplained_fraction", rr.Scalars(float(rope["disagreement"])))
+        if rope.get("camera_over_model_mm") is not None:
+            rec.log("rope/camera_over_model_mm", rr.Scalars(float(rope["camera_over_model_mm"])))
         counts = (rope["lost"], rope["recovered"])
         if counts != self._rope_counts:
             if rope["lost"] > self._rope_counts[0]:

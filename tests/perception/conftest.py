@@ -49,6 +49,12 @@ def occluded_frames(recording):
     return render_recording(recording.positions, dt=recording.dt, fps=10, config=cfg, seed=1)
 
 
+@pytest.fixture(scope="session")
+def clear_frames(recording):
+    """15 fps clouds of the synthetic recording, nothing hiding the rope."""
+    return render_recording(recording.positions, dt=recording.dt, fps=15, seed=3)
+
+
 def swung(x: np.ndarray, angle: float) -> np.ndarray:
     """The free vertices turned about the chord between vertices 1 and n-2 (a wrong initial shape)."""
     n = len(x)

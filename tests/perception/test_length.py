@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from perception import Tracker, load_config, render_recording
+from perception import Tracker, load_config
 from perception.length import arc_positions, seen_length
 
 
@@ -32,12 +32,6 @@ def test_seen_length_of_a_noisy_arc_and_none_with_a_gap():
     assert length == pytest.approx(radius * angle, rel=0.01)
     s, _ = arc_positions(points, x[1:-1])
     assert seen_length(points[(s < 0.3) | (s > 0.4)], x, radius=0.05) is None  # 10 cm unseen
-
-
-@pytest.fixture(scope="module")
-def clear_frames(recording):
-    """15 fps clouds of the synthetic recording, nothing hiding the rope."""
-    return render_recording(recording.positions, dt=recording.dt, fps=15, seed=3)
 
 
 def _track(model, recording, frames, grip_idx, rest_scale: float, gain: float):

@@ -165,3 +165,68 @@ def test_real_recording_camera_tracking_beats_open_loop_and_baseline(data_root):
         t.initialize_from_frames(p[0], p[1])
         errs[name] = _run(t, p, fr, gi)
     assert errs["cam"] < errs["open"] and errs["cam"] < 0.5 * errs["hold"]
+
+
+def _residual_config(share: float):
+    cfg = load_config()
+    return replace(cfg, tracker=replace(cfg.tracker, camera_residual=share, length_gain=0.0))
+
+
+def _to_polyline(x: np.ndarray, line: np.ndarray) -> float:
+    """Mean distance [m] from the points ``x`` to the polyline ``line``."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    t = np.clip(np.einsum("pkd,kd->pk", x[:, None] - a[None], ab) / np.sum(ab * ab, axis=1), 0.0, 1.0)
+    return float(np.linalg.norm(x[:, None] - (a + t[..., None] * ab), axis=-1).min(1).mean())
+
+
+def _distance_at_clouds(model, recording, frames, share: float) -> float:
+    """Mean distance from the estimate to the filmed rope at its clouds (the first quarter left out)."""
+    p = recording.positions
+    tracker = Tracker(model, config=_residual_config(share))
+    tracker.initialize_from_frames(p[0], p[1])
+    grip = gripped_indices(model.n)
+    by_step = {f.step: f for f in frames}
+    errors = []
+    for k in range(2, len(p)):
+        tracker.step(p[k, grip])
+        if k in by_step:
+            x, _ = tracker.correct(by_step[k].xyz, by_step[k].rgb, by_step[k].camera)
+            errors.append(_to_polyline(x, p[k]))
+    return float(np.mean(errors[len(errors) // 4 :]))
+
+
+def test_camera_and_model_weighed_alike_beat_either_alone(model, recording, clear_frames):
+    """The estimate half way across the rope between the camera's correction and the model's
+    projected state is nearer the filmed rope than either (two estimates of similar error)."""
+    model_only, half, camera_only = (
+        _distance_at_clouds(model, recording, clear_frames, share) for share in (0.0, 0.5, 1.0)
+    )
+    assert half < 0.9 * model_only and half < 0.9 * camera_only
+
+
+def test_the_residual_sits_across_the_rope_at_observed_vertices_and_goes_stale(
+    model, recording, clear_frames, grip_idx
+):
+    p = recording.positions
+    tracker = Tracker(model, config=_residual_config(1.0))
+    tracker.initialize_from_frames(p[0], p[1])
+    f = clear_frames[1]
+    for k in range(2, f.step + 1):
+        tracker.step(p[k, grip_idx])
+    x, observed = tracker.correct(f.xyz, f.rgb, f.camera)
+    state = tracker.state.x[0].double().numpy()
+    moved = np.linalg.norm(x - state, axis=1) > 1e-9
+    assert observed.any() and moved.any() and not moved[~observed].any()
+    tangent = np.gradient(state, axis=0)
+    across = np.sum((x - state) * tangent, axis=1) / np.linalg.norm(tangent, axis=1)
+    assert np.allclose(across, 0.0, atol=1e-9)  # across the rope only
+    assert tracker.status()["camera_over_model_mm"] > 0.0
+    edges = np.linalg.norm(np.diff(state, axis=0), axis=1)
+    assert np.allclose(
+        edges, tracker.state.rest[0].double().numpy(), rtol=1e-3
+    )  # the state keeps its lengths
+    stale = int(np.ceil(tracker.config.tracker.stale_after_s / tracker.dt)) + 1
+    for k in range(f.step + 1, f.step + 1 + stale):
+        x, observed = tracker.step(p[k, grip_idx])
+    assert not observed.any() and np.allclose(x, tracker.state.x[0].double().numpy())
