@@ -135,9 +135,10 @@ def track_clip(
     times = np.arange(t0, t_last + 1, step_ns, dtype=np.int64)
     grips = grips_from_poses(interpolate_poses(clip.pose_stamps_ns, clip.poses, times), grippers)
     # the rope's length is the user's (checked against the camera by calibrate.checks): every clip
-    # tracked at that one length, not at lengths the tracker took from the camera clip by clip
-    keep_length = replace(perception, tracker=replace(perception.tracker, length_gain=0.0))
-    tracker = Tracker(model, camera=clip.camera, config=keep_length, rest=rest)
+    # tracked at that one length, not at lengths the tracker took from the camera clip by clip; and
+    # the track is the model's state, shapes the fitted rod can take (no camera residual on top)
+    model_state = replace(perception, tracker=replace(perception.tracker, length_gain=0.0, camera_residual=0.0))
+    tracker = Tracker(model, camera=clip.camera, config=model_state, rest=rest)
     seg = tracker.config.segmentation
     x, observed = tracker.initialize(grips[0], (first[1], first[2]), clip.camera)
     positions = [x]

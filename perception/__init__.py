@@ -33,7 +33,7 @@ distance to the polyline through ``x``).
 
 from perception.camera import Camera, look_at
 from perception.config import PerceptionConfig, load_config
-from perception.estimate import segment_distances
+from perception.polyline import segment_distances
 from perception.segment import segment_rope
 from perception.tracker import Tracker
 

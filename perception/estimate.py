@@ -22,25 +22,9 @@ from perception.cloud import voxel_downsample, window_min
 from perception.cluster import dbscan
 from perception.config import EstimationConfig
 from perception.gmm import fit_gmm
+from perception.polyline import segment_distances
 
 MAX_SHIFT = 0.1
-
-
-def segment_distances(points: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(N,) distance of each point to the polyline through ``x`` (n, 3).
-
-    Args:
-        points: (N, 3) points [m].
-        x: (n, 3) polyline vertices [m].
-
-    Returns:
-        (N,) distances [m].
-    """
-    a, b = x[:-1], x[1:]
-    ab = b - a
-    t = np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
-    closest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
-    return np.linalg.norm(points[:, None] - closest, axis=-1).min(1)
 
 
 def occluded_vertices(

@@ -22,26 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def arc_positions(points: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Arc length along the polyline ``x`` (k, 3) of each point's nearest point on it, and the distance.
-
-    Args:
-        points: (N, 3) [m].
-        x: (k, 3) polyline, k >= 2 [m].
-
-    Returns:
-        ``(s, d)``: (N,) arc lengths from ``x[0]`` [m] and (N,) distances [m].
-    """
-    a, ab = x[:-1], np.diff(x, axis=0)
-    length = np.linalg.norm(ab, axis=1)
-    t = np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.maximum(length**2, 1e-12)
-    t = np.clip(t, 0.0, 1.0)
-    dist = np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)  # (N, k-1)
-    j = dist.argmin(1)
-    start = np.concatenate([[0.0], np.cumsum(length)[:-1]])
-    rows = np.arange(len(points))
-    return start[j] + t[rows, j] * length[j], dist[rows, j]
+from perception.polyline import arc_positions
 
 
 def seen_length(

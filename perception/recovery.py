@@ -28,8 +28,8 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial.distance import cdist
 
 from perception.cloud import voxel_downsample
-from perception.estimate import segment_distances
 from perception.initial import place_by_arclength
+from perception.polyline import segment_distances
 
 MAX_NODES = 600  # the spanning tree is built on a dense distance matrix: (MAX_NODES + 2)^2 floats
 

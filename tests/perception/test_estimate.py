@@ -6,8 +6,9 @@ from sklearn.cluster import DBSCAN
 from perception import load_config, render_recording
 from perception.cloud import depth_image, voxel_downsample
 from perception.cluster import dbscan
-from perception.estimate import correct_vertices, segment_distances
+from perception.estimate import correct_vertices
 from perception.gmm import fit_gmm
+from perception.polyline import segment_distances
 from perception.render.mesh import catmull_rom
 from perception.segment import segment_rope
 

@@ -8,18 +8,13 @@ import pytest
 import torch
 
 from perception import Tracker, load_config
-from perception.length import arc_positions, seen_length
+from perception.length import seen_length
+from perception.polyline import arc_positions
 
 
 def _arc(radius: float, angle: float, count: int) -> np.ndarray:
     t = np.linspace(0.0, angle, count)
     return np.stack([radius * np.sin(t), np.zeros_like(t), -radius * np.cos(t)], 1)
-
-
-def test_arc_positions_on_a_straight_line():
-    line = np.array([[0.0, 0, 0], [0.5, 0, 0], [1.0, 0, 0]])
-    s, d = arc_positions(np.array([[0.25, 0.1, 0], [0.75, 0, -0.2], [-1.0, 0, 0]]), line)
-    assert np.allclose(s, [0.25, 0.75, 0.0]) and np.allclose(d, [0.1, 0.2, 1.0])
 
 
 def test_seen_length_of_a_noisy_arc_and_none_with_a_gap():

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 
 from deform import gripped_indices, load_model, load_recording
-from perception import Camera, Tracker, load_config, render_recording
+from perception import Camera, Tracker, load_config, render_recording, segment_distances
 from tests.perception.conftest import occluded_config, swung
 
 
@@ -172,14 +172,6 @@ def _residual_config(share: float):
     return replace(cfg, tracker=replace(cfg.tracker, camera_residual=share, length_gain=0.0))
 
 
-def _to_polyline(x: np.ndarray, line: np.ndarray) -> float:
-    """Mean distance [m] from the points ``x`` to the polyline ``line``."""
-    a, b = line[:-1], line[1:]
-    ab = b - a
-    t = np.clip(np.einsum("pkd,kd->pk", x[:, None] - a[None], ab) / np.sum(ab * ab, axis=1), 0.0, 1.0)
-    return float(np.linalg.norm(x[:, None] - (a + t[..., None] * ab), axis=-1).min(1).mean())
-
-
 def _distance_at_clouds(model, recording, frames, share: float) -> float:
     """Mean distance from the estimate to the filmed rope at its clouds (the first quarter left out)."""
     p = recording.positions
@@ -192,7 +184,7 @@ def _distance_at_clouds(model, recording, frames, share: float) -> float:
         tracker.step(p[k, grip])
         if k in by_step:
             x, _ = tracker.correct(by_step[k].xyz, by_step[k].rgb, by_step[k].camera)
-            errors.append(_to_polyline(x, p[k]))
+            errors.append(segment_distances(x, p[k]).mean())
     return float(np.mean(errors[len(errors) // 4 :]))
 
 
