@@ -22,6 +22,7 @@ import argparse
 import json
 import sys
 import time
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -123,7 +124,11 @@ def main(argv=None):
         for occ in OCCLUSIONS:
             cfg = replace(base, render=replace(base.render, occlusion=occ))
             frames = render_recording(
-                positions, dt=model.dt, fps=30, config=cfg, seed=hash((rod, name)) % 1000
+                positions,
+                dt=model.dt,
+                fps=30,
+                config=cfg,
+                seed=zlib.crc32(f"{rod}/{name}".encode()) % 1000,  # hash() differs per process
             )
             frames = [f for f in frames if f.step >= 2]
             during = [1 - f.visible[2 : n - 2].mean() for f in frames if f.occluded]
