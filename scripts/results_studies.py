@@ -168,7 +168,7 @@ def render_tracking_peers(d: dict) -> list[str]:
         "Mean two-way distance between tracked nodes and the true rope [mm] (TrackDLO's metric), per camera "
         f"frame, mean over frames and recordings ({args.get('per_rod', '-')} per rod of "
         f"{', '.join(args.get('rods', [])) or '-'}); every method on the same rendered clouds (30 fps unless "
-        "said), started from the true nodes. Ratios: against the same motion with the right model and no "
+        "said), started from the true nodes; rows named after DLO3 on its recordings only. Ratios: against the same motion with the right model and no "
         "contact (target for ours: at most 1.5x).",
         "",
     ]

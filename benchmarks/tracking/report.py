@@ -135,7 +135,8 @@ def tables(d: dict) -> list[str]:
         "the mean distance of the tracked nodes to the true polyline plus half the mean distance of the "
         "true polyline, 10 points an edge, to the tracked one), per camera frame, averaged over frames and "
         f"recordings ({args.get('per_rod', '-')} per rod of {', '.join(args.get('rods', []))}); "
-        "every method on the same rendered clouds (30 fps unless said), started from the true nodes.",
+        "every method on the same rendered clouds (30 fps unless said), started from the true nodes. "
+        "The rows named after DLO3 run on its recordings only.",
         "",
         "| scenario | n | " + " | ".join(methods) + " |",
         "|---|---:|" + "---:|" * len(methods),
