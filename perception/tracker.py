@@ -9,6 +9,11 @@ the model drifted, a motion too fast for it, a model of another rope) every clou
 (:mod:`perception.recovery`): when most visible rope points are unexplained, or the rope was not
 seen for ``lost_after_s``, the tracker counts the rope as lost and finds it again from the cloud
 alone, anchored at the grippers, then goes on tracking from there (:attr:`Tracker.health`).
+
+Two shapes are kept: the model's state, always on its rest lengths (it is what the model steps and
+predicts from), and the estimate :attr:`Tracker.x`, which at the vertices the last cloud observed
+also keeps part of what the projection onto the rest lengths took back from the camera
+(``camera_residual``, across the rope only).
 """
 
 from __future__ import annotations
