@@ -137,7 +137,9 @@ def track_clip(
     # the rope's length is the user's (checked against the camera by calibrate.checks): every clip
     # tracked at that one length, not at lengths the tracker took from the camera clip by clip; and
     # the track is the model's state, shapes the fitted rod can take (no camera residual on top)
-    model_state = replace(perception, tracker=replace(perception.tracker, length_gain=0.0, camera_residual=0.0))
+    model_state = replace(
+        perception, tracker=replace(perception.tracker, length_gain=0.0, camera_residual=0.0)
+    )
     tracker = Tracker(model, camera=clip.camera, config=model_state, rest=rest)
     seg = tracker.config.segmentation
     x, observed = tracker.initialize(grips[0], (first[1], first[2]), clip.camera)

@@ -56,7 +56,11 @@ def test_rope_losses_logged_once_each(tmp_path):
     )
     assert logger._rope_counts == (1, 1) and logger._length_scale == 1.0
     logger._log_estimate(
-        _estimate(3 * 10**7), None, None, "tracking", {**rope, "length_scale": 0.95, "camera_over_model_mm": 1.8}
+        _estimate(3 * 10**7),
+        None,
+        None,
+        "tracking",
+        {**rope, "length_scale": 0.95, "camera_over_model_mm": 1.8},
     )
     assert logger._length_scale == 0.95
     logger.rec.flush()
