@@ -82,7 +82,7 @@ class Tracker:
         (while it is fresh, ``stale_after_s``) ``camera_residual`` of what the projection onto the
         rest lengths took back from the correction. The state itself stays on its rest lengths (the
         model steps from it); where the model cannot take the shape the camera shows (another rope's
-        rest lengths, a contact it does not know), the estimate keeps the camera's."""
+        rest lengths, a contact it does not know), the estimate keeps that share of the camera's."""
         x = self._model_x()
         if self._since_update * self.dt <= self.config.tracker.stale_after_s:
             x += self._residual
