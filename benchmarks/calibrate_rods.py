@@ -3,7 +3,7 @@ held-out motions beside the shipped motion-capture model and the generic DER of 
 mass, in one run.
 
     python benchmarks/calibrate_rods.py [--rods DLO1 ...] [--seconds 50 120 300] [--tracked 4]
-        [--quick] [--num-cpus N | --address ray://HOST:PORT | --inline]
+        [--quick] [--rescore-from CODE] [--num-cpus N | --address ray://HOST:PORT | --inline]
 
 Per rod and amount of clips (a Ray task each, benchmarks/cluster.py): the clips are cut from the
 rod's training motions (benchmarks/calibration/clips.py: one camera for the session, noise,
@@ -13,6 +13,9 @@ shipped and generic models are scored on the held-out motions (eval, or the held
 train for DLO4 and DLO5; benchmarks/calibration/score.py): the paper's 500-step open loop, tracking
 through occlusion, the 1 s prediction from the tracked state. The calibration never reads a model
 file: it knows the rope by the clips, its length and its mass.
+
+``--rescore-from CODE`` scores the models a stored run (of that code digest) calibrated again, without
+calibrating: for a change of the scoring alone (the rows keep that run's calibration times).
 
 Results are stored per rod and amount as they finish (``benchmarks/results/calibrate_rods.runs/``;
 a rerun resumes), with the calibrated model and its report in ``runs/calibrate_rods/``. Summary:
@@ -65,7 +68,7 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
 
     from benchmarks.calibration.clips import motions, session_camera, write_session
     from benchmarks.calibration.score import score
-    from deform import DeformModel, bend_per_linear_density, generic_model, load_model
+    from deform import DeformModel
     from perception import load_config
 
     clips, held = motions(rod, seconds)
@@ -101,12 +104,9 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
     torch.set_num_threads(1)
     calibrated = DeformModel.load(model_path)
     cfg = calibrated.cfg
-    models = {
-        "calibrated": calibrated,
-        "shipped": load_model(rod),
-        "generic": generic_model(session.length_m, session.mass_kg, prior=bend_per_linear_density([rod])),
-    }
-    scores = score(models, held, tracked, camera, perception)
+    scores = score(
+        _three_models(calibrated, rod, session.length_m, session.mass_kg), held, tracked, camera, perception
+    )
     return dict(
         rod=rod,
         seconds=session.seconds,
@@ -127,6 +127,40 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
     )
 
 
+def _three_models(calibrated, rod: str, length_m: float, mass_kg: float) -> dict:
+    """The calibrated model, the shipped mocap-trained one and the generic DER of the same length and
+    mass (its prior without ``rod``)."""
+    from deform import bend_per_linear_density, generic_model, load_model
+
+    return {
+        "calibrated": calibrated,
+        "shipped": load_model(rod),
+        "generic": generic_model(length_m, mass_kg, prior=bend_per_linear_density([rod])),
+    }
+
+
+def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
+    """A task: the model a stored run calibrated (``old``: its row, its model file) scored again by
+    today's scoring on the same held-out motions and camera, without calibrating again; the row
+    keeps that run's calibration (time, rounds) and names its code (``rescored_from``)."""
+    import torch
+
+    from benchmarks.calibration.clips import held_length_and_mass, motions, session_camera
+    from benchmarks.calibration.score import score
+    from deform import DeformModel
+    from perception import load_config
+
+    clips, held = motions(rod, seconds)
+    perception = load_config(None)
+    camera = session_camera([r.positions for r in clips + held], perception.render)
+    length_m, mass_kg = held_length_and_mass(rod, clips)
+    torch.set_num_threads(1)
+    calibrated = DeformModel.load(repo_path(old["model"]))
+    scores = score(_three_models(calibrated, rod, length_m, mass_kg), held, tracked, camera, perception)
+    kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
+    return {**kept, "scores": scores, "rescored_from": old["config"]["code"]}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rods", nargs="*", default=list(RODS))
@@ -139,6 +173,12 @@ def main(argv: list[str] | None = None) -> int:
         "--runs",
         default="runs/calibrate_rods",
         help="models and reports (a relative path is inside the repository)",
+    )
+    ap.add_argument(
+        "--rescore-from",
+        metavar="CODE",
+        help="score the models of the stored run of this code digest again (their model files in --runs), "
+        "without calibrating: a change of the scoring only",
     )
     ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -156,11 +196,22 @@ def main(argv: list[str] | None = None) -> int:
     store = RunStore(args.out / f"{args.stem}.runs")
     done = store.load(config)
     keys = {f"{rod}-{int(s)}s": (rod, s) for s in args.seconds for rod in args.rods}
-    tasks = {
-        key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs)
-        for key, (rod, s) in keys.items()
-        if key not in done
-    }
+    if args.rescore_from:
+        old = store.load(dict(config, code=args.rescore_from))
+        missing = [k for k in keys if k not in done and k not in old]
+        if missing:
+            ap.error(f"no stored row of code {args.rescore_from} for {', '.join(missing)}")
+        tasks = {
+            key: call(rescore_rod, rod, s, args.tracked, old[key])
+            for key, (rod, s) in keys.items()
+            if key not in done
+        }
+    else:
+        tasks = {
+            key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs)
+            for key, (rod, s) in keys.items()
+            if key not in done
+        }
 
     def stored(key: str, value: dict) -> None:
         row = {"key": key, "config": config, **value}

@@ -9,7 +9,14 @@ TRACK_RATIO = 1.2  # calibrated / shipped, tracking
 GENERIC_SHARE = 0.5  # calibrated / generic, every error
 TIME_LIMIT_S = 20 * 60  # deform calibrate, 50 s of clips, 2 cores
 
-METRICS = (("open_loop", "l1_cm"), ("tracking_mm",), ("prediction_1s_mm",))
+METRICS = (("open_loop", "l1_cm"), ("tracking_mm",), ("tracking_rope_mm",), ("prediction_1s_mm",))
+
+
+def _tracking(cell: dict) -> str:
+    """The tracking error the targets are judged on: against the rope as rendered where the row has
+    it (benchmarks/calibration/score.py: against the marker polyline only the shipped model, whose
+    vertices are the markers, can score 0), else against the markers."""
+    return "tracking_rope_mm" if cell["tracking_rope_mm"]["calibrated"] is not None else "tracking_mm"
 
 
 def _get(d: dict, path: tuple):
@@ -41,12 +48,15 @@ def summarize(rows: list[dict]) -> dict:
             cell[name] = vals
             cell[f"{name}_vs_shipped"] = _ratio(vals["calibrated"], vals["shipped"])
             cell[f"{name}_vs_generic"] = _ratio(vals["calibrated"], vals["generic"])
+        track = _tracking(cell)
+        cell["tracking_judged_on"] = track
+        judged = ("open_loop", track, "prediction_1s_mm")
         cell["targets"] = {
             "prediction_1s <= 1.25x shipped": _le(cell["prediction_1s_mm_vs_shipped"], PREDICT_RATIO),
-            "tracking <= 1.2x shipped": _le(cell["tracking_mm_vs_shipped"], TRACK_RATIO),
+            "tracking <= 1.2x shipped": _le(cell[f"{track}_vs_shipped"], TRACK_RATIO),
             "open loop <= paper DEFORM": _le(cell["open_loop"]["calibrated"], cell["paper_deform_cm"]),
             "every error <= half of generic DER": all(
-                _le(cell[f"{p[0]}_vs_generic"], GENERIC_SHARE) for p in METRICS
+                _le(cell[f"{n}_vs_generic"], GENERIC_SHARE) for n in judged
             ),
             "calibrate <= 20 min": _le(row["calibrate_s"], TIME_LIMIT_S),
         }
@@ -77,21 +87,28 @@ def markdown(result: dict) -> str:
         "",
         "Calibrated from rendered clips of the rod's training motions (one camera, noise, dropouts, an "
         "occluder in every other clip); scored on its held-out motions. Open loop: the paper's 500-step "
-        "metric [cm]; tracking: two-way distance through a quarter-rope occlusion [mm]; 1 s: prediction "
+        "metric [cm]; tracking: two-way distance through a quarter-rope occlusion [mm], against the marker "
+        "polyline and (rope) against the rope as rendered, on which the tracking targets are judged (against "
+        "the markers only the shipped model, whose vertices are the markers, can score 0); 1 s: prediction "
         "from the tracked state with the recorded gripper motion, mean marker distance 1 s ahead [mm]. "
         "Columns: calibrated / shipped (mocap-trained) / generic DER (length and mass).",
         "",
-        "| rod | clips [s] | open loop [cm] | paper DEFORM | tracking [mm] | 1 s prediction [mm] | "
-        "1 s vs shipped | tracking vs shipped | vs generic (worst) | calibrate [min] |",
-        "|---|---:|---|---:|---|---|---:|---:|---:|---:|",
+        "| rod | clips [s] | open loop [cm] | paper DEFORM | tracking [mm] | tracking, rope [mm] | "
+        "1 s prediction [mm] | 1 s vs shipped | tracking vs shipped (markers / rope) | vs generic (worst) | "
+        "calibrate [min] |",
+        "|---|---:|---|---:|---|---|---|---:|---:|---:|---:|",
     ]
     for cell in summ.values():
-        worst = max((cell[f"{p[0]}_vs_generic"] or 0) for p in METRICS)
+        worst = max(
+            (cell[f"{n}_vs_generic"] or 0)
+            for n in ("open_loop", cell["tracking_judged_on"], "prediction_1s_mm")
+        )
 
         lines.append(
             f"| {cell['rod']} | {cell['seconds']:.0f} | {_three(cell, 'open_loop', 2)} | {_f(cell['paper_deform_cm'])} | "
-            f"{_three(cell, 'tracking_mm', 1)} | {_three(cell, 'prediction_1s_mm', 1)} | "
-            f"{_f(cell['prediction_1s_mm_vs_shipped'])}x | {_f(cell['tracking_mm_vs_shipped'])}x | "
+            f"{_three(cell, 'tracking_mm', 1)} | {_three(cell, 'tracking_rope_mm', 1)} | "
+            f"{_three(cell, 'prediction_1s_mm', 1)} | {_f(cell['prediction_1s_mm_vs_shipped'])}x | "
+            f"{_f(cell['tracking_mm_vs_shipped'])}x / {_f(cell['tracking_rope_mm_vs_shipped'])}x | "
             f"{worst:.2f}x | {cell['calibrate_s'] / 60:.1f} |"
         )
     lines += ["", "Targets met (issue 49):", ""]

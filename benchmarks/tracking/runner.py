@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from benchmarks.tracking.metric import recovery_time, two_way_error
+from benchmarks.tracking.metric import recovery_time, rope_error, two_way_error
 from benchmarks.tracking.scenarios import (
     Clouds,
     Unit,
@@ -69,7 +69,7 @@ def run_ours(model, truth: np.ndarray, frames, config, rest_scale: float = 1.0) 
         tracker.state = replace(tracker.state, rest=rest)
         tracker.rest = rest[0].double().numpy().copy()
     by_step = {f.step: f for f in frames}
-    errors, correct_ms, step_ms, floor, camera_floor = [], [], [], [], []
+    errors, rope_errors, correct_ms, step_ms, floor, camera_floor = [], [], [], [], [], []
     for k in range(2, len(truth)):
         t0 = time.perf_counter()
         x, _ = tracker.step(track[k, gi])
@@ -80,10 +80,11 @@ def run_ours(model, truth: np.ndarray, frames, config, rest_scale: float = 1.0) 
             x, _ = tracker.correct(f.xyz, f.rgb, f.camera)
             correct_ms.append(1e3 * (time.perf_counter() - t0))
             errors.append(two_way_error(x, truth[k]))
+            rope_errors.append(rope_error(x, truth[k]))
             if track is not truth:  # what the vertex count alone costs: the truth at the model's count
                 floor.append(two_way_error(track[k], truth[k]))
                 camera_floor.append(two_way_error(on_rendered_rope(truth[k], model), truth[k]))
-    out = dict(errors=errors, update_ms=correct_ms, step_ms=step_ms, failures=0)
+    out = dict(errors=errors, rope_errors=rope_errors, update_ms=correct_ms, step_ms=step_ms, failures=0)
     out["length_scale"] = tracker.status()[
         "length_scale"
     ]  # 1: the camera never disagreed with the rest length
@@ -111,7 +112,7 @@ def run_peer(factory, truth: np.ndarray, frames, inputs) -> dict:
     peer = factory()
     x = np.asarray(truth[1], dtype=np.float64).copy()
     peer.initialize(x.copy(), truth[1, gi].copy())
-    errors, update_ms, failures = [], [], 0
+    errors, rope_errors, update_ms, failures = [], [], [], 0
     for f, (pts, depth, seg_s) in zip(frames, inputs):
         t0 = time.perf_counter()
         try:
@@ -126,14 +127,17 @@ def run_peer(factory, truth: np.ndarray, frames, inputs) -> dict:
         else:
             failures += 1
         errors.append(two_way_error(x, truth[f.step]))
-    return dict(errors=errors, update_ms=update_ms, failures=failures)
+        rope_errors.append(rope_error(x, truth[f.step]))
+    return dict(errors=errors, rope_errors=rope_errors, update_ms=update_ms, failures=failures)
 
 
 def summarize(result: dict, times: np.ndarray, info: dict) -> dict:
     """Rounded series and statistics of one method's run on one case."""
     e = 1e3 * np.asarray(result["errors"], dtype=np.float64)
+    rope = 1e3 * np.asarray(result.get("rope_errors", []), dtype=np.float64)
     out = dict(
         mean_error_mm=round(float(e.mean()), 3) if len(e) else None,
+        mean_rope_error_mm=round(float(rope.mean()), 3) if len(rope) else None,
         errors_mm=[round(float(v), 2) for v in e],
         update_ms=_ms(result["update_ms"]),
         update_ms_all=[round(float(v), 2) for v in result["update_ms"]],

@@ -44,6 +44,7 @@ def test_the_user_gives_the_length_and_mass_between_the_grippers():
 def _row(key, calibrated, shipped, generic, seconds=600.0):
     scores = {
         m: {"open_loop": {"l1_cm": v[0]}, "tracking_mm": v[1], "prediction_1s_mm": v[2]}
+        | ({"tracking_rope_mm": v[3]} if len(v) > 3 else {})
         for m, v in (("calibrated", calibrated), ("shipped", shipped), ("generic", generic))
     }
     return {"key": key, "rod": key.split("-")[0], "seconds": 50.0, "calibrate_s": seconds, "scores": scores}
@@ -65,3 +66,15 @@ def test_the_targets_are_met_only_when_every_bound_holds():
     }
     text = markdown({"summary": s})
     assert "| DLO3 | 50 | 0.70 / 0.60 / 2.00 | 0.77 |" in text and "DLO1-50s: met 1/5" in text
+
+
+def test_tracking_is_judged_against_the_rendered_rope_when_measured():
+    # against the markers 1.32x (the shipped model's vertices are the markers); against the rope 1.05x
+    row = _row("DLO3-50s", (0.7, 2.9, 10.0, 2.1), (0.6, 2.2, 9.0, 2.0), (2.0, 5.5, 40.0, 5.0))
+    cell = summarize([row])["DLO3-50s"]
+    assert cell["tracking_judged_on"] == "tracking_rope_mm" and cell["targets"]["tracking <= 1.2x shipped"]
+    assert cell["tracking_mm_vs_shipped"] == pytest.approx(1.318, abs=1e-3)
+    row = _row("DLO3-50s", (0.7, 2.9, 10.0, 2.9), (0.6, 2.2, 9.0, 2.0), (2.0, 5.5, 40.0, 5.0))
+    missed = {k for k, v in summarize([row])["DLO3-50s"]["targets"].items() if not v}
+    assert missed == {"tracking <= 1.2x shipped", "every error <= half of generic DER"}  # 1.45x, 0.58
+    assert "1.32x / 1.45x" in markdown({"summary": summarize([row])})

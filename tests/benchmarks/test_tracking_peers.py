@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from benchmarks.tracking import contact, report, scenarios
-from benchmarks.tracking.metric import recovery_time, two_way_error
+from benchmarks.tracking.metric import recovery_time, rope_error, two_way_error
 from benchmarks.tracking.runner import OURS, run_unit
 from deform import generate_recording, gripped_indices, load_model
 from deform.io.arc_length import resample_vertices
@@ -44,6 +44,21 @@ def test_metric_is_zero_for_identical_and_hand_computed_for_shifted():
     # node counts may differ: a finer tracked polyline along the same rope scores 0
     fine = resample_vertices(truth, 25)
     assert two_way_error(fine, truth) < 1e-3
+
+
+def test_rope_error_scores_the_rendered_curve_not_the_marker_chords():
+    from perception import rope_centreline
+
+    bent = np.array(
+        [[0.0, 0, 0], [0.03, 0, 0.0], [0.3, 0.0, -0.15], [0.6, 0.0, -0.2], [0.9, 0, 0.0], [0.93, 0, 0]]
+    )
+    curve = rope_centreline(bent, 8)
+    on_curve = curve[::2]  # a tracker with finer nodes that follows the rope the camera shows
+    assert rope_error(on_curve, bent) < 1e-3
+    assert two_way_error(on_curve, bent) > 1e-3  # the marker chords cut the curve's bends
+    assert rope_error(bent, bent) > 1e-3  # nodes at the markers are not the whole rope either
+    straight = np.linspace([0.0, 0, 0], [1.0, 0, 0], 6)
+    assert rope_error(straight + [0, 0, 0.02], straight) == pytest.approx(0.02)
 
 
 def test_recovery_time():
@@ -119,6 +134,7 @@ def test_runner_with_a_stand_in_peer_gives_the_json_fields(model, recording, mon
         assert set(c["methods"]) == set(methods)
         for g in c["methods"].values():
             assert len(g["errors_mm"]) == len(c["times_s"]) > 0 and g["mean_error_mm"] >= 0
+            assert g["mean_rope_error_mm"] > 0  # the nodes are never the whole rendered curve
             assert g["update_ms"]["n"] == len(c["times_s"])
     occ0, fps10, dark = row["cases"]
     assert len(fps10["times_s"]) < len(occ0["times_s"])
@@ -129,6 +145,7 @@ def test_runner_with_a_stand_in_peer_gives_the_json_fields(model, recording, mon
     assert set(res["summary"]) == {"occ0", "fps10", "blackout"}
     assert res["summary"]["blackout"][OURS]["recovery_s"]["n"] == 1
     assert len(res["series"]["occ0"][OURS]) == len(res["series"]["occ0"]["times_s"])
+    assert res["summary"]["occ0"][OURS]["per_recording_rope_mm"]["DLO2.tiny"] > 0
     res.update(methods=methods, args=dict(per_rod=1, rods=["DLO2"]), timing_ms=report.timing([row], methods))
     md = report.markdown(res)
     assert "| no occlusion | 1 |" in md and "hold" in md
