@@ -295,4 +295,12 @@ def render_calibrate_rods(d: dict) -> list[str]:
             rows,
         )
         + [f"Wall time {fmt(d.get('wall_s'), 0)} s; detail: `calibrate_rods.md`.", ""]
+        + (
+            [
+                f"Scored again (not calibrated again): the stored calibrations of code {', '.join(rescored)}.",
+                "",
+            ]
+            if (rescored := sorted({r["rescored_from"] for r in d.get("rows", []) if r.get("rescored_from")}))
+            else []
+        )
     )

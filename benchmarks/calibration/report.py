@@ -77,6 +77,18 @@ def _f(x, nd=2) -> str:
     return "-" if x is None else f"{x:.{nd}f}"
 
 
+def _rescored(result: dict) -> list[str]:
+    """A line naming the stored calibrations a ``--rescore-from`` run scored again."""
+    codes = sorted({r["rescored_from"] for r in result.get("rows", []) if r.get("rescored_from")})
+    if not codes:
+        return []
+    return [
+        f"Scored again, not calibrated again: the models (and calibrate times) of the stored run of code "
+        f"{', '.join(codes)}.",
+        "",
+    ]
+
+
 def markdown(result: dict) -> str:
     """The stored result as markdown: one row per rod and amount of clips."""
     summ = result.get("summary", {})
@@ -85,6 +97,7 @@ def markdown(result: dict) -> str:
         "",
         f"`{result.get('command', '')}` at commit {result.get('commit', '-')}, wall {result.get('wall_s', '-')} s.",
         "",
+        *_rescored(result),
         "Calibrated from rendered clips of the rod's training motions (one camera, noise, dropouts, an "
         "occluder in every other clip); scored on its held-out motions. Open loop: the paper's 500-step "
         "metric [cm]; tracking: two-way distance through a quarter-rope occlusion [mm], against the marker "

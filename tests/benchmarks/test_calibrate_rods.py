@@ -78,3 +78,10 @@ def test_tracking_is_judged_against_the_rendered_rope_when_measured():
     missed = {k for k, v in summarize([row])["DLO3-50s"]["targets"].items() if not v}
     assert missed == {"tracking <= 1.2x shipped", "every error <= half of generic DER"}  # 1.45x, 0.58
     assert "1.32x / 1.45x" in markdown({"summary": summarize([row])})
+
+
+def test_a_rescored_run_names_the_calibrations_it_scored():
+    row = _row("DLO3-50s", (0.7, 2.5, 10.0), (0.6, 2.2, 9.0), (2.0, 5.5, 40.0))
+    assert "Scored again" not in markdown({"summary": summarize([row]), "rows": [row]})
+    row["rescored_from"] = "86b12ada2b"
+    assert "stored run of code 86b12ada2b" in markdown({"summary": summarize([row]), "rows": [row]})
