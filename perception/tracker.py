@@ -115,8 +115,7 @@ class Tracker:
         with torch.no_grad():
             self.state = self.model.initial_state(x0, x1)
         self.rest = self.state.rest[0].numpy().copy()
-        self._length_ratio, self._rest_start = 1.0, None
-        self._residual[:] = 0.0
+        self._forget_camera()
         self._grip = x1[0, self.grip_idx].numpy().copy()
         self._mark(np.ones(self.n, dtype=bool))
         return self.x, self.observed
@@ -162,8 +161,7 @@ class Tracker:
             if self.physics:
                 state = self.model.settle(state, g, max_steps=tc.settle_max_steps, tol=tc.settle_tol)
         self.state = replace(state, v=torch.zeros_like(state.x))
-        self._length_ratio, self._rest_start = 1.0, None
-        self._residual[:] = 0.0
+        self._forget_camera()
         self._grip = grip
         self._observed[:] = False
         self._since_update = np.inf  # no velocity nudge from the corrections below
@@ -258,6 +256,11 @@ class Tracker:
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
+    def _forget_camera(self) -> None:
+        """A new start: nothing the camera told the last track (its length, its residual) carries over."""
+        self._length_ratio, self._rest_start = 1.0, None
+        self._residual[:] = 0.0
+
     def _across_rope(self, x_new: np.ndarray, observed: np.ndarray) -> np.ndarray:
         """``camera_residual`` of what the projection took back from the correction ``x_new``, at the
         observed free vertices, across the rope only: the camera shows where a featureless rope lies
