@@ -65,3 +65,15 @@ def swung(x: np.ndarray, angle: float) -> np.ndarray:
     out = x.copy()
     out[2 : n - 2] = (rot + a)[2 : n - 2]
     return out
+
+
+def estimates(tracker, positions: np.ndarray, frames, grip_idx):
+    """The service's loop on a recording: yields ``(k, estimate, corrected)`` at every step from 2 on,
+    the model stepped with the recorded grippers and each of ``frames`` correcting it at its step."""
+    by_step = {f.step: f for f in frames}
+    for k in range(2, len(positions)):
+        x, _ = tracker.step(positions[k, grip_idx])
+        f = by_step.get(k)
+        if f is not None:
+            x, _ = tracker.correct(f.xyz, f.rgb, f.camera)
+        yield k, x, f is not None

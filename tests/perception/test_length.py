@@ -10,6 +10,7 @@ import torch
 from perception import Tracker, load_config
 from perception.length import seen_length
 from perception.polyline import arc_positions
+from tests.perception.conftest import estimates
 
 
 def _arc(radius: float, angle: float, count: int) -> np.ndarray:
@@ -38,14 +39,9 @@ def _track(model, recording, frames, grip_idx, rest_scale: float, gain: float):
     rest[0, 1:-1] *= rest_scale  # a model of a rope this much longer than the one filmed
     tracker.state = replace(tracker.state, rest=rest)
     tracker.rest = rest[0].double().numpy().copy()
-    by_step = {f.step: f for f in frames}
-    errors = []
-    for k in range(2, len(p)):
-        x, _ = tracker.step(p[k, grip_idx])
-        if k in by_step:
-            x, _ = tracker.correct(by_step[k].xyz, by_step[k].rgb, by_step[k].camera)
-        if k >= len(p) // 2:
-            errors.append(np.abs(x - p[k]).mean())
+    errors = [
+        np.abs(x - p[k]).mean() for k, x, _ in estimates(tracker, p, frames, grip_idx) if k >= len(p) // 2
+    ]
     return float(np.mean(errors)), tracker.status()["length_scale"], tracker.state.rest[0]
 
 

@@ -6,19 +6,15 @@ import numpy as np
 
 from deform import gripped_indices, load_model, load_recording
 from perception import Camera, Tracker, load_config, render_recording, segment_distances
-from tests.perception.conftest import occluded_config, swung
+from tests.perception.conftest import estimates, occluded_config, swung
 
 
 def _run(tracker, positions, frames, grip_idx):
-    by_step = {f.step: f for f in frames}
-    errors = []
-    for k in range(2, len(positions)):
-        x, _ = tracker.step(positions[k, grip_idx])
-        if k in by_step:
-            f = by_step[k]
-            x, _observed = tracker.correct(f.xyz, f.rgb, f.camera)
-        errors.append(np.abs(x - positions[k]).mean())
-    return float(np.mean(errors))
+    return float(
+        np.mean(
+            [np.abs(x - positions[k]).mean() for k, x, _ in estimates(tracker, positions, frames, grip_idx)]
+        )
+    )
 
 
 def test_camera_updates_beat_open_loop_from_a_wrong_start(model, recording, occluded_frames, grip_idx):
@@ -177,14 +173,8 @@ def _distance_at_clouds(model, recording, frames, share: float) -> float:
     p = recording.positions
     tracker = Tracker(model, config=_residual_config(share))
     tracker.initialize_from_frames(p[0], p[1])
-    grip = gripped_indices(model.n)
-    by_step = {f.step: f for f in frames}
-    errors = []
-    for k in range(2, len(p)):
-        tracker.step(p[k, grip])
-        if k in by_step:
-            x, _ = tracker.correct(by_step[k].xyz, by_step[k].rgb, by_step[k].camera)
-            errors.append(segment_distances(x, p[k]).mean())
+    at_clouds = estimates(tracker, p, frames, gripped_indices(model.n))
+    errors = [segment_distances(x, p[k]).mean() for k, x, corrected in at_clouds if corrected]
     return float(np.mean(errors[len(errors) // 4 :]))
 
 
