@@ -58,8 +58,9 @@ def summarize(rows: list[dict]) -> dict:
             "every error <= half of generic DER": all(
                 _le(cell[f"{n}_vs_generic"], GENERIC_SHARE) for n in judged
             ),
-            "calibrate <= 20 min": _le(row["calibrate_s"], TIME_LIMIT_S),
         }
+        if row["seconds"] <= 50.0:  # the time target is for 50 s of clips
+            cell["targets"]["calibrate <= 20 min"] = _le(row["calibrate_s"], TIME_LIMIT_S)
         out[row["key"]] = cell
     return out
 
