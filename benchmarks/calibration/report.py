@@ -12,11 +12,13 @@ TIME_LIMIT_S = 20 * 60  # deform calibrate, 50 s of clips, 2 cores
 METRICS = (("open_loop", "l1_cm"), ("tracking_mm",), ("tracking_rope_mm",), ("prediction_1s_mm",))
 
 
-def _tracking(cell: dict) -> str:
-    """The tracking error the targets are judged on: against the rope as rendered where the row has
-    it (benchmarks/calibration/score.py: against the marker polyline only the shipped model, whose
-    vertices are the markers, can score 0), else against the markers."""
-    return "tracking_rope_mm" if cell["tracking_rope_mm"]["calibrated"] is not None else "tracking_mm"
+def _judged(cell: dict) -> tuple[str, str, str]:
+    """The errors the targets are judged on: open loop, tracking and 1 s prediction; tracking against
+    the rope as rendered where the row has it (benchmarks/calibration/score.py: against the marker
+    polyline only the shipped model, whose vertices are the markers, can score 0), else against the
+    markers."""
+    track = "tracking_rope_mm" if cell["tracking_rope_mm"]["calibrated"] is not None else "tracking_mm"
+    return ("open_loop", track, "prediction_1s_mm")
 
 
 def _get(d: dict, path: tuple):
@@ -48,9 +50,8 @@ def summarize(rows: list[dict]) -> dict:
             cell[name] = vals
             cell[f"{name}_vs_shipped"] = _ratio(vals["calibrated"], vals["shipped"])
             cell[f"{name}_vs_generic"] = _ratio(vals["calibrated"], vals["generic"])
-        track = _tracking(cell)
-        cell["tracking_judged_on"] = track
-        judged = ("open_loop", track, "prediction_1s_mm")
+        judged = _judged(cell)
+        track = cell["tracking_judged_on"] = judged[1]
         cell["targets"] = {
             "prediction_1s <= 1.25x shipped": _le(cell["prediction_1s_mm_vs_shipped"], PREDICT_RATIO),
             "tracking <= 1.2x shipped": _le(cell[f"{track}_vs_shipped"], TRACK_RATIO),
@@ -113,10 +114,7 @@ def markdown(result: dict) -> str:
         "|---|---:|---|---:|---|---|---|---:|---:|---:|---:|",
     ]
     for cell in summ.values():
-        worst = max(
-            (cell[f"{n}_vs_generic"] or 0)
-            for n in ("open_loop", cell["tracking_judged_on"], "prediction_1s_mm")
-        )
+        worst = max((cell[f"{n}_vs_generic"] or 0) for n in _judged(cell))
 
         lines.append(
             f"| {cell['rod']} | {cell['seconds']:.0f} | {_three(cell, 'open_loop', 2)} | {_f(cell['paper_deform_cm'])} | "

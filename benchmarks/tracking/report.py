@@ -170,7 +170,11 @@ def tables(d: dict) -> list[str]:
             f"| {LABEL.get(v, v)} | {n} | "
             + " | ".join(
                 _f(cells[m]["mean_error_mm"])
-                + (f" / {_f(cells[m]['mean_rope_error_mm'])}" if cells[m].get("mean_rope_error_mm") else "")
+                + (
+                    f" / {_f(cells[m]['mean_rope_error_mm'])}"
+                    if cells[m].get("mean_rope_error_mm") is not None
+                    else ""
+                )
                 + (f" ({cells[m]['failures']} failed)" if cells[m]["failures"] else "")
                 if m in cells
                 else "-"
