@@ -2,7 +2,7 @@
 held-out motions beside the shipped motion-capture model and the generic DER of the same length and
 mass, in one run.
 
-    python benchmarks/calibrate_rods.py [--rods DLO1 ...] [--seconds 50 120 300] [--tracked 4]
+    python benchmarks/calibrate_rods.py [--rods DLO1 ...] [--seconds 50 120 300] [--tracked 4] [--vertices N]
         [--quick] [--rescore-from CODE] [--num-cpus N | --address ray://HOST:PORT | --inline]
 
 Per rod and amount of clips (a Ray task each, benchmarks/cluster.py): the clips are cut from the
@@ -59,9 +59,11 @@ QUICK_BUDGET = [
 QUICK_FRAMES = 250  # 2.5 s clips and held-out motions in --quick
 
 
-def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str) -> dict:
-    """A task: clips of ``seconds`` of the rod's training motions, `deform calibrate` on them, and
-    the three models scored on the held-out motions."""
+def calibrate_rod(
+    rod: str, seconds: float, tracked: int, quick: bool, runs: str, vertices: int | None = None
+) -> dict:
+    """A task: clips of ``seconds`` of the rod's training motions, `deform calibrate` on them (its
+    default vertex count, or ``vertices``), and the three models scored on the held-out motions."""
     from dataclasses import replace as dc_replace
 
     import torch
@@ -77,7 +79,7 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
         held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
     perception = load_config(None)
     camera = session_camera([r.positions for r in clips + held], perception.render)
-    out = repo_path(runs) / f"{rod}-{int(seconds)}s"
+    out = repo_path(runs) / (f"{rod}-{int(seconds)}s" + (f"-{vertices}v" if vertices else ""))
     out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f"calibrate_{rod}_"))
     try:
@@ -91,6 +93,7 @@ def calibrate_rod(rod: str, seconds: float, tracked: int, quick: bool, runs: str
             "--config", str(session.config), "--out", str(model_path), "--report", str(out / "report"),
             "--prior-without", rod,  # the rope under test has no part in its own prior
             *(QUICK_BUDGET if quick else []),
+            *(["--vertices", str(vertices)] if vertices else []),
         ]  # fmt: skip
         t0 = time.perf_counter()
         done = subprocess.run(cmd, cwd=repo_path("."), capture_output=True, text=True)
@@ -170,6 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--quick", action="store_true", help="two 2.5 s clips, a tiny budget (a smoke test)")
     ap.add_argument(
+        "--vertices", type=int, default=None, help="the calibrated model's vertex count (default: the tool's)"
+    )
+    ap.add_argument(
         "--runs",
         default="runs/calibrate_rods",
         help="models and reports (a relative path is inside the repository)",
@@ -193,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
         "benchmarks/calibration/score.py",
     )
     config = dict(tracked=args.tracked, quick=args.quick, code=code)
+    if args.vertices:
+        config["vertices"] = args.vertices
     store = RunStore(args.out / f"{args.stem}.runs")
     done = store.load(config)
     keys = {f"{rod}-{int(s)}s": (rod, s) for s in args.seconds for rod in args.rods}
@@ -208,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         }
     else:
         tasks = {
-            key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs)
+            key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs, args.vertices)
             for key, (rod, s) in keys.items()
             if key not in done
         }
@@ -231,7 +239,13 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         **provenance(argv, script="benchmarks/calibrate_rods.py", threads=1),
         "workers": workers.describe(),
-        "args": dict(rods=args.rods, seconds=args.seconds, tracked=args.tracked, quick=args.quick),
+        "args": dict(
+            rods=args.rods,
+            seconds=args.seconds,
+            tracked=args.tracked,
+            quick=args.quick,
+            vertices=args.vertices,
+        ),
         "wall_s": round(time.time() - t0, 1),
         "complete": not failures,
         "summary": summarize(rows),
