@@ -64,21 +64,13 @@ def calibrate_rod(
 ) -> dict:
     """A task: clips of ``seconds`` of the rod's training motions, `deform calibrate` on them (its
     default vertex count, or ``vertices``), and the three models scored on the held-out motions."""
-    from dataclasses import replace as dc_replace
-
     import torch
 
-    from benchmarks.calibration.clips import motions, session_camera, write_session
+    from benchmarks.calibration.clips import write_session
     from benchmarks.calibration.score import score
     from deform import DeformModel
-    from perception import load_config
 
-    clips, held = motions(rod, seconds)
-    if quick:
-        clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
-        held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
-    perception = load_config(None)
-    camera = session_camera([r.positions for r in clips + held], perception.render)
+    clips, held, perception, camera = _session(rod, seconds, quick)
     out = repo_path(runs) / (f"{rod}-{int(seconds)}s" + (f"-{vertices}v" if vertices else ""))
     out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f"calibrate_{rod}_"))
@@ -130,6 +122,24 @@ def calibrate_rod(
     )
 
 
+def _session(rod: str, seconds: float, quick: bool) -> tuple:
+    """``(clips, held_out, perception, camera)``: the rod's clip and held-out motions (2.5 s of two
+    clips and one held-out motion in ``quick``), the default perception settings and the one camera
+    that films the session."""
+    from dataclasses import replace as dc_replace
+
+    from benchmarks.calibration.clips import motions, session_camera
+    from perception import load_config
+
+    clips, held = motions(rod, seconds)
+    if quick:
+        clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
+        held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
+    perception = load_config(None)
+    camera = session_camera([r.positions for r in clips + held], perception.render)
+    return clips, held, perception, camera
+
+
 def _three_models(calibrated, rod: str, length_m: float, mass_kg: float) -> dict:
     """The calibrated model, the shipped mocap-trained one and the generic DER of the same length and
     mass (its prior without ``rod``)."""
@@ -148,14 +158,11 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     keeps that run's calibration (time, rounds) and names its code (``rescored_from``)."""
     import torch
 
-    from benchmarks.calibration.clips import held_length_and_mass, motions, session_camera
+    from benchmarks.calibration.clips import held_length_and_mass
     from benchmarks.calibration.score import score
     from deform import DeformModel
-    from perception import load_config
 
-    clips, held = motions(rod, seconds)
-    perception = load_config(None)
-    camera = session_camera([r.positions for r in clips + held], perception.render)
+    clips, held, perception, camera = _session(rod, seconds, quick=False)
     length_m, mass_kg = held_length_and_mass(rod, clips)
     torch.set_num_threads(1)
     calibrated = DeformModel.load(repo_path(old["model"]))
