@@ -38,6 +38,8 @@ class EstimationConfig:
         0.25  # support on both sides of a vertex along the rope, as a fraction of the half edge
     )
     surface_offset: float = 0.004  # m, points lie on the camera-facing surface: push means back by this
+    bend_centroid: float = 1.0  # share of the offset of a component's mean inside the bend (the centroid
+    # of an arc lies inside it) that is taken back (perception.estimate.arc_centroid_offset; 0: none)
     along_rope: float = 0.5  # share of a correction's component along the rope that is applied (0: only
     # across it). A rope without features shows where it lies across, not how far along it a vertex sits:
     # that component of a GMM mean comes partly from the components sharing evenly spread points. Half
@@ -70,9 +72,9 @@ class TrackerConfig:
     # measure of its length against the rest length (perception.length; 0: the model's length is kept)
     length_trigger: float = 0.015  # the rest lengths take the camera's length when the two differ by more
     length_bounds: tuple[float, float] = (0.8, 1.25)  # ... within these factors of the starting rest length
-    camera_residual: float = 0.5  # share of the correction across the rope at the observed vertices
+    camera_residual: float = 1.0  # share of the correction across the rope at the observed vertices
     # that the estimate keeps beyond the state's projection onto the rest lengths (0: the model state;
-    # 0.5 weighs the camera and the model alike)
+    # 1: the camera across the rope, which beats the model there once bend_centroid takes its bias back)
 
 
 @dataclass

@@ -6,7 +6,7 @@ from sklearn.cluster import DBSCAN
 from perception import load_config, render_recording
 from perception.cloud import depth_image, voxel_downsample
 from perception.cluster import dbscan
-from perception.estimate import correct_vertices
+from perception.estimate import arc_centroid_offset, correct_vertices, curvature_vector
 from perception.gmm import fit_gmm
 from perception.polyline import segment_distances
 from perception.render.mesh import catmull_rom
@@ -108,3 +108,51 @@ def test_a_correction_across_the_rope_only_has_no_share_along_it(recording, occl
     assert obs.sum() >= 4 and along(across).max() < 1e-12 and along(full).max() > 1e-3
     # the true observed vertices' distance to the estimated rope: the error across it
     assert segment_distances(truth[obs], across).mean() < 0.6 * segment_distances(truth[obs], pred).mean()
+
+
+def _arc(radius: float, angles: np.ndarray) -> np.ndarray:
+    return radius * np.stack([np.sin(angles), 1.0 - np.cos(angles), np.zeros_like(angles)], axis=1)
+
+
+def test_the_curvature_vector_of_a_circle_points_to_its_centre_one_over_the_radius_long():
+    x = _arc(0.3, np.linspace(-0.4, 0.4, 9))  # centre at (0, 0.3, 0)
+    k = curvature_vector(x, 4)
+    assert np.allclose(k / np.linalg.norm(k), [0.0, 1.0, 0.0], atol=1e-9)
+    assert abs(np.linalg.norm(k) - 1 / 0.3) < 0.01 / 0.3
+    assert not curvature_vector(x, 0).any() and not curvature_vector(x[[0, 4, 8]] * [1, 0, 0], 1).any()
+
+
+def test_the_centroid_of_an_arc_is_taken_back_to_the_rope_at_the_vertex():
+    """Points spread over one 10 cm edge of a rope bent on a 30 cm radius: their centroid lies
+    l^2 / (24 R) = 1.4 mm inside the bend; less the offset it is on the rope at the vertex."""
+    radius, edge = 0.3, 0.1
+    x = _arc(radius, np.arange(-2, 3) * edge / radius)  # vertices, the middle one at the origin
+    points = _arc(radius, np.linspace(-0.5, 0.5, 201) * edge / radius)
+    centroid = points.mean(0)
+    assert abs(np.linalg.norm(centroid - x[2]) - edge**2 / (24 * radius)) < 1e-4
+    offset = arc_centroid_offset(points, np.ones(len(points)), x, 2)
+    assert np.linalg.norm(centroid - offset - x[2]) < 0.05 * np.linalg.norm(centroid - x[2])
+
+
+def test_corrections_lose_the_pull_inside_the_bend(recording, clear_frames):
+    """From a perfect prediction, the camera's correction of a bent rope errs towards the centre of
+    the bend by the arc's centroid offset; ``bend_centroid`` 1 takes most of that back."""
+    from dataclasses import replace
+
+    cfg = load_config()
+    inward = {}
+    for share in (0.0, 1.0):
+        est = replace(cfg.estimation, bend_centroid=share)
+        errs = []
+        for f in clear_frames[2::2]:
+            truth = recording.positions[f.step]
+            pts = f.camera.to_world(segment_rope(f.xyz, f.rgb, cfg.segmentation))
+            x, obs = correct_vertices(
+                truth, pts, depth_image(f.xyz, f.camera), f.camera, est, _movable(len(truth))
+            )
+            for i in np.flatnonzero(obs):
+                k = curvature_vector(truth, i)
+                if np.linalg.norm(k) > 1.0:  # radius under 1 m
+                    errs.append((x[i] - truth[i]) @ k / np.linalg.norm(k))
+        inward[share] = float(np.mean(errs))
+    assert inward[0.0] > 5e-4 and abs(inward[1.0]) < 0.5 * inward[0.0], inward
