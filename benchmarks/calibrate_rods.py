@@ -155,7 +155,8 @@ def _three_models(calibrated, rod: str, length_m: float, mass_kg: float) -> dict
 def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     """A task: the model a stored run calibrated (``old``: its row, its model file) scored again by
     today's scoring on the same held-out motions and camera, without calibrating again; the row
-    keeps that run's calibration (time, rounds) and names its code (``rescored_from``)."""
+    keeps that run's calibration (time, rounds) and names the code that calibrated (``rescored_from``:
+    that run's, or the one it named when it was itself a rescoring)."""
     import torch
 
     from benchmarks.calibration.clips import held_length_and_mass
@@ -168,7 +169,7 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     calibrated = DeformModel.load(repo_path(old["model"]))
     scores = score(_three_models(calibrated, rod, length_m, mass_kg), held, tracked, camera, perception)
     kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
-    return {**kept, "scores": scores, "rescored_from": old["config"]["code"]}
+    return {**kept, "scores": scores, "rescored_from": old.get("rescored_from") or old["config"]["code"]}
 
 
 def main(argv: list[str] | None = None) -> int:
