@@ -55,15 +55,21 @@ def occluded_vertices(
     return closer | ~inside
 
 
+def _tangent(x: np.ndarray, i: int) -> tuple[np.ndarray, float]:
+    """The rope's unit tangent at vertex ``i`` of ``x`` (n, 3), along the central difference
+    :math:`x_{i+1} - x_{i-1}` (one-sided at the ends; zero when that vanishes), and that chord's length."""
+    t = x[min(i + 1, len(x) - 1)] - x[max(i - 1, 0)]
+    chord = float(np.linalg.norm(t))
+    return (np.zeros(3) if chord < 1e-12 else t / chord), chord
+
+
 def _two_sided(points, resp, j, x_pred, idx, frac) -> bool:
     """Does component ``j`` (vertex ``idx``) own points on both sides of the vertex along the rope?"""
     mine = points[resp.argmax(1) == j]
     if len(mine) == 0:
         return False
-    lo, hi = max(idx - 1, 0), min(idx + 1, len(x_pred) - 1)
-    tang = x_pred[hi] - x_pred[lo]
-    half = 0.25 * np.linalg.norm(tang)  # half of the mean edge length
-    tang = tang / max(np.linalg.norm(tang), 1e-12)
+    tang, chord = _tangent(x_pred, idx)
+    half = 0.25 * chord  # half of the mean edge length
     s = (mine - x_pred[idx]) @ tang
     return bool(s.max() > frac * half and s.min() < -frac * half)
 
@@ -71,9 +77,8 @@ def _two_sided(points, resp, j, x_pred, idx, frac) -> bool:
 def along_rope(shift: np.ndarray, x: np.ndarray, i: int) -> np.ndarray:
     """The component of ``shift`` along the rope at vertex ``i`` of ``x`` (n, 3): along the central
     difference :math:`x_{i+1} - x_{i-1}` (one-sided at the ends)."""
-    t = x[min(i + 1, len(x) - 1)] - x[max(i - 1, 0)]
-    norm = np.linalg.norm(t)
-    return np.zeros(3) if norm < 1e-12 else (shift @ t) / norm**2 * t
+    t, _ = _tangent(x, i)
+    return (shift @ t) * t
 
 
 def curvature_vector(x: np.ndarray, i: int) -> np.ndarray:
@@ -98,14 +103,12 @@ def arc_centroid_offset(points: np.ndarray, weights: np.ndarray, x: np.ndarray, 
     :math:`\tfrac12 \kappa \langle s^2 \rangle` towards the centre of the bend (for points
     spread evenly over an edge length ``l``: :math:`\kappa l^2 / 24`, 1.4 mm for 10 cm edges on a
     30 cm radius). Subtract it from the centroid to get the vertex."""
-    k = curvature_vector(x, i)
-    t = x[min(i + 1, len(x) - 1)] - x[max(i - 1, 0)]
-    norm = np.linalg.norm(t)
     total = weights.sum()
-    if norm < 1e-12 or total <= 0:
+    if total <= 0:
         return np.zeros(3)
-    s = (points - x[i]) @ (t / norm)  # arc length from the vertex, to first order
-    return 0.5 * k * (weights @ (s * s)) / total
+    t, _ = _tangent(x, i)
+    s = (points - x[i]) @ t  # arc length from the vertex, to first order
+    return 0.5 * curvature_vector(x, i) * (weights @ (s * s)) / total
 
 
 def correct_vertices(
