@@ -5,8 +5,9 @@ frame, and predict the rest. ``l1_m`` is the mean of ``|prediction - truth|`` ov
 vertices (gripped ones included, as in the paper) and x, y, z.
 
 A model whose vertex count differs from the recording's markers (a calibrated model) is started
-from the markers resampled to its vertices by arc length (:mod:`deform.io.arc_length`), and its
-prediction is resampled back to the markers, where the error is taken.
+from the markers resampled to its vertices by arc length along a smooth curve through them
+(:mod:`deform.io.arc_length`, ``curve="cubic"``), and its prediction is resampled back to the
+markers the same way, where the error is taken.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from deform.io.recordings import Recording
 from deform.model import gripped_indices
 
 HORIZONS = (1, 10, 100, 500)
+CURVE = "cubic"  # how shapes of different vertex counts are compared (deform.io.arc_length)
 
 
 @dataclass
@@ -115,20 +117,22 @@ def predict_recordings(
             for j, i in enumerate(members):
                 r, pred = markers[i], P[j]
                 if r.n_vertices != model.n:
-                    pred = resample_vertices(pred, r.n_vertices, edge_lengths(r.positions[0]))
+                    pred = resample_vertices(pred, r.n_vertices, edge_lengths(r.positions[0]), curve=CURVE)
                 results[i] = RolloutResult(r.name, pred, r.positions[2 : s + 2], np.asarray(times))
     return results
 
 
 def as_model_vertices(recording: Recording, model) -> Recording:
     """The recording itself when its marker count is the model's; else its markers resampled by
-    arc length to the model's vertices, placed as the model's typical rest lengths
-    (``nominal_rest``, when it has them) place them."""
+    arc length (along :data:`CURVE`) to the model's vertices, placed as the model's typical rest
+    lengths (``nominal_rest``, when it has them) place them."""
     if recording.n_vertices == model.n:
         return recording
     rest = getattr(model, "nominal_rest", None)
     rest = None if rest is None else rest.detach().double().numpy()
-    return Recording(recording.name, resample_vertices(recording.positions, model.n, rest), recording.dt)
+    return Recording(
+        recording.name, resample_vertices(recording.positions, model.n, rest, curve=CURVE), recording.dt
+    )
 
 
 def metrics(results: list[RolloutResult]) -> dict:

@@ -24,7 +24,7 @@ import torch
 
 from benchmarks.tracking.metric import rope_error, two_way_error
 from deform import Recording, gripped_indices
-from deform.evaluate import as_model_vertices, metrics, predict_recordings
+from deform.evaluate import CURVE, as_model_vertices, metrics, predict_recordings
 from deform.io.arc_length import edge_lengths, resample_vertices
 
 OCCLUSION = 0.25
@@ -66,7 +66,7 @@ def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
             with torch.no_grad():
                 for j in range(k + 1, k + AHEAD_STEPS + 1):
                     state = model.step(state, torch.as_tensor(own[j, gi], dtype=state.x.dtype).unsqueeze(0))
-            pred = resample_vertices(state.x[0].double().numpy(), truth.shape[1], markers)
+            pred = resample_vertices(state.x[0].double().numpy(), truth.shape[1], markers, curve=CURVE)
             ahead.append(float(np.linalg.norm(pred - truth[k + AHEAD_STEPS], axis=-1).mean()))
     return dict(tracking=tracking, tracking_rope=tracking_rope, ahead=ahead)
 

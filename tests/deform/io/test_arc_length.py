@@ -37,6 +37,44 @@ def test_a_round_trip_through_fewer_vertices_costs_only_the_chords_of_the_coarse
     assert err[:, [0, 1, -2, -1]].max() == 0
 
 
+def test_a_cubic_curve_keeps_the_resampled_vertices_on_the_bend_the_polyline_cuts():
+    x = _arc(13)  # 10 free edges of 8 cm on a 30 cm radius: a chord sags 2.6 mm
+    radius = {}
+    for curve in ("linear", "cubic"):
+        y = resample_vertices(x, 9, curve=curve)
+        np.testing.assert_array_equal(y[:, [0, 1, -2, -1]], x[:, [0, 1, -2, -1]])
+        r = np.linalg.norm(y[..., [0, 2]], axis=-1) / (0.3 * (1 + 0.1 * np.arange(3)))[:, None]
+        radius[curve] = np.abs(r - 1).max()
+    assert radius["linear"] > 2e-3  # inside the bend by the chords' sag
+    assert radius["cubic"] < radius["linear"] / 20
+
+
+def test_a_round_trip_along_the_cubic_curve_loses_far_less_than_along_chords():
+    x = _arc(13)
+    err = {
+        c: np.linalg.norm(
+            resample_vertices(resample_vertices(x, 9, curve=c), 13, edge_lengths(x[0]), curve=c) - x, axis=-1
+        ).max()
+        for c in ("linear", "cubic")
+    }
+    assert err["cubic"] < err["linear"] / 10
+
+
+def test_the_cubic_curve_with_the_same_count_and_spacing_is_the_identity_and_survives_repeated_points():
+    x = _arc(12)
+    same = resample_vertices(x, 12, edge_lengths(x[0]), curve="cubic")
+    np.testing.assert_allclose(same, x, atol=1e-4)  # arc fractions of the spline, not of its chords
+    x[:, 5] = x[:, 4]  # a marker lost and held: the spline has no chord to grow on; the polyline serves
+    y = resample_vertices(x, 9, curve="cubic")
+    assert np.isfinite(y).all()
+    np.testing.assert_allclose(y, resample_vertices(x, 9), atol=1e-12)
+
+
+def test_an_unknown_curve_is_refused():
+    with pytest.raises(ValueError, match="curve"):
+        resample_vertices(_arc(12), 9, curve="quintic")
+
+
 def test_the_rest_lengths_place_the_inner_vertices():
     f = free_fractions(np.array([0.02, 0.1, 0.3, 0.1, 0.02]), 6)
     np.testing.assert_allclose(f, [0, 0.2, 0.8, 1.0])
