@@ -38,8 +38,9 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m service.demo
 
+# one worker per core, each test file on one worker (its module fixtures built once)
 test: $(STAMP)
-	$(PY) -m pytest -q -x tests
+	$(PY) -m pytest -q -x -n auto --dist loadfile tests
 
 # the quick loop (under a minute on two cores): no dataset, no compiling, nothing marked slow
 # (markers: pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
