@@ -14,6 +14,15 @@ synchronous with the poses.
 Besides the (T, n, 3) track, a :class:`Track` keeps which vertices each cloud corrected (the
 tracker's ``observed``) and the cloud's rope points (:func:`calibrate.points.rope_points`), the
 model-independent reference the fit is scored against.
+
+What training learns from is the track smoothed in time (:meth:`Track.smoothed`). Between clouds a
+track is the tracking model's own prediction and at each cloud it jumps to the camera's
+correction: a sawtooth at the camera's rate. Taken as it is, training would fit the model's own
+dynamics between clouds and read each jump as a velocity (1 mm in one 10 ms step is 0.1 m/s) in the
+states its windows start from. Each free vertex's coordinates are filtered with a Gaussian in time of
+:math:`\sigma` = one cloud interval (the median, 33 ms at 30 Hz), which averages the jumps over the
+interval they belong to and passes the rope's motion (gain 0.93 at 2 Hz at 30 Hz clouds); the
+gripped vertices are inputs and kept.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 from tqdm import tqdm
 
 from calibrate.bags import Clip
@@ -64,10 +74,21 @@ class Track:
         return self.cloud_observed.mean(0)
 
     def recording(self) -> Recording:
-        """The track as a :class:`deform.Recording` (what :func:`deform.train.train` takes), weighted
-        by :meth:`seen`: training learns from what the camera showed, not from what the tracker's
-        model filled in behind an occluder."""
-        return Recording(name=self.name, positions=self.positions, dt=self.dt, weights=self.seen())
+        """The track as a :class:`deform.Recording` (what :func:`deform.train.train` takes):
+        :meth:`smoothed`, weighted by :meth:`seen`: training learns from what the camera showed, not
+        from what the tracker's model filled in behind an occluder."""
+        return Recording(name=self.name, positions=self.smoothed(), dt=self.dt, weights=self.seen())
+
+    def smoothed(self) -> np.ndarray:
+        """(T, n, 3) the free vertices filtered in time by a Gaussian of one cloud interval (see the
+        module); the gripped ones as tracked. A track with fewer than two clouds is returned as is."""
+        if len(self.cloud_steps) < 2:
+            return self.positions
+        sigma = float(np.median(np.diff(self.cloud_steps)))
+        x = np.array(self.positions, dtype=np.float64, copy=True)
+        free = np.setdiff1d(np.arange(x.shape[1]), gripped_indices(x.shape[1]))
+        x[:, free] = gaussian_filter1d(x[:, free], sigma, axis=0, mode="nearest")
+        return x
 
     def seen(self, hold_s: float = HOLD_S) -> np.ndarray:
         """(T, n) 1 where a cloud corrected the vertex at most ``hold_s`` before (until the next

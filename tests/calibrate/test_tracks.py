@@ -68,3 +68,34 @@ def test_a_vertex_counts_as_seen_for_a_while_after_a_cloud_showed_it():
     np.testing.assert_array_equal(np.flatnonzero(w[:, 2]), np.r_[0:3, 20:30])  # held 10 steps at most
     np.testing.assert_array_equal(np.flatnonzero(w[:, 3]), np.r_[3:13])
     assert track.recording().weights is not None and (track.recording().weights == w).all()
+
+
+def test_training_sees_the_track_without_the_sawtooth_of_its_corrections():
+    """Track.smoothed: a motion tracked as prediction-then-jump at 30 Hz clouds comes back close to
+    the motion; the gripped vertices stay as tracked; a smooth motion passes almost unchanged."""
+    from calibrate.tracks import Track
+
+    T, n, dt = 300, 6, 0.01
+    t = np.arange(T) * dt
+    motion = np.zeros((T, n, 3))
+    motion[..., 2] = 0.05 * np.sin(2 * np.pi * 1.0 * t)[:, None]  # 1 Hz, 5 cm
+    steps = np.arange(0, T, 3)  # a cloud every 3 steps
+    lag = np.zeros((T, n, 3))  # the model lags the rope and each cloud takes the lag back
+    for k in range(T):
+        lag[k] = (k - steps[steps <= k][-1]) * 0.002
+    tracked = motion - lag
+    track = Track("t", tracked, np.zeros((T, 4, 3)), dt, steps, np.ones((len(steps), n), bool), (), {})
+    out = track.smoothed()
+    inner = slice(20, T - 20)  # away from the clip's ends
+    free = [2, 3]
+    raw_err = np.abs(tracked[inner][:, free] - motion[inner][:, free]).max()
+    # jerks: the jumps are gone, what is left is an offset of half the lag
+    assert (
+        np.abs(np.diff(out[inner][:, free], 2, axis=0)).max()
+        < 0.05 * np.abs(np.diff(tracked[inner][:, free], 2, axis=0)).max()
+    )
+    assert np.abs(out[inner][:, free] - motion[inner][:, free]).max() < raw_err
+    np.testing.assert_array_equal(out[:, [0, 1, -2, -1]], tracked[:, [0, 1, -2, -1]])
+    smooth = Track("s", motion, np.zeros((T, 4, 3)), dt, steps, np.ones((len(steps), n), bool), (), {})
+    assert np.abs(smooth.smoothed()[inner] - motion[inner]).max() < 0.002  # 1 Hz passes (gain > 0.98)
+    np.testing.assert_array_equal(smooth.recording().positions, smooth.smoothed())
