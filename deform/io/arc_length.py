@@ -77,7 +77,7 @@ def resample_vertices(
     out[:, [0, 1, -2, -1]] = flat[:, [0, 1, -2, -1]]
     for f in range(len(flat)):
         points = _free_curve(flat[f], curve)
-        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=-1))])
+        arc = np.concatenate([[0.0], np.cumsum(edge_lengths(points))])
         s = arc / arc[-1] if arc[-1] > 0 else np.linspace(0.0, 1.0, len(points))
         for d in range(3):
             out[f, 1 : n - 1, d] = np.interp(target, s, points[:, d])
@@ -92,7 +92,7 @@ def _free_curve(frame: np.ndarray, curve: str) -> np.ndarray:
     free = frame[1 : m - 1]
     if curve == "linear":
         return free
-    chord = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(frame, axis=0), axis=-1))])
+    chord = np.concatenate([[0.0], np.cumsum(edge_lengths(frame))])
     if np.any(np.diff(chord) <= 1e-12):
         return free
     spline = CubicSpline(chord, frame, axis=0, bc_type="natural")
