@@ -6,7 +6,7 @@ entry costs about a quarter of the step: the same graph exported with ``torch.ex
 by AOTInductor gives bit-identical values at 0.71x the time per step (scratch A/B at 64 rods,
 2026-11-23) and 0.86x per predict rollout (``benchmarks/predict_rollout.py --settings 2,2 2,2:aot``). The price: the package is specialised on one
 batch size and dtype, and the model's parameters are frozen into it. So packages are keyed on the
-parameters' values (and on this package's source and the torch build) and cached on disk
+parameters' values (and on the source the step runs and the torch build) and cached on disk
 (``$DEFORM_CACHE/aot``, default ``~/.cache/deform/aot``); a step whose model's parameters changed after
 the package was made builds a new one rather than use stale weights.
 
@@ -17,6 +17,7 @@ data-dependent loops that do not export into one graph.
 
 from __future__ import annotations
 
+import ast
 import fcntl
 import hashlib
 import logging
@@ -70,7 +71,7 @@ def package_key(
     network_dtype: torch.dtype | None = None,
 ) -> str:
     """Hash of everything the compiled code depends on: the model's values and configuration, the
-    step's settings, the source of ``deform``, the torch build and CPU, and the thread count
+    step's settings, the source the step runs (:func:`step_sources`), the torch build and CPU, and the thread count
     (``torch.get_num_threads()`` now: inductor writes it into the kernels, so a package built on
     one thread runs on one thread in a process that has two; a 1024-rod step ran at 220k instead
     of 370k rod-steps/s that way).
@@ -102,9 +103,61 @@ def package_key(
     for name, t in sorted(model.state_dict().items()):
         h.update(name.encode())
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    for src in sorted(_PACKAGE_SOURCE.rglob("*.py")):
+    for src in step_sources(_PACKAGE_SOURCE):
         h.update(src.read_bytes())
     return h.hexdigest()[:32]
+
+
+def step_sources(package: Path, start: str = __name__) -> list[Path]:
+    """The source files of ``package`` a compiled step can depend on: the modules ``start`` imports,
+    directly or through others (imports inside functions count, and so does every enclosing
+    package's ``__init__``), found by reading the sources, not by importing them.
+
+    Why not every file of the package: an edit to the discrepancy tool, training or the command line
+    would then make every prebuilt package stale, and the next service start would compile again.
+
+    Args:
+        package: the package's directory (``deform/``).
+        start: the dotted module the closure starts from.
+
+    Returns:
+        The files, sorted.
+    """
+    name = package.name
+
+    def file_of(module: str) -> Path | None:
+        path = package.parent.joinpath(*module.split("."))
+        for candidate in (path / "__init__.py", path.with_suffix(".py")):
+            if candidate.is_file():
+                return candidate
+        return None
+
+    def imported(module: str, path: Path) -> set[str]:
+        here = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        out = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                out |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:  # relative: from .x import y
+                    parts = here.split(".")[: len(here.split(".")) - node.level + 1]
+                    base = ".".join(parts + ([node.module] if node.module else []))
+                out |= {base} | {f"{base}.{a.name}" for a in node.names}  # a name may be a module
+        return {m for m in out if m == name or m.startswith(name + ".")}
+
+    found: dict[str, Path] = {}
+    queue = [start]
+    while queue:
+        module = queue.pop()
+        path = None if module in found else file_of(module)
+        if path is None:
+            continue
+        found[module] = path
+        parts = module.split(".")
+        queue += [".".join(parts[:i]) for i in range(1, len(parts))]
+        queue += sorted(imported(module, path))
+    return sorted(set(found.values()))
 
 
 class _BranchFreeStep(torch.nn.Module):

@@ -246,3 +246,25 @@ def test_a_deferred_rescue_graph_leaves_unconverged_rods_to_the_eager_loops(mode
     eager_calls.clear()
     rollout(step, state, jump)
     assert step.rescue_ready and rescued and eager_calls == []
+
+
+def test_the_package_is_keyed_on_the_source_the_step_runs_only(tmp_path, monkeypatch):
+    """An edit to the discrepancy tool or the command line keeps the prebuilt packages; an edit to
+    the rod's physics, a module the step imports inside a function, or a package ``__init__`` does not."""
+    import shutil
+
+    copy = tmp_path / "deform"
+    shutil.copytree(Path(aot.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__", "*.pt"))
+    names = {p.relative_to(copy).as_posix() for p in aot.step_sources(copy)}
+    assert {"model.py", "step_graph.py", "rod/forces.py", "rod/twist_theseus.py", "__init__.py"} <= names
+    assert not names & {"cli.py", "train.py", "diagnose/selection.py", "evaluate.py"}
+    monkeypatch.setattr(aot, "_PACKAGE_SOURCE", copy)
+    model = load_model("DLO1")
+    key = aot.package_key(model, BRANCH_FREE, 4, torch.float64)
+    for unrelated in ("diagnose/selection.py", "cli.py"):
+        (copy / unrelated).write_text((copy / unrelated).read_text() + "\n# edited\n")
+    assert aot.package_key(model, BRANCH_FREE, 4, torch.float64) == key
+    for related in ("rod/forces.py", "rod/twist_theseus.py", "rod/__init__.py"):
+        (copy / related).write_text((copy / related).read_text() + "\n# edited\n")
+        assert aot.package_key(model, BRANCH_FREE, 4, torch.float64) != key
+        key = aot.package_key(model, BRANCH_FREE, 4, torch.float64)
