@@ -336,6 +336,11 @@ class Simulator:
                 getattr(self.model, k).copy_(e.detach().to(getattr(self.model, k).dtype))
             self.model.extra_mass_raw.fill_(NEGLIGIBLE_MASS_RAW)
             self.model.log_drag.fill_(NEGLIGIBLE_LOG_DRAG)
+        # a model parameter takes part in the backward pass only when its expression has something to
+        # fit: no work on gradients that :meth:`backward` would drop, and without a rest curvature
+        # term the twist angles come in closed form (deform.rod.twist_solver.twist_minimiser)
+        for k, p in self.model.named_parameters(recurse=False):  # its own: not the terms' (extensions)
+            p.requires_grad_(k in exprs and exprs[k].requires_grad)
         return exprs
 
     def backward(self, loss: Tensor, exprs: dict[str, Tensor]) -> None:
@@ -387,13 +392,17 @@ class Simulator:
         tau = self.delay()
         T = frames.shape[1]
 
-        def grip_at(frame: float) -> Tensor:
-            if tau is None and float(frame).is_integer():
-                return grips[:, int(frame)]
-            pos = (frame - tau if tau is not None else frames.new_tensor(frame)).clamp(0, T - 1)
+        def grips_at(times: list[float]) -> Tensor:
+            """(B, len(times), 4, 3): the grips at fractional frames (shifted by a delay), linear
+            between frames; all of a rollout's at once, as a step's own few operations cost as much
+            as the arithmetic of all of them."""
+            if tau is None and all(float(t).is_integer() for t in times):
+                return grips[:, [int(t) for t in times]]
+            t = frames.new_tensor(times)
+            pos = (t - tau if tau is not None else t).clamp(0, T - 1)
             lo = pos.detach().floor().clamp(max=T - 2)
-            i = int(lo)
-            a = pos - lo
+            a = (pos - lo)[None, :, None, None]
+            i = lo.long()
             return (1 - a) * grips[:, i] + a * grips[:, i + 1]
 
         clamp = self.nominal.clamp_length()
@@ -401,8 +410,9 @@ class Simulator:
         # the rod's gripped ends lag the recorded grips from the first frame on (delay), and its free
         # part starts where the clamp ends
         x0, x1 = x0.clone(), x1.clone()
-        x0[:, idx] = clamped(grip_at(margin), clamp).to(x0.dtype)
-        x1[:, idx] = clamped(grip_at(margin + 1), clamp).to(x1.dtype)
+        start = clamped(grips_at([margin, margin + 1]), clamp)
+        x0[:, idx] = start[:, 0].to(x0.dtype)
+        x1[:, idx] = start[:, 1].to(x1.dtype)
         state = self.model.initial_state(
             refine_markers(x0, self.hidden), refine_markers(x1, self.hidden), dt=self.model.dt * self.substeps
         )
@@ -425,25 +435,24 @@ class Simulator:
             )
             d1 = batch_major(d1, batch)
             state = type(state)(x=state.x, v=state.v, d1=d1, theta=state.theta, rest=state.rest)
+        sub = self.substeps
+        held = clamped(
+            grips_at([margin + 1 + k + j / sub for k in range(steps) for j in range(1, sub + 1)]), clamp
+        )
+        # stepped vertex-major (the layout the physics runs in), converted back once at the end
+        held = vertex_major(held, 3)  # (steps * sub, 4, 3, B)
+        vm = state.vertex_major()
         out = []
         for k in range(steps):
-            for j in range(1, self.substeps + 1):
-                g = clamped(grip_at(margin + 1 + k + j / self.substeps), clamp)
-                state = self.model.step(state, g, create_graph=create_graph)
-            x = state.x[:, self.markers] if self.hidden else state.x
-            # the gripped markers are the protocol's inputs, given at every step: with a delay the
-            # rod's ends lag them and with a clamp its nodes 1 and n-2 are the clamp's ends, but the
-            # prediction is not scored on where the inputs are
-            x = torch.cat(
-                [
-                    grips[:, margin + 2 + k, :2].to(x.dtype),
-                    x[:, 2:-2],
-                    grips[:, margin + 2 + k, 2:].to(x.dtype),
-                ],
-                1,
-            )
-            out.append(x)
-        return torch.stack(out, 1)
+            for j in range(sub):
+                vm = self.model.step_vertex_major(vm, held[k * sub + j], create_graph=create_graph)
+            out.append(vm.x[self.markers] if self.hidden else vm.x)
+        x = batch_major(torch.stack(out), (frames.shape[0],))  # (B, steps, n_markers, 3)
+        # the gripped markers are the protocol's inputs, given at every step: with a delay the rod's
+        # ends lag them and with a clamp its nodes 1 and n-2 are the clamp's ends, but the prediction
+        # is not scored on where the inputs are
+        recorded = grips[:, margin + 2 : margin + 2 + steps].to(x.dtype)
+        return torch.cat([recorded[:, :, :2], x[:, :, 2:-2], recorded[:, :, 2:]], 2)
 
     @torch.no_grad()
     def initial_roll(self, origin: Tensor, n_angles: int = ROLL_ANGLES) -> Tensor:

@@ -104,3 +104,35 @@ def test_branch_free_iterations_stop_each_rod_by_the_checked_rule():
         assert torch.equal(batch[:, rod], alone)
     plain = solve_theta(a, b, *args, theta_init=warm)
     assert torch.equal(solve_theta(a, b, *args, theta_init=warm, branch_free=1), plain)
+
+
+def test_without_rest_curvature_the_closed_form_is_newtons_minimum_with_its_gradients(monkeypatch):
+    """No rest curvature: the angles come from twist_minimiser, not Newton; the same angles (Newton
+    forced by a rest curvature that requires grad, at zero) and the same implicit gradients."""
+    a, b, m_ref, ends, p = _problem(5, wbar=0.0)
+    gamma = (p.gamma * torch.linspace(0.5, 2.0, p.gamma.shape[0], dtype=torch.float64)[:, None]).detach()
+    w = torch.randn(a.shape[0] + 1, a.shape[-1], dtype=torch.float64)
+
+    def solved(wbar_requires_grad: bool):
+        m = m_ref.clone().requires_grad_(True)
+        g = gamma.clone().requires_grad_(True)
+        wbar = p.wbar.clone().requires_grad_(wbar_requires_grad)
+        theta = solve_theta(a, b, m, ends, p.beta, g, p.rest_vor, wbar, tol=1e-14)
+        return theta, torch.autograd.grad((theta * w).sum(), (m, g))
+
+    import deform.rod.twist_solver as ts
+
+    calls = []
+    newton_theta = ts.newton_theta
+    monkeypatch.setattr(ts, "newton_theta", lambda *a, **k: calls.append(1) or newton_theta(*a, **k))
+    assert not p.wbar.any()
+    closed, closed_grads = solved(False)
+    assert calls == []
+    newton, newton_grads = solved(True)
+    assert calls == [1]
+    assert (closed - newton).abs().max() < 1e-12
+    for c, n in zip(closed_grads, newton_grads, strict=True):
+        assert (c - n).abs().max() < 1e-9 * n.abs().max()
+    grad, _, _ = gradient_and_hessian(closed.detach(), a, b, m_ref, p.beta, gamma, p.rest_vor, p.wbar)
+    assert grad.abs().max() < 1e-12
+    assert torch.equal(closed[[0, -1]], ends)
