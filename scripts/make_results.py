@@ -37,6 +37,7 @@ from results_model import (
 from results_studies import (
     render_calibrate_rods,
     render_diagnose,
+    render_diagnose_ab,
     render_perception,
     render_real_terms,
     render_tracking_peers,
@@ -90,6 +91,10 @@ KNOWN = {
         "Today's step against an earlier commit's, same run",
         "python benchmarks/ab_commits.py",
     ),
+    "diagnose_ab.json": (
+        "deform diagnose against an earlier commit's, same datasets, same run",
+        "python benchmarks/diagnose_ab.py",
+    ),
     "tracking_peers.json": (
         "Tracking side by side with the published trackers (CPD, CDCPD, TrackDLO, UPETrack)",
         "python benchmarks/tracking_peers.py",
@@ -126,6 +131,7 @@ RENDER = {
     "batched_throughput.json": render_batched_throughput,
     "predict_planning.json": render_predict_planning,
     "ab_commits.json": render_ab_commits,
+    "diagnose_ab.json": render_diagnose_ab,
     "tracking_peers.json": render_tracking_peers,
     "accuracy.json": render_accuracy,
     "speed.json": render_speed,

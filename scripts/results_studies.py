@@ -304,3 +304,28 @@ def render_calibrate_rods(d: dict) -> list[str]:
             else []
         )
     )
+
+
+def render_diagnose_ab(d: dict) -> list[str]:
+    s = d.get("summary", {})
+    rows = [
+        [
+            name,
+            fmt(r.get("base_s"), 0),
+            fmt(r.get("head_s"), 0),
+            f"{fmt(r.get('speedup'))}x",
+            ", ".join(r.get("selected") or []) or "none",
+            "yes" if r.get("same_names") else "no",
+            "-" if r.get("max_improvement_difference") is None else f"{r['max_improvement_difference']:.1e}",
+        ]
+        for name, r in s.get("datasets", {}).items()
+    ]
+    return [
+        f"One PyElastica planted dataset per row (`{d.get('planted')}`), simulated once and diagnosed by "
+        f"both checkouts, one thread each, processes alternated. Base: {d.get('base')}. Speed-up over all "
+        f"rows (base time / today's): {fmt(s.get('speedup'))}x.",
+        "",
+    ] + table(
+        ["dataset", "base [s]", "today [s]", "speed-up", "named", "same names", "largest score difference"],
+        rows,
+    )
