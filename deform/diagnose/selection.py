@@ -217,6 +217,22 @@ def fit_noise(
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
 
+def selected_uncertainty(sim: Simulator, selected: list[Term], recordings, budget_for) -> list[dict]:
+    """The Laplace 1-sigma (:func:`deform.diagnose.fitting.laplace_uncertainty`) of each selected
+    term's parameters in the final simulator ``sim``, on the windows the term was fitted on
+    (``budget_for(term)``: a slow term's loss is flat on the short ones).
+
+    Why the simulator's own copy of each term: a later round fits copies of the terms chosen before
+    it, so only the last chosen term object is in ``sim``; perturbing an earlier one left the loss
+    unchanged, and its parameters were reported as undetermined.
+    """
+    out = []
+    for t in selected:
+        held = next(x for x in sim.terms if x.name == t.name)
+        out.append(laplace_uncertainty(sim, recordings, budget_for(t), held))
+    return out
+
+
 def model_step_for(term: Term, selected: list[Term], slow_step_s: float | None) -> float | None:
     """The longest model step [s] a candidate is fitted with: ``slow_step_s`` for a slow term
     (:attr:`Term.slow`) and for every term once a slow one is selected (its fitted size holds at
@@ -481,9 +497,9 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
         base_nominal, base_err, base_sim = best.sim.nominal, best.checked, best.sim
         order = sorted((r for r in results if r.name != name), key=lambda r: -r.score.improvement)
         remaining = [r.name for r in order if r.score.improvement > 0][: budget.later_round_candidates]
-    for t in selected:
-        # on the windows the term was fitted on: a slow term's loss is flat on the short ones
-        std = laplace_uncertainty(base_sim, inputs.fit, budget_for(t), t)
+    for t, std in zip(
+        selected, selected_uncertainty(base_sim, selected, inputs.fit, budget_for), strict=True
+    ):
         for c in candidates_out:
             if c["name"] == t.name and c["on_top_of"] == selected_names[: selected_names.index(t.name)]:
                 c["params_std"] = std
