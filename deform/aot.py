@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ast
 import fcntl
+import functools
 import hashlib
 import logging
 import os
@@ -108,13 +109,16 @@ def package_key(
     return h.hexdigest()[:32]
 
 
-def step_sources(package: Path, start: str = __name__) -> list[Path]:
+@functools.lru_cache(maxsize=8)
+def step_sources(package: Path, start: str = __name__) -> tuple[Path, ...]:
     """The source files of ``package`` a compiled step can depend on: the modules ``start`` imports,
     directly or through others (imports inside functions count, and so does every enclosing
     package's ``__init__``), found by reading the sources, not by importing them.
 
     Why not every file of the package: an edit to the discrepancy tool, training or the command line
     would then make every prebuilt package stale, and the next service start would compile again.
+    Found once per process (parsing them takes ~50 ms, and a service start keys several packages);
+    :func:`package_key` still reads their bytes at every call.
 
     Args:
         package: the package's directory (``deform/``).
@@ -157,7 +161,7 @@ def step_sources(package: Path, start: str = __name__) -> list[Path]:
         parts = module.split(".")
         queue += [".".join(parts[:i]) for i in range(1, len(parts))]
         queue += sorted(imported(module, path))
-    return sorted(set(found.values()))
+    return tuple(sorted(set(found.values())))
 
 
 class _BranchFreeStep(torch.nn.Module):
