@@ -37,6 +37,7 @@ if not __package__:  # run as `python benchmarks/calibrate_rods.py`: import the 
     sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from benchmarks.calibration.report import markdown, summarize
+from benchmarks.calibration.setups import SETUPS
 from benchmarks.cluster import Workers, add_arguments, call, repo_path
 from benchmarks.provenance import provenance
 from benchmarks.store import RunStore, source_digest, write_result
@@ -60,23 +61,36 @@ QUICK_FRAMES = 250  # 2.5 s clips and held-out motions in --quick
 
 
 def calibrate_rod(
-    rod: str, seconds: float, tracked: int, quick: bool, runs: str, vertices: int | None = None
+    rod: str,
+    seconds: float,
+    tracked: int,
+    quick: bool,
+    runs: str,
+    vertices: int | None = None,
+    setup: str = "session",
 ) -> dict:
-    """A task: clips of ``seconds`` of the rod's training motions, `deform calibrate` on them (its
-    default vertex count, or ``vertices``), and the three models scored on the held-out motions."""
+    """A task: clips of ``seconds`` of the rod's training motions filmed as the lab ``setup`` films
+    (benchmarks/calibration/setups.py), `deform calibrate` on them (its default vertex count, or
+    ``vertices``), and the three models scored on the held-out motions, filmed the same way."""
     import torch
 
     from benchmarks.calibration.clips import write_session
     from benchmarks.calibration.score import score
     from deform import DeformModel
 
-    clips, held, perception, camera = _session(rod, seconds, quick)
-    out = repo_path(runs) / (f"{rod}-{int(seconds)}s" + (f"-{vertices}v" if vertices else ""))
+    clips, held, lab, camera = _session(rod, seconds, quick, setup)
+    perception = lab.perception()
+    name = (
+        f"{rod}-{int(seconds)}s"
+        + (f"-{vertices}v" if vertices else "")
+        + (f"-{setup}" if setup != "session" else "")
+    )
+    out = repo_path(runs) / name
     out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f"calibrate_{rod}_"))
     try:
         t0 = time.perf_counter()
-        session = write_session(rod, clips, work, perception.render, camera)
+        session = write_session(rod, clips, work, lab, camera)
         render_s = time.perf_counter() - t0
         model_path = out / "calibrated.pt"
         cmd = [
@@ -84,6 +98,7 @@ def calibrate_rod(
             "--length", f"{session.length_m}", "--mass", f"{session.mass_kg}",
             "--config", str(session.config), "--out", str(model_path), "--report", str(out / "report"),
             "--prior-without", rod,  # the rope under test has no part in its own prior
+            *(["--perception", str(session.perception)] if session.perception else []),
             *(QUICK_BUDGET if quick else []),
             *(["--vertices", str(vertices)] if vertices else []),
         ]  # fmt: skip
@@ -100,7 +115,12 @@ def calibrate_rod(
     calibrated = DeformModel.load(model_path)
     cfg = calibrated.cfg
     scores = score(
-        _three_models(calibrated, rod, session.length_m, session.mass_kg), held, tracked, camera, perception
+        _three_models(calibrated, rod, session.length_m, session.mass_kg),
+        held,
+        tracked,
+        camera,
+        perception,
+        fps=lab.fps,
     )
     return dict(
         rod=rod,
@@ -122,22 +142,21 @@ def calibrate_rod(
     )
 
 
-def _session(rod: str, seconds: float, quick: bool) -> tuple:
-    """``(clips, held_out, perception, camera)``: the rod's clip and held-out motions (2.5 s of two
-    clips and one held-out motion in ``quick``), the default perception settings and the one camera
-    that films the session."""
+def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> tuple:
+    """``(clips, held_out, setup, camera)``: the rod's clip and held-out motions (2.5 s of two clips
+    and one held-out motion in ``quick``), the lab's :class:`Setup` and the one camera that films the
+    session."""
     from dataclasses import replace as dc_replace
 
-    from benchmarks.calibration.clips import motions, session_camera
-    from perception import load_config
+    from benchmarks.calibration.clips import motions
+    from benchmarks.calibration.setups import SETUPS, session_camera
 
     clips, held = motions(rod, seconds)
     if quick:
         clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
         held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
-    perception = load_config(None)
-    camera = session_camera([r.positions for r in clips + held], perception.render)
-    return clips, held, perception, camera
+    lab = SETUPS[setup]
+    return clips, held, lab, session_camera(lab, [r.positions for r in clips + held])
 
 
 def _three_models(calibrated, rod: str, length_m: float, mass_kg: float) -> dict:
@@ -163,11 +182,13 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     from benchmarks.calibration.score import score
     from deform import DeformModel
 
-    clips, held, perception, camera = _session(rod, seconds, quick=False)
+    setup = old.get("config", {}).get("setup", "session")
+    clips, held, lab, camera = _session(rod, seconds, quick=False, setup=setup)
     length_m, mass_kg = held_length_and_mass(rod, clips)
     torch.set_num_threads(1)
     calibrated = DeformModel.load(repo_path(old["model"]))
-    scores = score(_three_models(calibrated, rod, length_m, mass_kg), held, tracked, camera, perception)
+    models = _three_models(calibrated, rod, length_m, mass_kg)
+    scores = score(models, held, tracked, camera, lab.perception(), fps=lab.fps)
     kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
     return {**kept, "scores": scores, "rescored_from": old.get("rescored_from") or old["config"]["code"]}
 
@@ -194,6 +215,12 @@ def main(argv: list[str] | None = None) -> int:
         help="score the models of the stored run of this code digest again (their model files in --runs), "
         "without calibrating: a change of the scoring only",
     )
+    ap.add_argument(
+        "--setup",
+        default="session",
+        choices=sorted(SETUPS),
+        help="how the lab films: camera, rate, rope colour, noise (benchmarks/calibration/setups.py)",
+    )
     ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
     ap.add_argument("--out", type=Path, default=RESULTS)
     add_arguments(ap)
@@ -209,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     config = dict(tracked=args.tracked, quick=args.quick, code=code)
     if args.vertices:
         config["vertices"] = args.vertices
+    if args.setup != "session":  # rows of the default lab keep their keys
+        config["setup"] = args.setup
     store = RunStore(args.out / f"{args.stem}.runs")
     done = store.load(config)
     keys = {f"{rod}-{int(s)}s": (rod, s) for s in args.seconds for rod in args.rods}
@@ -224,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
         }
     else:
         tasks = {
-            key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs, args.vertices)
+            key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs, args.vertices, args.setup)
             for key, (rod, s) in keys.items()
             if key not in done
         }
@@ -253,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
             tracked=args.tracked,
             quick=args.quick,
             vertices=args.vertices,
+            setup=args.setup,
         ),
         "wall_s": round(time.time() - t0, 1),
         "complete": not failures,

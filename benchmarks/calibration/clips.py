@@ -15,15 +15,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from benchmarks.calibration.setups import Setup
 from deform import Recording, find_data_root, generate_recording, load_model, load_recording, load_rod_config
 from deform.io.arc_length import edge_lengths
 
 DT = 0.01
-FPS = 30.0
 CLIP_S = 5.0
-OCCLUDED = 0.25  # the share of the rope an occluder hides, in every other clip (30-80 % of it)
-CAMERA_DISTANCE_M = 1.2  # from the centre of all the session's motion
-CAMERA_ELEVATION_DEG = 30.0
 
 
 @dataclass(frozen=True)
@@ -35,6 +32,7 @@ class Session:
     length_m: float
     mass_kg: float
     seconds: float
+    perception: Path | None = None  # the settings file the user passes (the rope's colour range)
 
 
 def _sorted(files):
@@ -70,23 +68,15 @@ def motions(rod: str, seconds: float, root: Path | None = None) -> tuple[list[Re
     return [load_recording(train[i]) for i in pick], [load_recording(p) for p in held]
 
 
-def session_camera(positions: list[np.ndarray], render_cfg):
-    """One camera for the session, placed in front of all of its motion, looking down at it (a user
-    sets the camera up once, to see the whole workspace)."""
-    from perception import default_camera
-
-    cfg = replace(render_cfg, camera_distance=CAMERA_DISTANCE_M, camera_elevation_deg=CAMERA_ELEVATION_DEG)
-    return default_camera(np.concatenate(positions, axis=0), cfg)
-
-
-def write_session(rod: str, clips: list[Recording], out: Path, render_cfg, camera) -> Session:
-    """Render ``clips`` and write them as bags in ``out`` with the service config of their grippers.
+def write_session(rod: str, clips: list[Recording], out: Path, setup: Setup, camera) -> Session:
+    """Render ``clips`` and write them as bags in ``out`` with the service config of their grippers
+    and, when the lab's rope is not of the default colour, the settings file with its colour range.
 
     Args:
         rod: the rod (its length and mass are what the user gives).
         clips: the motions, each one clip.
         out: a directory (created).
-        render_cfg: perception's render settings (noise, dropouts, colours).
+        setup: how the lab films (benchmarks/calibration/setups.py).
         camera: the session's camera.
     """
     from perception import render_recording
@@ -94,20 +84,24 @@ def write_session(rod: str, clips: list[Recording], out: Path, render_cfg, camer
     from service.scenario import build_stream, offsets_for
 
     out.mkdir(parents=True, exist_ok=True)
+    render_cfg = setup.perception().render
     grippers = offsets_for(np.concatenate([c.positions for c in clips], axis=0))
     bags = []
     for i, clip in enumerate(clips):
-        cfg = replace(render_cfg, occlusion=OCCLUDED if i % 2 else 0.0)
-        frames = render_recording(clip.positions, dt=DT, fps=FPS, config=cfg, camera=camera, seed=1000 + i)
+        cfg = replace(render_cfg, occlusion=setup.occlusion_of_clip(i))
+        frames = render_recording(
+            clip.positions, dt=DT, fps=setup.fps, config=cfg, camera=camera, seed=1000 + i
+        )
         bag = out / f"clip{i:03d}.mcap"
         write_messages(
-            bag, "deform/rod1", build_stream(clip.positions, grippers, fps=FPS, seed=i, frames=frames)
+            bag, "deform/rod1", build_stream(clip.positions, grippers, fps=setup.fps, seed=i, frames=frames)
         )
         bags.append(bag)
     config = out / "service.yaml"
     config.write_text(yaml.safe_dump({"grippers": grippers.model_dump()}))
     length, mass = held_length_and_mass(rod, clips)
-    return Session(bags, config, length, mass, DT * sum(c.n_frames for c in clips))
+    seconds = DT * sum(c.n_frames for c in clips)
+    return Session(bags, config, length, mass, seconds, setup.settings_file(out))
 
 
 def held_length_and_mass(rod: str, clips: list[Recording]) -> tuple[float, float]:

@@ -91,6 +91,24 @@ def _rescored(result: dict) -> list[str]:
     ]
 
 
+def _setup(result: dict) -> list[str]:
+    """A line naming the lab's way of filming when it is not the default (benchmarks/calibration/setups.py)."""
+    from benchmarks.calibration.setups import SETUPS
+
+    name = result.get("args", {}).get("setup") or "session"
+    if name == "session":
+        return []
+    s = SETUPS[name]
+    return [
+        f"Filmed as the lab `{name}` films: clouds at {s.fps:g} Hz, camera {s.distance_m:g} m from the "
+        f"motion, {s.elevation_deg:g} degrees down and {s.azimuth_deg:g} off square, {s.scale:g} of "
+        f"640x576, rope RGB {tuple(s.rope_rgb)} given by its colour range (`--perception`), depth noise "
+        f"{1e3 * s.noise_base:g} mm + {s.noise_quad:g} z^2, {100 * s.dropout:g} % dropouts, "
+        f"{100 * s.occluded:g} % of the rope hidden in one clip of every {s.occluded_every}.",
+        "",
+    ]
+
+
 def markdown(result: dict) -> str:
     """The stored result as markdown: one row per rod and amount of clips."""
     summ = result.get("summary", {})
@@ -100,8 +118,9 @@ def markdown(result: dict) -> str:
         f"`{result.get('command', '')}` at commit {result.get('commit', '-')}, wall {result.get('wall_s', '-')} s.",
         "",
         *_rescored(result),
+        *_setup(result),
         "Calibrated from rendered clips of the rod's training motions (one camera, noise, dropouts, an "
-        "occluder in every other clip); scored on its held-out motions. Open loop: the paper's 500-step "
+        "occluder in some clips); scored on its held-out motions. Open loop: the paper's 500-step "
         "metric [cm]; tracking: two-way distance through a quarter-rope occlusion [mm], against the marker "
         "polyline and (rope) against the rope as rendered, on which the tracking targets are judged (against "
         "the markers only the shipped model, whose vertices are the markers, can score 0); 1 s: prediction "

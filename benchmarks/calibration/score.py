@@ -71,26 +71,29 @@ def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
     return dict(tracking=tracking, tracking_rope=tracking_rope, ahead=ahead)
 
 
-def render_held_out(recording: Recording, camera, render_cfg, seed: int):
-    """The clouds of a held-out motion: the session's camera, an occluder over a quarter of the rope."""
+def render_held_out(recording: Recording, camera, render_cfg, seed: int, fps: float = 30.0):
+    """The clouds of a held-out motion: the session's camera at its rate, an occluder over a quarter
+    of the rope."""
     from perception import render_recording
 
     cfg = replace(render_cfg, occlusion=OCCLUSION)
     return render_recording(
-        recording.positions, dt=recording.dt, fps=30.0, config=cfg, camera=camera, seed=seed
+        recording.positions, dt=recording.dt, fps=fps, config=cfg, camera=camera, seed=seed
     )
 
 
-def score(models: dict, held_out: list[Recording], tracked: int, camera, perception) -> dict:
+def score(
+    models: dict, held_out: list[Recording], tracked: int, camera, perception, fps: float = 30.0
+) -> dict:
     """Every model on the held-out motions: open loop on all of them, tracking and 1 s prediction on
-    the first ``tracked`` (the same clouds for every model).
+    the first ``tracked`` (the same clouds for every model, ``fps`` clouds a second).
 
     Returns:
         ``{name: {open_loop: {...}, tracking_mm, tracking_rope_mm, prediction_1s_mm, per_recording: {...}}}``.
     """
     out = {name: dict(open_loop=open_loop(m, held_out), per_recording={}) for name, m in models.items()}
     for i, rec in enumerate(held_out[:tracked]):
-        frames = render_held_out(rec, camera, perception.render, seed=2000 + i)
+        frames = render_held_out(rec, camera, perception.render, seed=2000 + i, fps=fps)
         for name, m in models.items():
             r = track_and_predict(m, rec.positions, frames, perception)
             out[name]["per_recording"][rec.name] = dict(
