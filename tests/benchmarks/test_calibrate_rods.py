@@ -85,3 +85,45 @@ def test_a_rescored_run_names_the_calibrations_it_scored():
     assert "Scored again" not in markdown({"summary": summarize([row]), "rows": [row]})
     row["rescored_from"] = "86b12ada2b"
     assert "stored run of code 86b12ada2b" in markdown({"summary": summarize([row]), "rows": [row]})
+
+
+def _swing(frames=12, n=12):
+    x = np.zeros((frames, n, 3))
+    x[..., 0] = np.linspace(-0.4, 0.4, n)
+    x[..., 2] = 0.5 - 0.2 * np.sin(np.linspace(0, np.pi, n))[None] * np.linspace(1, 0.8, frames)[:, None]
+    return x
+
+
+def test_the_default_lab_films_as_the_benchmark_always_did():
+    from dataclasses import replace
+
+    from benchmarks.calibration.setups import SETUPS, session_camera
+    from perception import default_camera
+
+    lab, x = SETUPS["session"], _swing()
+    render = replace(lab.perception().render, camera_distance=1.2, camera_elevation_deg=30.0)
+    assert lab.perception().render == render  # the default renderer at the session's place
+    assert np.array_equal(
+        session_camera(lab, [x]).world_from_camera, default_camera(x, render).world_from_camera
+    )
+    assert [lab.occlusion_of_clip(i) for i in range(4)] == [0.0, 0.25, 0.0, 0.25]
+    assert lab.settings_file(None) is None  # the default colour range: no file for the user to give
+
+
+def test_another_labs_rope_is_found_by_its_own_colour_range_only(tmp_path):
+    from benchmarks.calibration.setups import SETUPS, session_camera
+    from perception import load_config, render_recording, segment_rope
+
+    lab, x = SETUPS["other_lab"], _swing()
+    camera = session_camera(lab, [x])
+    square_on = session_camera(SETUPS["session"], [x])
+    assert camera.width == round(640 * 0.75) and not np.allclose(
+        camera.world_from_camera, square_on.world_from_camera
+    )
+    (frame,) = render_recording(x[:1], dt=0.01, fps=lab.fps, config=lab.perception().render, camera=camera)
+    users = load_config(str(lab.settings_file(tmp_path)))  # what the user passes: the colour range
+    assert (
+        users.render == load_config(None).render
+    )  # the file holds the colour range, nothing of the renderer
+    found = segment_rope(frame.xyz, frame.rgb, users.segmentation).sum()
+    assert found > 100 and segment_rope(frame.xyz, frame.rgb, load_config(None).segmentation).sum() == 0
