@@ -64,7 +64,7 @@ class Budget:
     round_time_limit_s: float | None = 420.0  # training time per round at most
     score_horizon: int = 50  # steps of the held-out prediction fit (0.5 s)
     score_every: int = 25  # steps between its starts
-    held_out_every: int = 5  # every k-th clip (by name) is held out; one clip: its last 30 %
+    held_out_every: int = 5  # every k-th clip (by name) is held out; fewer clips: their last 30 % (split)
     seed: int = 0
 
 
@@ -128,14 +128,21 @@ def start_model(
     return model.eval()
 
 
-def split(tracks: list[Track], every: int) -> tuple[list[Track], list[Track]]:
-    """(train, held out): every ``every``-th track by name, at least one of each; a single track
-    is cut in two (its last 30 % held out)."""
+def split(tracks: list[Track], every: int, min_frames: int = 0) -> tuple[list[Track], list[Track]]:
+    """(train, held out). With ``every`` tracks or more, every ``every``-th track by name, whole.
+    With fewer, each track is cut in two and its last 30 % held out, when every such piece keeps
+    ``min_frames`` (the held-out fit's window); else the first track is held out whole. A single
+    track is always cut.
+
+    Why cut: a lab that records two or three bags would otherwise train on a half or two thirds of
+    its motion; the cut keeps 70 % of each for training and still holds out motion training never saw.
+    """
     tracks = sorted(tracks, key=lambda t: t.name)
-    if len(tracks) == 1:
-        t = tracks[0]
-        k = int(0.7 * t.n_frames)
-        return [cut(t, 0, k, f"{t.name}[train]")], [cut(t, k, t.n_frames, f"{t.name}[held out]")]
+    if len(tracks) < every:
+        stops = [int(0.7 * t.n_frames) for t in tracks]
+        if len(tracks) == 1 or all(t.n_frames - k >= min_frames for t, k in zip(tracks, stops)):
+            train = [cut(t, 0, k, f"{t.name}[train]") for t, k in zip(tracks, stops)]
+            return train, [cut(t, k, t.n_frames, f"{t.name}[held out]") for t, k in zip(tracks, stops)]
     held = tracks[::every]
     return [t for t in tracks if t not in held], held
 
@@ -270,7 +277,7 @@ def calibrate(
     tracks = _track_all(clips, model, grippers, perception, rest, progress, "track (length and mass only)")
     check_rope_seen(tracks, perception.segmentation)
     checks = {"length": check_length(tracks, length_m, float(rest[1:-1].sum()))}
-    train_t, held_t = split(tracks, budget.held_out_every)
+    train_t, held_t = split(tracks, budget.held_out_every, budget.score_horizon + 2)
     out = Calibration(
         model=None,
         start=model,
@@ -295,7 +302,7 @@ def calibrate(
             copy.deepcopy(best), usable, held_t, budget, first=r == 1, progress=progress
         )
         new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
-        new_train, new_held = split(new_tracks, budget.held_out_every)
+        new_train, new_held = split(new_tracks, budget.held_out_every, budget.score_horizon + 2)
         fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)
         kept = bool(fit < best_fit * (1 - MIN_GAIN))
         summary = {
