@@ -37,6 +37,7 @@ from tqdm import tqdm
 from calibrate.bags import Clip
 from calibrate.checks import check_length, check_rope_seen, motion_problem
 from calibrate.errors import CalibrationError
+from calibrate.identifiability import parameter_ranges
 from calibrate.points import polyline_distances
 from calibrate.tracks import Track, cut, track_clip
 from deform import DeformModel, ModelOptions, generic_rod
@@ -94,6 +95,8 @@ class Calibration:
     checks: dict = field(default_factory=dict)
     problem: str | None = None
     seconds: float = 0.0
+    # how well the held-out clips pin down each parameter (calibrate.identifiability)
+    parameter_ranges: dict = field(default_factory=dict)
 
 
 def rest_lengths(length_m: float, n_vertices: int, grippers: Grippers) -> np.ndarray:
@@ -314,6 +317,9 @@ def calibrate(
             break
         best, best_fit, train_t, held_t, out.tracks = candidate, fit, new_train, new_held, new_tracks
     out.model = best
+    out.parameter_ranges = parameter_ranges(
+        best, lambda m: prediction_fit(m, held_t, budget.score_horizon, budget.score_every), MIN_GAIN
+    )
     out.seconds = time.perf_counter() - t_start
     return out
 

@@ -64,6 +64,12 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     )
     assert report["model_written"] and report["held_out_clips"] == ["clip0"]
     assert len(report["coverage_per_vertex"]) == N and report["rounds"][0]["round"] == 0
+    told = report["identified"]["told_within"]  # each parameter's range, from the held-out clips
+    assert set(told) == {"bend_stiffness_Nm2", "damping_per_s", "drag_per_m"}
+    found = report["identified"]["found"]["bend_stiffness_Nm2"]
+    assert all(v is None or v > 0 for span in told.values() for v in span)
+    assert told["bend_stiffness_Nm2"][0] is None or told["bend_stiffness_Nm2"][0] < found
+    assert "| told within |" in (out_dir / "rope_report" / "report.md").read_text()
     assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (out_dir / "rope_report").iterdir()}
 
 
