@@ -267,10 +267,22 @@ def render_calibrate_rods(d: dict) -> list[str]:
                 + (f" (missed: {'; '.join(missed)})" if missed else ""),
             ]
         )
+    setup = get(d, "args", "setup") or "session"
+    lab = (
+        []
+        if setup == "session"
+        else [
+            f"Filmed as the lab `{setup}` films (`benchmarks/calibration/setups.py`: camera place and rate, "
+            "rope colour given by its range, noise, occluders), the held-out motions too.",
+            "",
+        ]
+    )
     return (
-        [
+        lab
+        + [
             "Calibrated from rendered camera clips of the rod's training motions alone (one camera for the "
-            "session, depth noise, dropouts, an occluder in every other clip), `deform calibrate` with its "
+            f"session, depth noise, dropouts, an occluder in {'every other clip' if setup == 'session' else 'some clips'}), "
+            "`deform calibrate` with its "
             "defaults; scored on the held-out motions (eval; DLO4, DLO5: the held-out fifth of train) beside "
             "the shipped mocap-trained model and the generic DER of the same length and mass. Each cell: "
             "calibrated / shipped / generic. Open loop: the paper's 500-step metric [cm]; tracking: two-way "
