@@ -74,10 +74,13 @@ def parameter_ranges(model: DeformModel, fit, tolerance: float) -> dict:
 
     Returns:
         ``{parameter: {"found", "unit", "fit_by_factor", "told_within": [low, high] (values; None:
-        not bounded on that side), "told": bool}}``, and ``"held_out_fit_m"``.
+        not bounded on that side), "told": bool}}``, ``"held_out_fit_m"`` and ``"tolerance"``; no
+        parameter when the found model's fit is not finite (nothing to tell values apart with).
     """
     best = fit(model)
     out: dict = {"held_out_fit_m": best, "tolerance": tolerance}
+    if not math.isfinite(best):  # nothing held out to tell values apart with
+        return out
     for name, (attr, unit) in PARAMETERS.items():
         values = getattr(model, attr).detach().double().exp()
         found = float(values.median())

@@ -32,3 +32,8 @@ def test_a_parameter_the_fit_does_not_see_is_reported_as_not_told():
     assert not out["damping_per_s"]["told"] and out["damping_per_s"]["told_within"] == [None, None]
     assert scaled(model, "drag_per_m", 2.0).drag.item() == pytest.approx(2 * model.drag.item())
     assert model.drag.item() == pytest.approx(scaled(model, "drag_per_m", 1.0).drag.item())  # a copy
+
+
+def test_nothing_is_claimed_without_a_held_out_fit():
+    out = parameter_ranges(generic_model(1.0, 0.05, 10), lambda m: float("nan"), tolerance=0.01)
+    assert set(out) == {"held_out_fit_m", "tolerance"}
