@@ -218,10 +218,14 @@ def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     msg = decode(raw, POINT_CLOUD2)
     if msg.height <= 1:
         raise InputError("unorganized_cloud", f"height {msg.height}")
-    rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), "rgb": (FLOAT32, UINT32)})
+    # colour as "rgb" (most drivers) or "rgba" (PCL's PointXYZRGBA, some structured-light cameras):
+    # both pack red, green, blue in the low three bytes
+    names = {f.name for f in msg.fields}
+    colour = "rgba" if "rgba" in names and "rgb" not in names else "rgb"
+    rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), colour: (FLOAT32, UINT32)})
     H, W = int(msg.height), int(msg.width)
     xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).reshape(H, W, 3)
-    packed = rec["rgb"].view(np.uint32) if rec["rgb"].dtype == np.float32 else rec["rgb"]
+    packed = rec[colour].view(np.uint32) if rec[colour].dtype == np.float32 else rec[colour]
     rgb = (
         np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)
         .astype(np.uint8)

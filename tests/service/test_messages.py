@@ -33,6 +33,37 @@ def test_organized_cloud_round_trip():
     np.testing.assert_array_equal(rgb2, rgb)
 
 
+def test_a_drivers_cloud_layout_is_read():
+    """PCL's PointXYZRGBA layout as drivers publish it: 32-byte points (x y z, padding, rgba as uint32
+    with alpha in the top byte, padding), padded rows, colour named "rgba"."""
+    rng = np.random.default_rng(3)
+    H, W, step, row = 3, 5, 32, 32 * 5 + 8
+    xyz = rng.normal(size=(H, W, 3)).astype(np.float32)
+    xyz[1, 2] = np.nan
+    rgb = rng.integers(0, 256, (H, W, 3)).astype(np.uint8)
+    data = np.zeros((H, row), np.uint8)
+    pts = data[:, : step * W].reshape(H, W, step)
+    pts[..., 0:12] = xyz.view(np.uint8).reshape(H, W, 12)
+    packed = (
+        (0xFF << 24)
+        | (rgb[..., 0].astype(np.uint32) << 16)
+        | (rgb[..., 1].astype(np.uint32) << 8)
+        | rgb[..., 2]
+    )
+    pts[..., 16:20] = packed.astype("<u4").view(np.uint8).reshape(H, W, 4)
+    PF = M.T["sensor_msgs/msg/PointField"]
+    fields = [PF(name=n, offset=4 * i, datatype=M.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    fields.append(PF(name="rgba", offset=16, datatype=M.UINT32, count=1))
+    msg = M.T[M.POINT_CLOUD2](
+        header=M.header(9, "camera_color_optical_frame"), height=H, width=W, fields=fields,
+        is_bigendian=False, point_step=step, row_step=row, data=data.reshape(-1), is_dense=False,
+    )  # fmt: skip
+    stamp, xyz2, rgb2, frame = M.parse_point_cloud(M.encode(msg, M.POINT_CLOUD2))
+    assert stamp == 9 and frame == "camera_color_optical_frame"
+    np.testing.assert_array_equal(xyz2, xyz)
+    np.testing.assert_array_equal(rgb2, rgb)
+
+
 def test_vertices_camera_info_pose_stamped_round_trip():
     x = np.random.default_rng(1).normal(size=(13, 3))
     obs = np.arange(13) % 3 == 0
