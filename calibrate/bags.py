@@ -130,6 +130,47 @@ def _first(reader, conn):
     return None
 
 
+def _camera_info_values(reader, conn) -> tuple | None:
+    """A CameraInfo topic's intrinsics, image size and frame (of its first message); None if unusable."""
+    raw = _first(reader, conn)
+    if raw is None:
+        return None
+    try:
+        _, K, width, height = M.parse_camera_info(raw)
+        return (tuple(np.round(K, 6).ravel()), width, height, M.decode(raw, M.CAMERA_INFO).header.frame_id)
+    except M.InputError:
+        return None
+
+
+def _pick_camera_info(path: Path, reader, chosen: str | None, points_conn):
+    """The CameraInfo topic of the cloud's image: the ``chosen`` one, the only one, or among several
+    (a driver publishes its colour, depth and aligned-depth intrinsics side by side) those of the
+    organized cloud's size, when they all say the same (one camera's intrinsics published twice)."""
+    conns = [c for c in reader.connections if c.msgtype == M.CAMERA_INFO]
+    if chosen is not None or len({c.topic for c in conns}) <= 1:
+        return _pick(path, reader, M.CAMERA_INFO, chosen, "--topic-camera-info", "camera info")
+    raw = _first(reader, points_conn)
+    try:
+        cloud = M.decode(raw, M.POINT_CLOUD2) if raw is not None else None
+    except M.InputError:
+        cloud = None
+    values = {c.topic: _camera_info_values(reader, c) for c in conns}
+    fitting = [
+        c
+        for c in conns
+        if values[c.topic] is not None
+        and cloud is not None
+        and values[c.topic][1:3] == (cloud.width, cloud.height)
+    ]
+    if fitting and len({values[c.topic] for c in fitting}) == 1:
+        return fitting[0]
+    names = ", ".join(sorted({c.topic for c in conns}))
+    why = "" if fitting else ", none of them of the clouds' size"
+    raise CalibrationError(
+        f"{path}: several camera info topics ({names}){why}: choose one with --topic-camera-info"
+    )
+
+
 def _organized(reader, conn) -> bool:
     """A camera's cloud is organized (height > 1); the service's own ``vertices`` output is not."""
     raw = _first(reader, conn)
@@ -236,7 +277,7 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         )
         if points_c is None or points_c.msgcount == 0:
             raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
-        info_c = _pick(path, reader, M.CAMERA_INFO, topics.camera_info, "--topic-camera-info", "camera info")
+        info_c = _pick_camera_info(path, reader, topics.camera_info, points_c)
         if info_c is None:
             raise CalibrationError(f"{path}: no camera intrinsics (no {M.CAMERA_INFO} topic)")
         try:

@@ -11,6 +11,7 @@ import yaml
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from calibrate.bags import read_clip
+from calibrate.errors import CalibrationError
 from calibrate.tracks import track_clip
 from deform import generate_recording, generic_model
 from perception import load_config, render_recording
@@ -80,7 +81,8 @@ def lab_recording():
     return truth, fine, frames, offsets_for(truth)
 
 
-def _write_bag(path, storage: StoragePlugin, truth, frames, grippers) -> None:
+def _write_bag(path, storage: StoragePlugin, truth, frames, grippers, more_infos: dict | None = None) -> None:
+    """``more_infos``: further CameraInfo topics, ``{topic: (K, width, height)}``, beside the colour one."""
     camera = frames[0].camera
     world_from_link = camera.world_from_camera @ np.linalg.inv(LINK_FROM_OPTICAL)
     K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
@@ -99,6 +101,9 @@ def _write_bag(path, storage: StoragePlugin, truth, frames, grippers) -> None:
         )
         w.write(tf, T0_NS, ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
         w.write(info, T0_NS, M.camera_info(T0_NS, K, camera.width, camera.height, frame_id=OPTICAL))
+        for topic, (K_, width, height) in (more_infos or {}).items():
+            conn = w.add_connection(topic, M.CAMERA_INFO, typestore=ts)
+            w.write(conn, T0_NS, M.camera_info(T0_NS, K_, width, height, frame_id=OPTICAL))
         clouds = {T0_NS + (CLOUD_PHASE_MS + f.step) * 1_000_000: f for f in frames}
         for k in range(len(truth)):
             stamp = T0_NS + k * 10_000_000
@@ -122,6 +127,25 @@ def test_a_ros2_bag_folder_gives_the_camera_from_tf_static_and_every_cloud(lab_r
     np.testing.assert_allclose(
         pose_matrix(clip.poses[10, 0])[:3, 3], poses_from_vertices(truth, grippers)[10, 0, :3], atol=1e-12
     )
+
+
+def test_the_intrinsics_of_the_clouds_image_are_found_among_a_drivers_several(lab_recording, tmp_path):
+    """A camera driver publishes its depth sensor's intrinsics (another size) and the aligned depth's
+    (the colour ones again) beside the colour ones the cloud is registered to: the cloud's are taken
+    without a ``--topic-camera-info``; two that disagree at the cloud's size are refused by name."""
+    truth, _, frames, grippers = lab_recording
+    camera = frames[0].camera
+    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
+    depth = (np.array([[420.0, 0, 424], [0, 420, 240], [0, 0, 1]]), 848, 480)
+    driver = {"/camera/camera/depth/camera_info": depth,
+              "/camera/camera/aligned_depth_to_color/camera_info": (K, camera.width, camera.height)}  # fmt: skip
+    _write_bag(tmp_path / "driver", StoragePlugin.MCAP, truth, frames, grippers, driver)
+    clip = read_clip(tmp_path / "driver", ServiceConfig(grippers=grippers))
+    assert (clip.camera.fx, clip.camera.width, clip.camera.height) == (camera.fx, camera.width, camera.height)
+    other = {"/camera/ir/camera_info": (K * [[1.1], [1.1], [1]], camera.width, camera.height)}
+    _write_bag(tmp_path / "two", StoragePlugin.MCAP, truth, frames, grippers, other)
+    with pytest.raises(CalibrationError, match=r"several camera info topics.*/camera/ir/camera_info"):
+        read_clip(tmp_path / "two", ServiceConfig(grippers=grippers))
 
 
 def test_the_lab_clip_is_tracked_with_its_colour_range(lab_recording, tmp_path):
