@@ -4,8 +4,8 @@ check that `deform calibrate` is not tuned to it (issue 49: the acceptance runs 
 colour and topics that we do not have).
 
 A setup reaches `deform calibrate` only as a user's would: through the bags (clouds at the
-camera's rate, the camera pose on ``/tf_static``) and a perception settings file holding the
-rope's colour range (``--perception``). Nothing else of it is passed.
+camera's rate, its intrinsics and pose as ``deform-service record`` writes them) and a perception
+settings file holding the rope's colour range (``--perception``). Nothing else of it is passed.
 """
 
 from __future__ import annotations
