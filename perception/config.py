@@ -88,6 +88,7 @@ class RenderConfig:
     table_z: float = 0.0
     camera_distance: float = 1.0  # m from the scene centre
     camera_elevation_deg: float = 35.0
+    camera_azimuth_deg: float = 0.0  # turned about the vertical from the view square on to the rope
     noise_base: float = 0.001  # m, depth noise std = base + quad * z^2
     noise_quad: float = 0.0015
     edge_jump: float = 0.02  # m, depth jump that invalidates the far pixel of an edge

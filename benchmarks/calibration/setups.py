@@ -10,7 +10,6 @@ settings file holding the rope's colour range (``--perception``). Nothing else o
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -52,6 +51,7 @@ class Setup:
             rope_rgb=self.rope_rgb,
             camera_distance=self.distance_m,
             camera_elevation_deg=self.elevation_deg,
+            camera_azimuth_deg=self.azimuth_deg,
             noise_base=self.noise_base,
             noise_quad=self.noise_quad,
             dropout=self.dropout,
@@ -103,20 +103,10 @@ SETUPS = {
 
 
 def session_camera(setup: Setup, positions: list[np.ndarray]):
-    """One camera for the session, placed once to see all of its motion: ``distance_m`` from the
-    centre of the motion's bounding box, ``elevation_deg`` down, ``azimuth_deg`` off the view square
-    on to the first clip's gripper-to-gripper direction."""
-    from perception import Camera, look_at
+    """One camera for the session, placed once to see all of its motion (perception's
+    :func:`default_camera` with the lab's place: ``distance_m`` from the centre of the motion,
+    ``elevation_deg`` down, ``azimuth_deg`` off the view square on to the first clip's
+    gripper-to-gripper direction)."""
+    from perception import default_camera
 
-    p = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in positions], axis=0)
-    centre = 0.5 * (p.min(0) + p.max(0))
-    first = np.asarray(positions[0], dtype=np.float64)
-    span = first[0, -1] - first[0, 0]
-    span[2] = 0.0
-    side = np.array([1.0, 0.0, 0.0]) if np.linalg.norm(span) < 1e-6 else span / np.linalg.norm(span)
-    toward = np.cross(np.array([0.0, 0.0, 1.0]), side)
-    az = math.radians(setup.azimuth_deg)
-    toward = math.cos(az) * toward + math.sin(az) * side
-    el = math.radians(setup.elevation_deg)
-    eye = centre + setup.distance_m * (math.cos(el) * toward + math.sin(el) * np.array([0.0, 0.0, 1.0]))
-    return Camera.kinect(setup.scale, look_at(eye, centre))
+    return default_camera(np.concatenate(positions, axis=0), setup.perception().render)

@@ -34,7 +34,8 @@ def rope_centreline(x: np.ndarray, samples_per_segment: int = 8) -> np.ndarray:
 
 def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:
     """A Kinect-like camera in front of the workspace, looking down at ``camera_elevation_deg``,
-    perpendicular to the gripper-to-gripper direction of the first frame.
+    perpendicular to the gripper-to-gripper direction of the first frame, turned
+    ``camera_azimuth_deg`` about the vertical from there.
 
     Args:
         positions: (T, n, 3) the motion to film [m].
@@ -49,6 +50,9 @@ def default_camera(positions: np.ndarray, cfg: RenderConfig) -> Camera:
     span[2] = 0.0
     side = np.array([1.0, 0.0, 0.0]) if np.linalg.norm(span) < 1e-6 else span / np.linalg.norm(span)
     toward = np.cross(np.array([0.0, 0.0, 1.0]), side)  # horizontal, perpendicular to the rope plane
+    if cfg.camera_azimuth_deg:
+        az = math.radians(cfg.camera_azimuth_deg)
+        toward = math.cos(az) * toward + math.sin(az) * side
     el = math.radians(cfg.camera_elevation_deg)
     eye = centre + cfg.camera_distance * (math.cos(el) * toward + math.sin(el) * np.array([0.0, 0.0, 1.0]))
     return Camera.kinect(cfg.scale, look_at(eye, centre))
