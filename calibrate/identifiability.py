@@ -73,12 +73,13 @@ def parameter_ranges(model: DeformModel, fit, tolerance: float) -> dict:
         tolerance: relative worsening that tells a value apart (calibrate's MIN_GAIN).
 
     Returns:
-        ``{parameter: {"found", "unit", "fit_by_factor", "told_within": [low, high] (values; None:
-        not bounded on that side), "told": bool}}``, ``"held_out_fit_m"`` and ``"tolerance"``; no
-        parameter when the found model's fit is not finite (nothing to tell values apart with).
+        ``{"held_out_fit_m", "tolerance", "parameters": {parameter: {"found", "unit",
+        "fit_by_factor", "told_within": [low, high] (values; None: not bounded on that side),
+        "told": bool}}}``; no parameter when the found model's fit is not finite (nothing to tell
+        values apart with).
     """
     best = fit(model)
-    out: dict = {"held_out_fit_m": best, "tolerance": tolerance}
+    out: dict = {"held_out_fit_m": best, "tolerance": tolerance, "parameters": {}}
     if not math.isfinite(best):  # nothing held out to tell values apart with
         return out
     for name, (attr, unit) in PARAMETERS.items():
@@ -86,7 +87,7 @@ def parameter_ranges(model: DeformModel, fit, tolerance: float) -> dict:
         found = float(values.median())
         fits = {f: fit(scaled(model, name, f)) for f in FACTORS}
         low, high = told_range(fits, best, tolerance)
-        out[name] = {
+        out["parameters"][name] = {
             "found": found,
             "unit": unit,
             "fit_by_factor": {f"{f:.3g}": fits[f] for f in FACTORS},

@@ -72,10 +72,11 @@ def _identified(cal: Calibration) -> dict | None:
         return None
     out = identified(cal.model, cal.start)
     ranges = cal.parameter_ranges
-    out["told_within"] = {k: v["told_within"] for k, v in ranges.items() if isinstance(v, dict)}
-    out["held_out_fit_by_factor"] = {k: v["fit_by_factor"] for k, v in ranges.items() if isinstance(v, dict)}
-    for k, v in ranges.items():
-        if isinstance(v, dict) and not v["told"]:
+    params = ranges.get("parameters", {})
+    out["told_within"] = {k: v["told_within"] for k, v in params.items()}
+    out["held_out_fit_by_factor"] = {k: v["fit_by_factor"] for k, v in params.items()}
+    for k, v in params.items():
+        if not v["told"]:
             out["not_identifiable"].append(
                 f"{k}: the held-out fit stays within {100 * ranges['tolerance']:g} % of the best "
                 f"{_span(v['told_within'], v['unit'])}"
