@@ -97,6 +97,14 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rounds", type=_count(1), default=None, help="train-and-track-again rounds at most")
     b.add_argument("--horizon", type=_count(2), default=None, help="training window [steps]")
     b.add_argument("--batch", type=_count(1), default=None, help="training windows per iteration")
+    b.add_argument(
+        "--time-limit",
+        type=_positive,
+        default=30.0,
+        metavar="MIN",
+        help="stop training early and skip rounds rather than run longer than this (default 30; "
+        "about 15 min of work for 50 s of clips never reaches it)",
+    )
     p.add_argument(
         "--prior-without",
         nargs="+",
@@ -179,7 +187,7 @@ def run(args) -> int:
         }.items()
         if v is not None
     }
-    budget = replace(Budget(seed=args.seed), **given)
+    budget = replace(Budget(seed=args.seed, time_limit_s=60.0 * args.time_limit), **given)
     if args.horizon is not None:
         budget = replace(budget, curriculum=tuple(h for h in budget.curriculum if h < args.horizon))
     cal = calibrate(

@@ -50,10 +50,15 @@ MIN_GAIN = 0.01  # a round is kept when it improves the held-out fit by at least
 
 @dataclass(frozen=True)
 class Budget:
-    """How much work calibration does. The default, measured on 10 synthetic clips of 5 s (DLO1's
-    shipped model moved by random gripper motions, rendered at 30 fps): 13 min 19 s on one core
-    (tracking 33 s a pass, the first round 376 s, later rounds 190 s each); ``rounds`` caps the
-    train-and-track-again rounds."""
+    """How much work calibration does: iteration counts, so that the same clips give the same model
+    on a fast machine and on a busy one. On 50 s of clips on one core: tracking about 35 s a pass, the
+    first round about 8 min, later rounds about 4 min each; ``rounds`` caps the
+    train-and-track-again rounds.
+
+    ``time_limit_s`` is a safety net for a slow or crowded machine, not a budget: training stops
+    early when the whole calibration would otherwise pass it, and a round whose predecessor's
+    duration would not fit is not started (the report says so). Where it binds, results depend on the
+    machine's speed."""
 
     iterations: int = 500  # first round: coarse identification, then these training iterations
     refine_iterations: int = 200  # each later round, from the previous round's model
@@ -62,7 +67,7 @@ class Budget:
     curriculum: tuple[int, ...] = (10, 25, 50)
     curriculum_iters: int = 40
     rounds: int = 3
-    round_time_limit_s: float | None = 420.0  # training time per round at most
+    time_limit_s: float | None = 1800.0  # the whole calibration at most this long (None: no limit)
     score_horizon: int = 50  # steps of the held-out prediction fit (0.5 s)
     score_every: int = 25  # steps between its starts
     held_out_every: int = 5  # every k-th clip (by name) is held out; fewer clips: their last 30 % (split)
@@ -79,6 +84,8 @@ class Round:
     kept: bool
     seconds: float
     train: dict | None = None
+    # the time limit cut this round's training short (Budget.time_limit_s)
+    cut_by_time_limit: bool = False
 
 
 @dataclass
@@ -97,6 +104,8 @@ class Calibration:
     seconds: float = 0.0
     # how well the held-out clips pin down each parameter (calibrate.identifiability)
     parameter_ranges: dict = field(default_factory=dict)
+    # what Budget.time_limit_s left undone (empty: nothing)
+    time_limit_notes: list[str] = field(default_factory=list)
 
 
 def rest_lengths(length_m: float, n_vertices: int, grippers: Grippers) -> np.ndarray:
@@ -208,7 +217,9 @@ def _track_all(clips, model, grippers, perception, rest, progress, label) -> lis
     return tracks
 
 
-def _train(model, train_tracks, held_tracks, budget: Budget, first: bool, progress: bool) -> tuple:
+def _train(
+    model, train_tracks, held_tracks, budget: Budget, first: bool, progress: bool, time_limit_s: float | None
+) -> tuple:
     cfg = TrainConfig(
         iterations=budget.iterations if first else budget.refine_iterations,
         batch=budget.batch,
@@ -216,7 +227,7 @@ def _train(model, train_tracks, held_tracks, budget: Budget, first: bool, progre
         curriculum=budget.curriculum if first else (),
         curriculum_iters=budget.curriculum_iters,
         seed=budget.seed,
-        time_limit_s=budget.round_time_limit_s,
+        time_limit_s=time_limit_s,
         coarse_sysid=first,
         residual=True,
         sysid=True,
@@ -298,12 +309,19 @@ def calibrate(
     best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
     out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
     best = model
+    track_s = out.rounds[0].seconds  # a tracking pass and its scoring: what a round adds to training
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
+        left = _time_left(budget, t_start)
+        if r > 1 and left is not None and left < out.rounds[-1].seconds:
+            out.time_limit_notes.append(
+                f"rounds {r}..{budget.rounds} not started: the time limit ({budget.time_limit_s:g} s) "
+                f"left {left:.0f} s, round {r - 1} took {out.rounds[-1].seconds:.0f} s"
+            )
+            break
+        train_limit = None if left is None else max(left - track_s, 1e-3)  # 0 would mean none
         usable = [t for t in train_t if t.n_frames >= budget.horizon + 2] or train_t
-        candidate, result = _train(
-            copy.deepcopy(best), usable, held_t, budget, first=r == 1, progress=progress
-        )
+        candidate, result = _train(copy.deepcopy(best), usable, held_t, budget, r == 1, progress, train_limit)
         new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
         new_train, new_held = split(new_tracks, budget.held_out_every, budget.score_horizon + 2)
         fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)
@@ -312,7 +330,16 @@ def calibrate(
             k: result.get(k) for k in ("best_val_l1_m", "coarse_identification", "seconds_per_iteration_p50")
         }
         summary["iterations"] = result.get("last", {}).get("iteration")
-        out.rounds.append(Round(r, fit, tracking_fit(new_held), kept, time.perf_counter() - t0, summary))
+        wanted = budget.iterations if r == 1 else budget.refine_iterations
+        cut_short = (summary["iterations"] or 0) < wanted
+        if cut_short:
+            out.time_limit_notes.append(
+                f"round {r} trained {summary['iterations']} of {wanted} iterations: the time limit "
+                f"({budget.time_limit_s:g} s) was near"
+            )
+        out.rounds.append(
+            Round(r, fit, tracking_fit(new_held), kept, time.perf_counter() - t0, summary, cut_short)
+        )
         if not kept:
             break
         best, best_fit, train_t, held_t, out.tracks = candidate, fit, new_train, new_held, new_tracks
@@ -322,6 +349,13 @@ def calibrate(
     )
     out.seconds = time.perf_counter() - t_start
     return out
+
+
+def _time_left(budget: Budget, t_start: float) -> float | None:
+    """Seconds left of ``budget.time_limit_s`` since ``t_start`` (None: no limit)."""
+    if budget.time_limit_s is None:
+        return None
+    return budget.time_limit_s - (time.perf_counter() - t_start)
 
 
 def identified(model: DeformModel, start: DeformModel) -> dict:

@@ -57,9 +57,11 @@ def build(cal: Calibration, clips: list[Clip], inputs: dict) -> dict:
                 "kept": r.kept,
                 "seconds": round(r.seconds, 1),
                 "train": r.train,
+                "cut_by_time_limit": r.cut_by_time_limit,
             }
             for r in cal.rounds
         ],
+        "time_limit_notes": list(cal.time_limit_notes),
         "identified": _identified(cal),
         "tracks": tracks,
     }
@@ -167,6 +169,11 @@ def _markdown(data: dict, plots: list[str]) -> str:
                 f"{r['held_out_tracking_fit_m'] * 1000:.2f} | {'yes' if r['kept'] else 'no'} | {r['seconds']:.0f} |"
             )
         lines += ["", f"Held out: {', '.join(data['held_out_clips'])}.", ""]
+        for note in data["time_limit_notes"]:
+            lines += [
+                f"**Time limit**: {note} (a faster or quieter machine gives the full budget's model).",
+                "",
+            ]
     if data["identified"]:
         f, s = data["identified"]["found"], data["identified"]["start"]
         told = data["identified"].get("told_within", {})

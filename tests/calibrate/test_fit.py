@@ -1,9 +1,15 @@
-"""Which tracked motion trains and which is held out (calibrate.fit.split)."""
+"""Which tracked motion trains and which is held out (calibrate.fit.split); the time limit cuts
+work short and says so (calibrate.fit.calibrate)."""
 
 import numpy as np
 
-from calibrate.fit import split
+from calibrate.bags import read_clip
+from calibrate.fit import Budget, calibrate, split
 from calibrate.tracks import Track
+from perception import PerceptionConfig
+from service.config import ServiceConfig
+
+from .conftest import LENGTH, MASS, N
 
 
 def _track(name: str, frames: int) -> Track:
@@ -45,3 +51,28 @@ def test_clips_too_short_to_cut_keep_one_whole_clip_back():
     assert [t.name for t in held] == ["clip0"] and [t.name for t in train] == ["clip1", "clip2"]
     (one,) = split([_track("long", 1000)], every=5, min_frames=52)[1]  # a single recording: always cut
     assert one.name == "long[held out]" and one.n_frames == 300
+
+
+def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
+    """A limit already spent when training starts: round 1 trains one iteration of 50 (a model is
+    still written, from what there was time for) and no later round runs; the notes say so."""
+    cfg = ServiceConfig(grippers=clips.grippers)
+    budget = Budget(
+        iterations=50, refine_iterations=2, rounds=2, horizon=20, batch=2, curriculum=(), time_limit_s=1e-6
+    )
+    cal = calibrate(
+        [read_clip(b, cfg) for b in clips.bags],
+        LENGTH,
+        MASS,
+        cfg.grippers,
+        PerceptionConfig(),
+        n_vertices=N,
+        budget=budget,
+        progress=False,
+    )
+    assert cal.model is not None
+    assert [r.index for r in cal.rounds] == [0, 1]
+    assert cal.rounds[1].cut_by_time_limit and cal.rounds[1].train["iterations"] == 1
+    assert "round 1 trained 1 of 50 iterations" in cal.time_limit_notes[0]
+    if cal.rounds[1].kept:  # a kept round would have been followed by round 2, had there been time
+        assert "rounds 2..2 not started" in cal.time_limit_notes[1]
