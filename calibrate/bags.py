@@ -5,7 +5,7 @@ it means to the running service.
 Topics are found by message type when that is unambiguous (one ``PoseArray``, one organized
 ``PointCloud2``, one ``CameraInfo``), chosen with :class:`Topics` otherwise. The camera's pose (its
 optical frame in the world frame of the service config) comes, in this order, from a chosen topic,
-from ``/tf_static`` (the chain from the world frame to CameraInfo's frame), from a lone
+from ``/tf_static`` (the chain from the world frame to the clouds' frame, or CameraInfo's), from a lone
 ``PoseStamped`` topic, or from the config. Times are the messages' header stamps, never the bag's
 receive times: clouds and poses arrive over different paths with different delays.
 
@@ -171,6 +171,15 @@ def _pick_camera_info(path: Path, reader, chosen: str | None, points_conn):
     )
 
 
+def _cloud_frame(reader, conn) -> str:
+    """The frame of a cloud topic's first message ("" when it names none or cannot be read)."""
+    raw = _first(reader, conn)
+    try:
+        return M.decode(raw, M.POINT_CLOUD2).header.frame_id.strip("/") if raw is not None else ""
+    except M.InputError:
+        return ""
+
+
 def _organized(reader, conn) -> bool:
     """A camera's cloud is organized (height > 1); the service's own ``vertices`` output is not."""
     raw = _first(reader, conn)
@@ -207,8 +216,11 @@ def _world_from(graph, world: str, frame: str) -> np.ndarray | None:
     return seen.get(frame.strip("/"))
 
 
-def _camera_pose(path, reader, topics: Topics, info_frame: str, cfg: ServiceConfig) -> tuple[np.ndarray, str]:
-    """(4, 4) world_from_camera and where it came from."""
+def _camera_pose(
+    path, reader, topics: Topics, frames: list[str], cfg: ServiceConfig
+) -> tuple[np.ndarray, str]:
+    """(4, 4) world_from_camera and where it came from. ``frames``: the frames to look the camera up
+    by in a transform tree, in order (the clouds' own frame, then CameraInfo's)."""
     world = cfg.frame_id
     chosen = None
     if topics.camera_pose is not None:
@@ -220,12 +232,14 @@ def _camera_pose(path, reader, topics: Topics, info_frame: str, cfg: ServiceConf
     )
     if chosen is None or chosen.msgtype == TF_MESSAGE:
         if tf:
-            T = _world_from(_tf_graph(reader, tf), world, info_frame)
-            if T is not None:
-                return T, f"{tf[0].topic} ({world} -> {info_frame})"
+            graph = _tf_graph(reader, tf)
+            for frame in frames:
+                T = _world_from(graph, world, frame)
+                if T is not None:
+                    return T, f"{tf[0].topic} ({world} -> {frame})"
             if chosen is not None:
                 raise CalibrationError(
-                    f"{path}: {chosen.topic} has no transform chain {world} -> {info_frame}"
+                    f"{path}: {chosen.topic} has no transform chain {world} -> {' or '.join(frames)}"
                 )
         stamped = [c for c in reader.connections if c.msgtype == M.POSE_STAMPED]
         if len({c.topic for c in stamped}) == 1:
@@ -280,12 +294,16 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         info_c = _pick_camera_info(path, reader, topics.camera_info, points_c)
         if info_c is None:
             raise CalibrationError(f"{path}: no camera intrinsics (no {M.CAMERA_INFO} topic)")
+        raw_info = _first(reader, info_c)
         try:
-            _, K, width, height = M.parse_camera_info(_first(reader, info_c))
-            info_frame = M.decode(_first(reader, info_c), M.CAMERA_INFO).header.frame_id
+            _, K, width, height = M.parse_camera_info(raw_info)
+            info_frame = M.decode(raw_info, M.CAMERA_INFO).header.frame_id
         except M.InputError as exc:
             raise CalibrationError(f"{path}: camera info on {info_c.topic}: {exc}") from None
-        world_from_camera, source = _camera_pose(path, reader, topics, info_frame, cfg)
+        # the points are in their cloud's frame: that one first (a driver may stamp its intrinsics
+        # with another frame of the same camera), CameraInfo's when the tree does not have it
+        frames = [f for f in dict.fromkeys((_cloud_frame(reader, points_c), info_frame)) if f]
+        world_from_camera, source = _camera_pose(path, reader, topics, frames, cfg)
         stamps, poses = [], []
         for _, _, raw in reader.messages(connections=[poses_c]):
             try:

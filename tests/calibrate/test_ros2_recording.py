@@ -81,8 +81,24 @@ def lab_recording():
     return truth, fine, frames, offsets_for(truth)
 
 
-def _write_bag(path, storage: StoragePlugin, truth, frames, grippers, more_infos: dict | None = None) -> None:
-    """``more_infos``: further CameraInfo topics, ``{topic: (K, width, height)}``, beside the colour one."""
+DEPTH_OPTICAL = "camera_depth_optical_frame"
+# the depth sensor's optical frame: 40 mm beside the colour one, in the same tree
+LINK_FROM_DEPTH_OPTICAL = LINK_FROM_OPTICAL @ np.array(
+    [[1.0, 0, 0, -0.04], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+)
+
+
+def _write_bag(
+    path,
+    storage: StoragePlugin,
+    truth,
+    frames,
+    grippers,
+    more_infos: dict | None = None,
+    info_frame: str = OPTICAL,
+) -> None:
+    """``more_infos``: further CameraInfo topics, ``{topic: (K, width, height)}``, beside the colour one;
+    ``info_frame``: the frame the CameraInfo messages name (the clouds name ``OPTICAL``)."""
     camera = frames[0].camera
     world_from_link = camera.world_from_camera @ np.linalg.inv(LINK_FROM_OPTICAL)
     K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
@@ -97,13 +113,14 @@ def _write_bag(path, storage: StoragePlugin, truth, frames, grippers, more_infos
             transforms=[
                 _transform(T0_NS, "world", "camera_link", world_from_link),
                 _transform(T0_NS, "camera_link", OPTICAL, LINK_FROM_OPTICAL),
+                _transform(T0_NS, "camera_link", DEPTH_OPTICAL, LINK_FROM_DEPTH_OPTICAL),
             ]
         )
         w.write(tf, T0_NS, ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
-        w.write(info, T0_NS, M.camera_info(T0_NS, K, camera.width, camera.height, frame_id=OPTICAL))
+        w.write(info, T0_NS, M.camera_info(T0_NS, K, camera.width, camera.height, frame_id=info_frame))
         for topic, (K_, width, height) in (more_infos or {}).items():
             conn = w.add_connection(topic, M.CAMERA_INFO, typestore=ts)
-            w.write(conn, T0_NS, M.camera_info(T0_NS, K_, width, height, frame_id=OPTICAL))
+            w.write(conn, T0_NS, M.camera_info(T0_NS, K_, width, height, frame_id=info_frame))
         clouds = {T0_NS + (CLOUD_PHASE_MS + f.step) * 1_000_000: f for f in frames}
         for k in range(len(truth)):
             stamp = T0_NS + k * 10_000_000
@@ -127,6 +144,16 @@ def test_a_ros2_bag_folder_gives_the_camera_from_tf_static_and_every_cloud(lab_r
     np.testing.assert_allclose(
         pose_matrix(clip.poses[10, 0])[:3, 3], poses_from_vertices(truth, grippers)[10, 0, :3], atol=1e-12
     )
+
+
+def test_the_camera_pose_is_looked_up_for_the_clouds_frame(lab_recording, tmp_path):
+    """Intrinsics stamped with another frame of the same camera (the depth sensor's, 40 mm off): the
+    points are in their cloud's frame, and the camera pose is that frame's, not CameraInfo's."""
+    truth, _, frames, grippers = lab_recording
+    _write_bag(tmp_path / "clip", StoragePlugin.MCAP, truth, frames, grippers, info_frame=DEPTH_OPTICAL)
+    clip = read_clip(tmp_path / "clip", ServiceConfig(grippers=grippers))
+    assert clip.camera_source.endswith(f"-> {OPTICAL})")
+    np.testing.assert_allclose(clip.camera.world_from_camera, frames[0].camera.world_from_camera, atol=1e-9)
 
 
 def test_the_intrinsics_of_the_clouds_image_are_found_among_a_drivers_several(lab_recording, tmp_path):
