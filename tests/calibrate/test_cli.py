@@ -66,7 +66,7 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     assert len(report["coverage_per_vertex"]) == N and report["rounds"][0]["round"] == 0
     # the default time limit is far away: the rounds train their whole budget, and nothing is noted
     assert report["rounds"][1]["train"]["iterations"] == 3 and not report["rounds"][1]["cut_by_time_limit"]
-    assert report["time_limit_notes"] == [] and report["inputs"]["budget"]["time_limit_s"] == 1800.0
+    assert report["time_limit_notes"] == [] and 1100 < report["inputs"]["budget"]["time_limit_s"] <= 1200
     told = report["identified"]["told_within"]  # each parameter's range, from the held-out clips
     assert set(told) == {"bend_stiffness_Nm2", "damping_per_s", "drag_per_m"}
     found = report["identified"]["found"]["bend_stiffness_Nm2"]

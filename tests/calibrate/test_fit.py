@@ -2,9 +2,10 @@
 work short and says so (calibrate.fit.calibrate)."""
 
 import numpy as np
+import pytest
 
 from calibrate.bags import read_clip
-from calibrate.fit import Budget, calibrate, split
+from calibrate.fit import Budget, Round, calibrate, projected_round_s, split
 from calibrate.tracks import Track
 from perception import PerceptionConfig
 from service.config import ServiceConfig
@@ -76,3 +77,9 @@ def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
     assert "round 1 trained 1 of 50 iterations" in cal.time_limit_notes[0]
     if cal.rounds[1].kept:  # a kept round would have been followed by round 2, had there been time
         assert "rounds 2..2 not started" in cal.time_limit_notes[1]
+
+
+def test_a_later_round_is_projected_from_the_last_ones_time_per_iteration():
+    """500 iterations took 600 s besides a 50 s tracking pass: 200 take 240 s, 288 with the spare."""
+    previous = Round(1, 0.01, 0.005, True, seconds=650.0, train={"iterations": 500})
+    assert projected_round_s(previous, track_s=50.0, iterations=200) == pytest.approx(1.2 * 240 + 50)
