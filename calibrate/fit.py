@@ -320,7 +320,7 @@ def calibrate(
         if left is not None and r > 1 and left < need + RESERVE_S:
             out.time_limit_notes.append(
                 f"rounds {r}..{budget.rounds} not started: {left:.0f} s of the time limit "
-                f"({budget.time_limit_s:g} s) were left, round {r} would take about {need:.0f} s"
+                f"({budget.time_limit_s:.0f} s) were left, round {r} would take about {need:.0f} s"
             )
             break
         train_limit = None if left is None else max(left - track_s - RESERVE_S, 1e-3)  # 0: no limit
@@ -339,7 +339,7 @@ def calibrate(
         if cut_short:
             out.time_limit_notes.append(
                 f"round {r} trained {summary['iterations']} of {wanted} iterations: the time limit "
-                f"({budget.time_limit_s:g} s) was near"
+                f"({budget.time_limit_s:.0f} s) was near"
             )
         out.rounds.append(
             Round(r, fit, tracking_fit(new_held), kept, time.perf_counter() - t0, summary, cut_short)
