@@ -52,15 +52,15 @@ MIN_GAIN = 0.01  # a round is kept when it improves the held-out fit by at least
 @dataclass(frozen=True)
 class Budget:
     """How much work calibration does: iteration counts, so that the same clips give the same model
-    on a fast machine and on a busy one. On 50 s of clips on one core: tracking about 35 s a pass, the
-    first round about 8 min, later rounds about 4 min each; ``rounds`` caps the
+    on a fast machine and on a busy one. On 50 s of clips on one core: tracking about 40 s a pass, the
+    first round about 10 min, later rounds about 5 min each; ``rounds`` caps the
     train-and-track-again rounds.
 
     ``time_limit_s`` keeps the promise of a model within 20 minutes on a slow or crowded machine:
     a later round is not started when its projected time (:func:`projected_round_s`) would pass it,
-    and training stops early when the limit comes near (the report says which). Later rounds seldom
-    gain much (the third one was kept in 4 of 30 benchmark calibrations, by 1.4-3.5 %), so a slow
-    machine mostly loses the last round. Where the limit binds, results depend on the machine's
+    and training stops early when the limit comes near (the report says which). The third round
+    was kept in 12 of the 29 stored benchmark calibrations that ran it, gaining 1.4-3.5 % of
+    held-out fit: what a slow machine mostly loses. Where the limit binds, results depend on the machine's
     speed."""
 
     iterations: int = 500  # first round: coarse identification, then these training iterations
