@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(
             f"--topic-{name}", metavar="TOPIC", help=f"the topic of the {what}; default: found by type"
         )
-    b = p.add_argument_group("budget (defaults: 13-18 min for 50 s of clips on one core)")
+    b = p.add_argument_group("budget (defaults: 15-19 min for 50 s of clips on one core)")
     b.add_argument(
         "--iterations", type=_count(1), default=None, help="training iterations of the first round"
     )
@@ -104,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=20.0,
         metavar="MIN",
         help="skip the last rounds and stop training early rather than run longer than this "
-        "(default 20; only a slow or busy machine reaches it with 50 s of clips)",
+        "(default 20; with 50 s of clips on 2 cores it may leave out the third round)",
     )
     p.add_argument(
         "--prior-without",

@@ -318,9 +318,10 @@ def calibrate(
         left = _time_left(budget, t_start)
         need = projected_round_s(out.rounds[-1], track_s, budget.refine_iterations) if r > 1 else 0.0
         if left is not None and r > 1 and left < need + RESERVE_S:
+            skipped = f"round {r}" if r == budget.rounds else f"rounds {r}..{budget.rounds}"
             out.time_limit_notes.append(
-                f"rounds {r}..{budget.rounds} not started: {left:.0f} s of the time limit "
-                f"({budget.time_limit_s:.0f} s) were left, round {r} would take about {need:.0f} s"
+                f"{skipped} not started: {left:.0f} s of the time limit ({budget.time_limit_s:.0f} s) "
+                f"were left, round {r} would take about {need:.0f} s"
             )
             break
         train_limit = None if left is None else max(left - track_s - RESERVE_S, 1e-3)  # 0: no limit
