@@ -4,6 +4,7 @@ work short and says so (calibrate.fit.calibrate)."""
 import numpy as np
 import pytest
 
+from calibrate import fit
 from calibrate.bags import read_clip
 from calibrate.fit import Budget, Round, calibrate, projected_round_s, split
 from calibrate.tracks import Track
@@ -83,3 +84,30 @@ def test_a_later_round_is_projected_from_the_last_ones_time_per_iteration():
     """500 iterations took 600 s besides a 50 s tracking pass: 200 take 240 s, 288 with the spare."""
     previous = Round(1, 0.01, 0.005, True, seconds=650.0, train={"iterations": 500})
     assert projected_round_s(previous, track_s=50.0, iterations=200) == pytest.approx(1.2 * 240 + 50)
+
+
+def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch):
+    """Every round kept (MIN_GAIN below any change) and round 2 projected to take longer than the
+    limit leaves: round 1 trains its whole budget, round 2 never starts, and the note says so."""
+    monkeypatch.setattr(fit, "MIN_GAIN", -1.0)
+    monkeypatch.setattr(fit, "projected_round_s", lambda *a: 1e9)
+    cfg = ServiceConfig(grippers=clips.grippers)
+    budget = Budget(
+        iterations=3, refine_iterations=2, rounds=3, horizon=20, batch=2, curriculum=(), time_limit_s=1e6
+    )
+    cal = calibrate(
+        [read_clip(b, cfg) for b in clips.bags],
+        LENGTH,
+        MASS,
+        cfg.grippers,
+        PerceptionConfig(),
+        n_vertices=N,
+        budget=budget,
+        progress=False,
+    )
+    assert [r.index for r in cal.rounds] == [0, 1] and cal.rounds[1].kept
+    assert cal.rounds[1].train["iterations"] == 3 and not cal.rounds[1].cut_by_time_limit
+    assert (
+        cal.time_limit_notes == [cal.time_limit_notes[0]]
+        and "rounds 2..3 not started" in cal.time_limit_notes[0]
+    )
