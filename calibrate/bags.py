@@ -142,18 +142,23 @@ def _camera_info_values(reader, conn) -> tuple | None:
         return None
 
 
-def _pick_camera_info(path: Path, reader, chosen: str | None, points_conn):
+def _first_cloud(reader, conn):
+    """The first message of a cloud topic, decoded (None when there is none or it cannot be read)."""
+    raw = _first(reader, conn)
+    try:
+        return M.decode(raw, M.POINT_CLOUD2) if raw is not None else None
+    except M.InputError:
+        return None
+
+
+def _pick_camera_info(path: Path, reader, chosen: str | None, cloud):
     """The CameraInfo topic of the cloud's image: the ``chosen`` one, the only one, or among several
     (a driver publishes its colour, depth and aligned-depth intrinsics side by side) those of the
-    organized cloud's size, when they all say the same (one camera's intrinsics published twice)."""
+    organized ``cloud``'s size (its topic's first message), when they all say the same (one camera's
+    intrinsics published twice)."""
     conns = [c for c in reader.connections if c.msgtype == M.CAMERA_INFO]
     if chosen is not None or len({c.topic for c in conns}) <= 1:
         return _pick(path, reader, M.CAMERA_INFO, chosen, "--topic-camera-info", "camera info")
-    raw = _first(reader, points_conn)
-    try:
-        cloud = M.decode(raw, M.POINT_CLOUD2) if raw is not None else None
-    except M.InputError:
-        cloud = None
     values = {c.topic: _camera_info_values(reader, c) for c in conns}
     fitting = [
         c
@@ -169,15 +174,6 @@ def _pick_camera_info(path: Path, reader, chosen: str | None, points_conn):
     raise CalibrationError(
         f"{path}: several camera info topics ({names}){why}: choose one with --topic-camera-info"
     )
-
-
-def _cloud_frame(reader, conn) -> str:
-    """The frame of a cloud topic's first message ("" when it names none or cannot be read)."""
-    raw = _first(reader, conn)
-    try:
-        return M.decode(raw, M.POINT_CLOUD2).header.frame_id.strip("/") if raw is not None else ""
-    except M.InputError:
-        return ""
 
 
 def _organized(reader, conn) -> bool:
@@ -291,7 +287,8 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         )
         if points_c is None or points_c.msgcount == 0:
             raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
-        info_c = _pick_camera_info(path, reader, topics.camera_info, points_c)
+        cloud = _first_cloud(reader, points_c)  # read once: 1-5 MB
+        info_c = _pick_camera_info(path, reader, topics.camera_info, cloud)
         if info_c is None:
             raise CalibrationError(f"{path}: no camera intrinsics (no {M.CAMERA_INFO} topic)")
         raw_info = _first(reader, info_c)
@@ -302,7 +299,8 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
             raise CalibrationError(f"{path}: camera info on {info_c.topic}: {exc}") from None
         # the points are in their cloud's frame: that one first (a driver may stamp its intrinsics
         # with another frame of the same camera), CameraInfo's when the tree does not have it
-        frames = [f for f in dict.fromkeys((_cloud_frame(reader, points_c), info_frame)) if f]
+        cloud_frame = cloud.header.frame_id.strip("/") if cloud is not None else ""
+        frames = [f for f in dict.fromkeys((cloud_frame, info_frame)) if f]
         world_from_camera, source = _camera_pose(path, reader, topics, frames, cfg)
         stamps, poses = [], []
         for _, _, raw in reader.messages(connections=[poses_c]):

@@ -55,23 +55,22 @@ def test_clips_too_short_to_cut_keep_one_whole_clip_back():
     assert one.name == "long[held out]" and one.n_frames == 300
 
 
+def _calibrate(clips, budget: Budget):
+    """The session's three clips calibrated with ``budget``, no progress bars."""
+    cfg = ServiceConfig(grippers=clips.grippers)
+    clip_list = [read_clip(b, cfg) for b in clips.bags]
+    return calibrate(
+        clip_list, LENGTH, MASS, cfg.grippers, PerceptionConfig(), n_vertices=N, budget=budget, progress=False
+    )
+
+
 def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
     """A limit already spent when training starts: round 1 trains one iteration of 50 (a model is
     still written, from what there was time for) and no later round runs; the notes say so."""
-    cfg = ServiceConfig(grippers=clips.grippers)
     budget = Budget(
         iterations=50, refine_iterations=2, rounds=2, horizon=20, batch=2, curriculum=(), time_limit_s=1e-6
     )
-    cal = calibrate(
-        [read_clip(b, cfg) for b in clips.bags],
-        LENGTH,
-        MASS,
-        cfg.grippers,
-        PerceptionConfig(),
-        n_vertices=N,
-        budget=budget,
-        progress=False,
-    )
+    cal = _calibrate(clips, budget)
     assert cal.model is not None
     assert [r.index for r in cal.rounds] == [0, 1]
     assert cal.rounds[1].cut_by_time_limit and cal.rounds[1].train["iterations"] == 1
@@ -91,20 +90,10 @@ def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatc
     limit leaves: round 1 trains its whole budget, round 2 never starts, and the note says so."""
     monkeypatch.setattr(fit, "MIN_GAIN", -1.0)
     monkeypatch.setattr(fit, "projected_round_s", lambda *a: 1e9)
-    cfg = ServiceConfig(grippers=clips.grippers)
     budget = Budget(
         iterations=3, refine_iterations=2, rounds=3, horizon=20, batch=2, curriculum=(), time_limit_s=1e6
     )
-    cal = calibrate(
-        [read_clip(b, cfg) for b in clips.bags],
-        LENGTH,
-        MASS,
-        cfg.grippers,
-        PerceptionConfig(),
-        n_vertices=N,
-        budget=budget,
-        progress=False,
-    )
+    cal = _calibrate(clips, budget)
     assert [r.index for r in cal.rounds] == [0, 1] and cal.rounds[1].kept
     assert cal.rounds[1].train["iterations"] == 3 and not cal.rounds[1].cut_by_time_limit
     assert (
