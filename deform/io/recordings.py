@@ -31,6 +31,10 @@ class Recording:
     # (T, n) how much each position is to be trusted in training's loss, 0..1 (None: all fully): a
     # camera track's vertices that no cloud showed were filled in by the tracker's model
     weights: np.ndarray | None = None
+    # (T, n, 3) what a prediction is scored against where ``weights`` > 0 (None: ``positions``), while
+    # windows start from ``positions``: a camera track is scored at the clouds, as corrected, but
+    # started from its smoothed states (calibrate.tracks)
+    targets: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:

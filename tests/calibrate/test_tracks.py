@@ -54,20 +54,26 @@ def test_poses_are_interpolated_between_stamps_whatever_the_quaternion_sign():
     np.testing.assert_allclose(np.abs(mid[:, 3:]), np.abs(q[None].repeat(2, 0)), atol=1e-12)
 
 
-def test_a_vertex_counts_as_seen_for_a_while_after_a_cloud_showed_it():
-    """Training's weights (Track.seen): a correction holds until the next cloud or 0.1 s; the
-    gripped vertices are inputs and always count."""
+def test_training_scores_the_track_where_and_when_a_cloud_corrected_it():
+    """Track.recording: weights only at a cloud's step, at the vertices it corrected (never the
+    gripped inputs); the scored targets are the track as corrected, the windows start smoothed."""
     from calibrate.tracks import Track
 
     T, n = 40, 6
     observed = np.zeros((3, n), dtype=bool)
     observed[0, 2] = observed[1, 3] = observed[2, 2] = True
-    track = Track("t", np.zeros((T, n, 3)), np.zeros((T, 4, 3)), 0.01, np.array([0, 3, 20]), observed, (), {})
-    w = track.seen()
-    assert w.shape == (T, n) and (w[:, [0, 1, -2, -1]] == 1).all()
-    np.testing.assert_array_equal(np.flatnonzero(w[:, 2]), np.r_[0:3, 20:30])  # held 10 steps at most
-    np.testing.assert_array_equal(np.flatnonzero(w[:, 3]), np.r_[3:13])
-    assert track.recording().weights is not None and (track.recording().weights == w).all()
+    rng = np.random.default_rng(0)
+    positions = rng.normal(size=(T, n, 3))
+    track = Track("t", positions, np.zeros((T, 4, 3)), 0.01, np.array([0, 3, 20]), observed, (), {})
+    w = track.at_clouds()
+    assert w.shape == (T, n) and (w[:, [0, 1, -2, -1]] == 0).all()
+    np.testing.assert_array_equal(np.flatnonzero(w[:, 2]), [0, 20])
+    np.testing.assert_array_equal(np.flatnonzero(w[:, 3]), [3])
+    rec = track.recording()
+    np.testing.assert_array_equal(rec.weights, w)
+    np.testing.assert_array_equal(rec.targets, positions)
+    np.testing.assert_array_equal(rec.positions, track.smoothed())
+    assert not np.allclose(rec.positions, positions)
 
 
 def test_training_sees_the_track_without_the_sawtooth_of_its_corrections():

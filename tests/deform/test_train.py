@@ -145,3 +145,47 @@ def test_a_weighted_loss_learns_nothing_from_positions_of_weight_zero():
     assert float(rollout_loss(model, X, d1, ones)) == pytest.approx(
         float(rollout_loss(model, X, d1)), rel=1e-12
     )
+
+
+def test_windows_start_from_positions_and_score_against_targets():
+    """A recording with ``targets`` (a camera track: scored as corrected, started smoothed): a
+    window's two start frames are its positions, the predicted frames its targets; without
+    targets both are the positions."""
+    import random
+
+    from deform.train import sample_weighted_windows
+
+    rec = generate_recording(DeformModel(load_rod_config("DLO2")), n_frames=60, seed=4)
+    targets = rec.positions + 0.01
+    X, _, _ = sample_weighted_windows(
+        [Recording("t", rec.positions, targets=targets)], 3, 20, random.Random(2)
+    )
+    P, _, _ = sample_weighted_windows([rec], 3, 20, random.Random(2))
+    assert torch.equal(X[:, :2], P[:, :2])
+    torch.testing.assert_close(X[:, 2:], P[:, 2:] + 0.01, rtol=0, atol=1e-12)
+
+
+def test_the_open_loop_fit_weighs_targets_and_is_the_paper_metric_without_weights():
+    """Validation and the coarse identification score a camera track as training does: only the
+    weighted positions, against the targets; a marker recording by the paper's metric."""
+    import numpy as np
+
+    from deform.evaluate import metrics, predict_recordings
+    from deform.train import open_loop_fit
+
+    model = DeformModel(load_rod_config("DLO2"))
+    recs = [generate_recording(model, n_frames=40, seed=s) for s in range(2)]
+    assert open_loop_fit(model, recs, 30) == pytest.approx(
+        metrics(predict_recordings(model, recs, 30))["l1_m"]
+    )
+    rec = recs[0]
+    weights = np.zeros(rec.positions.shape[:2])
+    weights[10, 4] = 1.0
+    targets = rec.positions.copy()
+    targets[10, 4, 2] += 0.02  # the only scored coordinate is 2 cm off
+    targets[20:] += 1.0  # unweighted: never scored
+    shifted = Recording("w", rec.positions, weights=weights, targets=targets)
+    pred = predict_recordings(model, [rec], 30)[0].prediction
+    expected = np.abs(pred[8, 4] - targets[10, 4]).sum() / 3
+    assert open_loop_fit(model, [shifted], 30) == pytest.approx(expected, rel=1e-9)
+    assert expected > 0.006
