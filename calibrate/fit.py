@@ -15,11 +15,12 @@ predicted rod's polyline. One-sided (cloud to model), so occlusion hides points 
 error; capped, so that stray rope-coloured points cost no more than a missed rope. The points lie
 on the rope's near surface, so a perfect model scores about the rope's radius, not zero.
 
-Training weighs each tracked position by whether a cloud showed it (:meth:`Track.seen`): where an
-occluder hid the rope, the track is the tracker's model's guess, and a loss on it would teach the
-model its own prediction. The windows still start from the whole tracked shape, and the coarse
-identification grid of the first round scores the whole track; the coverage in the report says how
-much of the rope the camera saw.
+Training scores a prediction only where and when a cloud corrected the track, against the track
+as corrected (:meth:`Track.recording`, :meth:`Track.at_clouds`): between clouds and behind an
+occluder the track is the tracker's model's guess, and a loss on it would teach the model its own
+prediction. The coarse identification grid of the first round and the validation that picks each
+round's best iterate score alike (:func:`deform.train.open_loop_fit`). The windows start from the
+whole tracked shape, smoothed; the coverage in the report says how much of the rope the camera saw.
 """
 
 from __future__ import annotations
