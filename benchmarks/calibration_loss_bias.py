@@ -123,7 +123,12 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     model = load_model(args.rod).eval()
-    result = {**provenance(), "rod": args.rod, "damping_per_s": float(model.log_damping.detach().exp()), "setups": {}}
+    result = {
+        **provenance(),
+        "rod": args.rod,
+        "damping_per_s": float(model.log_damping.detach().exp()),
+        "setups": {},
+    }
     lines = [
         f"# Calibration's training loss: the damping it prefers ({args.rod}, shipped model)",
         "",
