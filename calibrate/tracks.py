@@ -24,8 +24,10 @@ against the corrected positions as they are, and starts its windows from the tra
 motion the filter had slowed, and the tracking model's own fill-in between clouds, and read both as
 damping: on DLO2's clips filmed at 15 Hz (the calibration benchmark's other lab) the training loss
 put the damping 1.25x above where the same loss on the motion-capture truth puts it, scored at the
-clouds 0.99x (benchmarks/calibration_loss_bias.py). Each free vertex's coordinates are averaged twice over a window of
-exactly one cloud interval :math:`T` (the median; :func:`moving_average`),
+clouds 0.99x (benchmarks/calibration_loss_bias.py).
+
+For the start states each free vertex's coordinates are averaged twice over a window of exactly one
+cloud interval :math:`T` (the median; :func:`moving_average`),
 
 .. math:: \bar x(t) = \frac{1}{T} \int_{t - T/2}^{t + T/2} x(\tau)\, d\tau,
 
