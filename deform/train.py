@@ -501,7 +501,8 @@ def train(
     Args:
         model: trained in place.
         train_recs: recordings windows are cut from.
-        val_recs: recordings that choose ``best.pt`` (none: the last weights are saved).
+        val_recs: recordings that choose ``best.pt`` (none, or none ever scored finite, e.g. a camera
+            track no cloud corrected: the last weights are saved).
         cfg: :class:`TrainConfig`.
         out_dir: the run directory.
         resume: continue from ``checkpoint.pt`` when there is one.
@@ -573,7 +574,7 @@ def train(
                 save_checkpoint(ckpt_path, model, opt, scheduler, state, rng)
             if done:
                 break
-    if not val_recs:
+    if not val_recs or not (out_dir / "best.pt").exists():  # none, or never a finite fit
         model.save(out_dir / "best.pt", {"iteration": last.get("iteration", start)})
     return {
         "best_val_l1_m": state.best_val_l1_m,

@@ -189,3 +189,16 @@ def test_the_open_loop_fit_weighs_targets_and_is_the_paper_metric_without_weight
     expected = np.abs(pred[8, 4] - targets[10, 4]).sum() / 3
     assert open_loop_fit(model, [shifted], 30) == pytest.approx(expected, rel=1e-9)
     assert expected > 0.006
+
+
+def test_a_validation_set_that_never_scores_leaves_the_last_weights_as_best(tmp_path):
+    """Held-out camera tracks that no cloud corrected (all weights 0) have no fit: training still
+    writes best.pt (the last weights) instead of leaving calibration without a model."""
+    import numpy as np
+
+    model = DeformModel(load_rod_config("DLO2"))
+    recs = [generate_recording(model, n_frames=40, seed=s) for s in range(2)]
+    unseen = Recording("unseen", recs[1].positions, weights=np.zeros(recs[1].positions.shape[:2]))
+    cfg = TrainConfig(iterations=2, batch=2, horizon=10, curriculum=(), log_every=1, coarse_sysid=False)
+    result = train(model, recs[:1], [unseen], cfg, tmp_path, progress=False)
+    assert result["best_val_l1_m"] == float("inf") and (tmp_path / "best.pt").exists()
