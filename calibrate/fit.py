@@ -19,7 +19,7 @@ Training scores a prediction only where and when a cloud corrected the track, ag
 as corrected (:meth:`Track.recording`, :meth:`Track.at_clouds`): between clouds and behind an
 occluder the track is the tracker's model's guess, and a loss on it would teach the model its own
 prediction. The coarse identification grid of the first round and the validation that picks each
-round's best iterate score alike (:func:`deform.train.open_loop_fit`). The windows start from the
+round's best iterate score alike (:func:`deform.train.validation_l1`). The windows start from the
 whole tracked shape, smoothed; the coverage in the report says how much of the rope the camera saw.
 """
 

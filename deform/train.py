@@ -116,8 +116,7 @@ def sample_weighted_windows(
     """(B, horizon + 2, n, 3) windows (two frames to start from, ``horizon`` frames to predict) and
     the reference directors (B, n-1, 3) to start them in. Recordings shorter than ``horizon + 2``
     frames are skipped; a UsageError when all are. The predicted frames are a recording's
-    ``targets`` when it has them, its ``positions`` otherwise; the two start frames always its
-    ``positions``.
+    :attr:`~deform.Recording.scored` positions, the two start frames its ``positions``.
 
     ``transported``: the directors a rollout from the recording's first frame carries at the window's
     start (``Recording.reference_frames``), so that training states have the twist and material frame
@@ -140,8 +139,7 @@ def sample_weighted_windows(
     for _ in range(batch):
         r = rng.choice(usable)
         s = rng.randrange(0, r.n_frames - horizon - 2 + 1)
-        scored = r.positions if r.targets is None else r.targets
-        out.append(np.concatenate([r.positions[s : s + 2], scored[s + 2 : s + horizon + 2]]))
+        out.append(np.concatenate([r.positions[s : s + 2], r.scored[s + 2 : s + horizon + 2]]))
         if transported:
             frames.append(r.reference_frames[s + 1])
         if weighted:
@@ -223,7 +221,7 @@ def coarse_identification(
             model.log_beta.copy_(base_beta - shift0 + log_ei)
             model.log_gamma.copy_(base_gamma - shift0 + log_ei)
             model.log_damping.fill_(log_c)
-        err = open_loop_fit(model, recs, steps)
+        err = validation_l1(model, recs, steps)
         if err < best[0]:
             best = (err, log_ei, log_c)
     with torch.no_grad():
@@ -302,24 +300,11 @@ def horizon_at(it: int, cfg: TrainConfig) -> int:
 
 
 def validation_l1(model: DeformModel, recordings: list[Recording], steps: int) -> float:
-    """Open-loop L1 over recordings (:func:`open_loop_fit`: the paper's metric on marker recordings).
-
-    Args:
-        model: the model.
-        recordings: validation recordings.
-        steps: steps per recording.
-
-    Returns:
-        L1 [m].
-    """
-    return open_loop_fit(model, recordings, steps)
-
-
-def open_loop_fit(model: DeformModel, recordings: list[Recording], steps: int) -> float:
     r"""Mean over recordings of the open-loop L1 from each one's first two frames: the paper's metric
     for a recording without ``weights``; with them, as training scores a window
-    (:func:`rollout_loss`), :math:`\sum w \, |\hat{x} - y| / (3 \sum w)` against its ``targets``
-    (or ``positions``). A recording whose steps carry no weight counts as nothing.
+    (:func:`rollout_loss`), :math:`\sum w \, |\hat{x} - y| / (3 \sum w)` against its
+    :attr:`~deform.Recording.scored` positions. A recording whose steps carry no weight counts as
+    nothing (none counting: infinity).
 
     Args:
         model: the model.
@@ -337,10 +322,9 @@ def open_loop_fit(model: DeformModel, recordings: list[Recording], steps: int) -
             fits.append(paper_l1(res.prediction, res.truth))
             continue
         s = len(res.prediction)
-        truth = (r.positions if r.targets is None else r.targets)[2 : s + 2]
         w = r.weights[2 : s + 2, :, None]
         if w.sum() > 0:
-            fits.append(float((w * np.abs(res.prediction - truth)).sum() / (3 * w.sum())))
+            fits.append(float((w * np.abs(res.prediction - r.scored[2 : s + 2])).sum() / (3 * w.sum())))
     return float(np.mean(fits)) if fits else math.inf
 
 

@@ -37,6 +37,11 @@ class Recording:
     targets: np.ndarray | None = None
 
     @property
+    def scored(self) -> np.ndarray:
+        """(T, n, 3) what a prediction is scored against: ``targets``, else ``positions``."""
+        return self.positions if self.targets is None else self.targets
+
+    @property
     def n_vertices(self) -> int:
         return self.positions.shape[1]
 

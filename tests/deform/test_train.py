@@ -165,17 +165,16 @@ def test_windows_start_from_positions_and_score_against_targets():
     torch.testing.assert_close(X[:, 2:], P[:, 2:] + 0.01, rtol=0, atol=1e-12)
 
 
-def test_the_open_loop_fit_weighs_targets_and_is_the_paper_metric_without_weights():
+def test_validation_weighs_targets_and_is_the_paper_metric_without_weights():
     """Validation and the coarse identification score a camera track as training does: only the
     weighted positions, against the targets; a marker recording by the paper's metric."""
     import numpy as np
 
     from deform.evaluate import metrics, predict_recordings
-    from deform.train import open_loop_fit
 
     model = DeformModel(load_rod_config("DLO2"))
     recs = [generate_recording(model, n_frames=40, seed=s) for s in range(2)]
-    assert open_loop_fit(model, recs, 30) == pytest.approx(
+    assert validation_l1(model, recs, 30) == pytest.approx(
         metrics(predict_recordings(model, recs, 30))["l1_m"]
     )
     rec = recs[0]
@@ -187,7 +186,7 @@ def test_the_open_loop_fit_weighs_targets_and_is_the_paper_metric_without_weight
     shifted = Recording("w", rec.positions, weights=weights, targets=targets)
     pred = predict_recordings(model, [rec], 30)[0].prediction
     expected = np.abs(pred[8, 4] - targets[10, 4]).sum() / 3
-    assert open_loop_fit(model, [shifted], 30) == pytest.approx(expected, rel=1e-9)
+    assert validation_l1(model, [shifted], 30) == pytest.approx(expected, rel=1e-9)
     assert expected > 0.006
 
 
