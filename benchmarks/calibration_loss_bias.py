@@ -79,15 +79,16 @@ def scan(model, pairs: list, seed: int = 0) -> dict:
     from deform import gripped_indices
 
     gi = np.asarray(gripped_indices(model.n))
-    rng = random.Random(seed)
-    start, smooth, truth, corrected, weight = [], [], [], [], []
-    for _ in range(WINDOWS):
-        track, true = pairs[rng.randrange(len(pairs))]
-        rec = track.recording()
+    clips = []
+    for track, true in pairs:
         # the track starts at the first cloud, the truth at the clip's first pose: aligned by the grips
         offsets = range(max(len(true) - track.n_frames, 0) + 1)
         offset = min(offsets, key=lambda k: float(np.abs(true[k, gi] - track.grips[0]).sum()))
-        n = min(track.n_frames, len(true) - offset)
+        clips.append((track.recording(), true, offset, min(track.n_frames, len(true) - offset)))
+    rng = random.Random(seed)
+    start, smooth, truth, corrected, weight = [], [], [], [], []
+    for _ in range(WINDOWS):
+        rec, true, offset, n = clips[rng.randrange(len(clips))]
         s = rng.randrange(0, n - HORIZON - 2)
         cut = slice(s + 2, s + 2 + HORIZON)
         start.append(rec.positions[s : s + 2])
