@@ -19,6 +19,11 @@ class SegmentationConfig:
     hsv_high: tuple[int, int, int] = (25, 255, 255)
     depth_min: float = 0.25  # m, camera z
     depth_max: float = 3.0
+    # colour spilled off the rope (perception.segment.front_surface): in an organized cloud, a
+    # rope-coloured pixel more than spill_margin behind the nearest rope-coloured pixel within
+    # spill_window pixels is dropped (0: off)
+    spill_window: int = 4
+    spill_margin: float = 0.05  # m; beyond a noisy sensor's spread over one rope's width
 
 
 @dataclass
@@ -95,6 +100,12 @@ class RenderConfig:
     edge_fg_drop: float = 0.1  # probability of also dropping a near-side edge pixel
     dropout: float = 0.002  # random missing pixels
     color_noise: float = 6.0
+    # Two artefacts of real RGB-D sensors, off by default (the stored benchmarks render without them):
+    flying_pixels: float = 0.0  # share of the far pixels of a depth edge kept at a depth between the
+    # two surfaces (mixed pixels) instead of being lost
+    color_shift_px: int = 0  # colour registered this many pixels off the depth along the image rows
+    # (the colour camera's calibration to the depth camera): the rope's colour spills onto what lies
+    # beside it and beyond it
     occlusion: float = 0.0  # fraction of the rope hidden by the occluder
     occlusion_start: float = 0.3  # of the recording
     occlusion_end: float = 0.8

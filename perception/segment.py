@@ -1,7 +1,15 @@
-"""Rope points of an RGB-D cloud: finite, inside the depth range, and (when colour is given) of the rope's hue.
+"""Rope points of an RGB-D cloud: finite, inside the depth range, (when colour is given) of the rope's
+hue, and (in an organized cloud) on the rope's front surface.
 
 Colour comes first because it is what separates a thin rope from the table it hangs above;
 without colour only the depth range applies and the distance filter of the estimator does the rest.
+
+Real sensors put the rope's colour where the rope is not: the colour camera is registered to the
+depth camera within a few pixels, so the rope's hue lands on the table beside and behind it, and
+depth edges give mixed pixels between the rope and what lies behind it. Those points sit well
+behind the rope's own pixels next to them (:func:`front_surface`); a tracker that took them for
+rope would see a rope smeared towards the background, and so much unexplained rope that it would
+count the rope as lost.
 """
 
 from __future__ import annotations
@@ -32,6 +40,28 @@ def colour_mask(rgb: np.ndarray, cfg: SegmentationConfig) -> np.ndarray:
     return mask.reshape(-1) > 0
 
 
+def front_surface(z: np.ndarray, mask: np.ndarray, window: int, margin: float) -> np.ndarray:
+    """(H, W) bool: the pixels of ``mask`` no more than ``margin`` behind the nearest masked pixel
+    within ``window`` pixels (a (2 window + 1)^2 square): the rope's own surface, not its colour
+    spilled onto what lies behind it.
+
+    Args:
+        z: (H, W) depth along the optical axis [m], NaN where unknown.
+        mask: (H, W) bool, the rope-coloured pixels.
+        window: half size of the window [pixels].
+        margin: how far behind the nearest rope pixel a rope pixel may lie [m].
+
+    Returns:
+        (H, W) bool, a subset of ``mask``.
+    """
+    with np.errstate(invalid="ignore"):
+        ok = mask & np.isfinite(z)
+    near = np.where(ok, z, np.inf).astype(np.float32)
+    kernel = np.ones((2 * window + 1, 2 * window + 1), np.uint8)
+    front = cv2.erode(near, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=float("inf"))
+    return ok & (z <= front + margin)
+
+
 def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfig) -> np.ndarray:
     """(N, 3) float64 camera-frame rope points from an organized (H, W, 3) or flat (N, 3) cloud.
 
@@ -45,10 +75,15 @@ def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfi
     Returns:
         (N, 3).
     """
-    pts = np.asarray(xyz).reshape(-1, 3)
+    arr = np.asarray(xyz)
+    pts = arr.reshape(-1, 3)
+    keep = np.ones(len(pts), dtype=bool)
     if rgb is not None and np.asarray(rgb).size == pts.size:
-        pts = pts[colour_mask(np.asarray(rgb).reshape(-1, 3), cfg)]
-    pts = pts.astype(np.float64)
+        keep = colour_mask(np.asarray(rgb).reshape(-1, 3), cfg)
+        if arr.ndim == 3 and cfg.spill_window > 0:
+            z = arr[..., 2].astype(np.float64)
+            keep = front_surface(z, keep.reshape(z.shape), cfg.spill_window, cfg.spill_margin).reshape(-1)
+    pts = pts[keep].astype(np.float64)
     with np.errstate(invalid="ignore"):
         keep = np.isfinite(pts.sum(1)) & (pts[:, 2] >= cfg.depth_min) & (pts[:, 2] <= cfg.depth_max)
     return pts[keep]

@@ -16,6 +16,7 @@ LABEL = {
     "blackout": "rope hidden 1 s",
     "fastest": "fastest motions",
     "fps10": "clouds at 10 Hz",
+    "sensor": "colour 2 px off the depth, mixed edge pixels",
     "table": "on a table (unmodelled)",
     "post": "caught on a post (unmodelled)",
     "nocontact": "same motion, no contact",

@@ -12,6 +12,9 @@ Scenarios and their variants:
 - ``blackout``: the whole rope hidden for ``BLACKOUT_S`` from ``BLACKOUT_START_S``;
 - ``fastest``: the recordings with the highest 95th-percentile gripper speed, per rod;
 - ``fps10``: the unoccluded clouds at 10 Hz;
+- ``sensor``: the unoccluded motion filmed by a sensor with two artefacts of real RGB-D cameras that
+  the other scenarios leave out (``SENSOR``: colour registered 2 px off the depth, half the far
+  pixels of depth edges at a mixed depth); reference ``occ0``;
 - ``contact``: truth simulated with a table (``table``) or a post (``post``) the tracker's model does
   not know, and ``nocontact``, the same gripper motion simulated without contact (the reference);
 - ``wrong_model``: DLO3 tracked with DLO1's model; ``right_model`` the same clouds with DLO3's.
@@ -42,12 +45,23 @@ from deform import (
 from deform.io.arc_length import resample_vertices
 
 RODS = ("DLO1", "DLO2", "DLO3", "DLO4", "DLO5")
-SCENARIOS = ("occlusion", "blackout", "fastest", "fps10", "contact", "wrong_model", "wrong_length", "generic")
+SCENARIOS = (
+    "occlusion",
+    "blackout",
+    "fastest",
+    "fps10",
+    "sensor",
+    "contact",
+    "wrong_model",
+    "wrong_length",
+    "generic",
+)
 VARIANTS = {
     "occlusion": ("occ0", "occ25", "occ50"),
     "blackout": ("blackout",),
     "fastest": ("fastest",),
     "fps10": ("fps10",),
+    "sensor": ("sensor",),
     "contact": ("table", "post", "nocontact"),
     "wrong_model": ("wrong_model", "right_model"),
     "wrong_length": ("long_model", "short_model", "right_model"),
@@ -55,6 +69,7 @@ VARIANTS = {
 }
 # what the ratio columns compare: variant -> its reference (same recordings)
 REFERENCE = {
+    "sensor": "occ0",
     "table": "nocontact",
     "post": "nocontact",
     "wrong_model": "right_model",
@@ -69,6 +84,7 @@ QUICK_VARIANTS = (
     "blackout",
     "fastest",
     "fps10",
+    "sensor",
     "table",
     "post",
     "nocontact",
@@ -82,6 +98,7 @@ WRONG = ("DLO3", "DLO1")  # (the rod filmed, the model that tracks it)
 ONLY_WRONG_ROD = ("wrong_model", "right_model", "long_model", "short_model")  # variants of WRONG[0] only
 LENGTH_ERROR = 0.06  # of the free rest length, in ``long_model`` / ``short_model``
 RESCALED = "@"  # a model key "DLO3@1.06": the rod's model, its free rest lengths times 1.06
+SENSOR = {"color_shift_px": 2, "flying_pixels": 0.5}  # RenderConfig fields of the ``sensor`` clouds
 BLACKOUT_START_S = 1.5
 BLACKOUT_S = 1.0
 FPS = 30.0
@@ -241,6 +258,8 @@ def clouds_of(unit: Unit) -> list[Clouds]:
     for c, occ in (("occ25", 0.25), ("occ50", 0.5)):
         if c in v:
             out.append(Clouds(c, unit.positions, {"occlusion": occ}, cases=[(c, FPS, unit.rod)]))
+    if "sensor" in v:
+        out.append(Clouds("sensor", unit.positions, dict(SENSOR), cases=[("sensor", FPS, unit.rod)]))
     if "blackout" in v:
         out.append(
             Clouds(

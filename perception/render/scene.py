@@ -17,6 +17,7 @@ from perception.camera import Camera
 from perception.config import RenderConfig
 
 ROPE, TABLE, GRIPPER, OCCLUDER = 0, 1, 2, 3
+NOTHING_RGB = 40.0  # what the colour camera sees where no surface is in range (a dark room)
 
 
 @dataclass
@@ -140,6 +141,9 @@ def render_frame(
             far_side |= nb < depth - cfg.edge_jump
             near_side |= nb > depth + cfg.edge_jump
     valid &= ~far_side
+    if cfg.flying_pixels > 0:
+        noisy, flying = _flying_pixels(depth, noisy, far_side & hit, cfg.flying_pixels, rng)
+        valid |= flying
     valid &= ~(near_side & (rng.random(depth.shape) < cfg.edge_fg_drop))
     valid &= rng.random(depth.shape) >= cfg.dropout
     xyz = np.where(valid[..., None], dirs_cam * noisy[..., None], np.nan).astype(np.float32)
@@ -148,6 +152,34 @@ def render_frame(
     unit = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
     shade = 0.35 + 0.65 * np.abs(np.sum(normals * unit, axis=-1))
     rgb = base[np.maximum(lab, 0)] * shade[..., None] + rng.normal(0.0, cfg.color_noise, dirs.shape)
+    if cfg.color_shift_px:
+        rgb = _shifted(np.where(hit[..., None], rgb, NOTHING_RGB), int(cfg.color_shift_px))
     rgb = np.where(valid[..., None], np.clip(rgb, 0, 255), 0).astype(np.uint8)
     visible = vertex_visibility(x, camera, verts, tris, labels, cfg.rope_radius)
     return xyz, rgb, visible
+
+
+def _flying_pixels(depth, noisy, far_side, share, rng):
+    """Mixed pixels: a ``share`` of the ``far_side`` pixels of depth edges keep a depth drawn
+    uniformly between their own surface and the nearest neighbouring one (a time-of-flight or
+    stereo sensor averages the two). Returns ``(noisy depth, which pixels fly)``."""
+    near = depth.copy()
+    for axis in (0, 1):
+        for shift in (1, -1):
+            near = np.minimum(near, np.roll(depth, shift, axis=axis))
+    flying = far_side & (rng.random(depth.shape) < share)
+    mix = rng.random(depth.shape)
+    out = noisy.copy()
+    out[flying] = near[flying] + mix[flying] * (noisy[flying] - near[flying])
+    return out, flying
+
+
+def _shifted(rgb: np.ndarray, px: int) -> np.ndarray:
+    """The colour image moved ``px`` pixels along its rows (positive: to larger u), the uncovered
+    columns repeating the edge: a colour camera registered to the depth that far off."""
+    out = np.roll(rgb, px, axis=1)
+    if px > 0:
+        out[:, :px] = rgb[:, :1]
+    elif px < 0:
+        out[:, px:] = rgb[:, -1:]
+    return out

@@ -219,3 +219,26 @@ def test_the_residual_sits_across_the_rope_at_observed_vertices_and_goes_stale(
     for k in range(f.step + 1, f.step + 1 + stale):
         x, observed = tracker.step(p[k, grip_idx])
     assert not observed.any() and np.allclose(x, tracker.state.x[0].double().numpy())
+
+
+def test_colour_spilled_off_the_rope_does_not_lose_it(model, recording, grip_idx):
+    """A sensor whose colour is registered 2 px off its depth, with mixed edge pixels: the rope's hue
+    on the table behind it is no rope point beyond the filter radius, so the tracker stays on the
+    rope; without the front-surface filter the same clouds make it count the rope lost."""
+    cfg = load_config()
+    cfg = replace(cfg, render=replace(cfg.render, color_shift_px=2, flying_pixels=0.5))
+    frames = {
+        f.step: f for f in render_recording(recording.positions, dt=recording.dt, fps=15, config=cfg, seed=3)
+    }
+    p = recording.positions
+    status = {}
+    for window in (cfg.segmentation.spill_window, 0):
+        t = Tracker(model, config=replace(cfg, segmentation=replace(cfg.segmentation, spill_window=window)))
+        t.initialize_from_frames(p[0], p[1])
+        for k in range(2, len(p)):
+            t.step(p[k, grip_idx])
+            if k in frames:
+                t.correct(frames[k].xyz, frames[k].rgb, frames[k].camera)
+        status[window] = t.status()
+    assert status[cfg.segmentation.spill_window]["lost"] == 0
+    assert status[0]["lost"] >= 1
