@@ -54,12 +54,18 @@ def front_surface(z: np.ndarray, mask: np.ndarray, window: int, margin: float) -
     Returns:
         (H, W) bool, a subset of ``mask``.
     """
-    with np.errstate(invalid="ignore"):
-        ok = mask & np.isfinite(z)
-    near = np.where(ok, z, np.inf).astype(np.float32)
+    ok = mask & np.isfinite(z)
+    rows, cols = np.flatnonzero(ok.any(1)), np.flatnonzero(ok.any(0))
+    if not len(rows):
+        return ok
+    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]  # only the rope's part of the image
+    near = np.where(ok[box], z[box], np.inf).astype(np.float32)
     kernel = np.ones((2 * window + 1, 2 * window + 1), np.uint8)
     front = cv2.erode(near, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=float("inf"))
-    return ok & (z <= front + margin)
+    out = np.zeros_like(ok)
+    with np.errstate(invalid="ignore"):
+        out[box] = ok[box] & (z[box] <= front + margin)
+    return out
 
 
 def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfig) -> np.ndarray:
