@@ -76,7 +76,7 @@ def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfi
     Args:
         xyz: camera-frame points, (H, W, 3) or (N, 3), NaN where missing.
         rgb: uint8 colours of the same leading shape, or None.
-        cfg: the segmentation settings (HSV thresholds, depth range).
+        cfg: the segmentation settings (HSV thresholds, depth range, front-surface filter).
 
     Returns:
         (N, 3).

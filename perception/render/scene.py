@@ -2,7 +2,8 @@
 
 Sensor effects that matter for the tracker are imitated: depth noise growing with distance,
 missing pixels on the far side of depth edges (and some on the near side), random dropouts,
-shading and colour noise. Ground-truth visibility of each vertex comes from a ray to its centre.
+shading and colour noise; optionally (off by default) mixed depth pixels at edges and a colour
+image registered a few pixels off the depth. Ground-truth visibility of each vertex comes from a ray to its centre.
 """
 
 from __future__ import annotations
