@@ -3,7 +3,8 @@
 Sensor effects that matter for the tracker are imitated: depth noise growing with distance,
 missing pixels on the far side of depth edges (and some on the near side), random dropouts,
 shading and colour noise; optionally (off by default) mixed depth pixels at edges and a colour
-image registered a few pixels off the depth. Ground-truth visibility of each vertex comes from a ray to its centre.
+image registered a few pixels off the depth. Ground-truth visibility of each vertex comes from a
+ray to its centre.
 """
 
 from __future__ import annotations
@@ -136,14 +137,16 @@ def render_frame(
     # depth edges: the far pixel of a jump is lost, the near one sometimes
     far_side = np.zeros_like(valid)
     near_side = np.zeros_like(valid)
+    nearest = depth.copy()  # the nearest of each pixel and its four neighbours
     for axis in (0, 1):
         for shift in (1, -1):
             nb = np.roll(depth, shift, axis=axis)
             far_side |= nb < depth - cfg.edge_jump
             near_side |= nb > depth + cfg.edge_jump
+            nearest = np.minimum(nearest, nb)
     valid &= ~far_side
     if cfg.flying_pixels > 0:
-        noisy, flying = _flying_pixels(depth, noisy, far_side & hit, cfg.flying_pixels, rng)
+        noisy, flying = _flying_pixels(nearest, noisy, far_side & hit, cfg.flying_pixels, rng)
         valid |= flying
     valid &= ~(near_side & (rng.random(depth.shape) < cfg.edge_fg_drop))
     valid &= rng.random(depth.shape) >= cfg.dropout
@@ -160,16 +163,12 @@ def render_frame(
     return xyz, rgb, visible
 
 
-def _flying_pixels(depth, noisy, far_side, share, rng):
+def _flying_pixels(near, noisy, far_side, share, rng):
     """Mixed pixels: a ``share`` of the ``far_side`` pixels of depth edges keep a depth drawn
-    uniformly between their own surface and the nearest neighbouring one (a time-of-flight or
-    stereo sensor averages the two). Returns ``(noisy depth, which pixels fly)``."""
-    near = depth.copy()
-    for axis in (0, 1):
-        for shift in (1, -1):
-            near = np.minimum(near, np.roll(depth, shift, axis=axis))
-    flying = far_side & (rng.random(depth.shape) < share)
-    mix = rng.random(depth.shape)
+    uniformly between their own surface and ``near``, the nearest neighbouring one (a
+    time-of-flight or stereo sensor averages the two). Returns ``(noisy depth, which pixels fly)``."""
+    flying = far_side & (rng.random(near.shape) < share)
+    mix = rng.random(near.shape)
     out = noisy.copy()
     out[flying] = near[flying] + mix[flying] * (noisy[flying] - near[flying])
     return out, flying
