@@ -252,12 +252,20 @@ class DeformModel(nn.Module):
         return mass
 
     def elastic_params(self, rest: Tensor) -> ElasticParams:
-        """Vertex-major :class:`ElasticParams` for rest lengths ``rest`` (m, B)."""
+        """Vertex-major :class:`ElasticParams` for rest lengths ``rest`` (m, B).
+
+        The parameters are the rod's, shared by every rod of a batch, or per rod: ``log_beta`` and
+        ``log_gamma`` (m, B), ``wbar`` (m, 2, 2, B) and ``log_damping`` (B,) give each rod its own
+        (the discrepancy tool steps several candidate models as one batch: deform.diagnose.stack)."""
         dtype = rest.dtype
+
+        def per_rod(p: Tensor, dims: int) -> Tensor:
+            return p.to(dtype)[..., None] if p.dim() == dims else p.to(dtype)
+
         return ElasticParams(
-            beta=self.log_beta.exp().to(dtype)[:, None],
-            gamma=self.log_gamma.exp().to(dtype)[:, None],
-            wbar=self.wbar.to(dtype)[..., None],
+            beta=per_rod(self.log_beta.exp(), 1),
+            gamma=per_rod(self.log_gamma.exp(), 1),
+            wbar=per_rod(self.wbar, 3),
             rest_vor=G.voronoi_lengths(rest),
         )
 
@@ -386,6 +394,7 @@ class DeformModel(nn.Module):
         create_graph: bool,
         branch_free: int = 0,
         report: ConvergenceReport | None = None,
+        groups: int = 1,
     ):
         """(forces (n, 3, B), angles (m, B), tangents (m, 3, B)) of a vertex-major state."""
         x = state.x if create_graph else state.x.detach()
@@ -394,7 +403,9 @@ class DeformModel(nn.Module):
         # the frame is carried along by parallel transport: identity at x, but it moves with x
         geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
         a, b = curvature_projections(geo)
-        theta = self._solve_theta(a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report)
+        theta = self._solve_theta(
+            a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report, groups
+        )
         return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
 
     def _solve_theta(
@@ -407,6 +418,7 @@ class DeformModel(nn.Module):
         theta_init,
         branch_free: int = 0,
         report: ConvergenceReport | None = None,
+        groups: int = 1,
     ):
         if self.options.theta_solver == ThetaSolver.THESEUS:
             from deform.rod.twist_theseus import theseus_theta
@@ -427,6 +439,7 @@ class DeformModel(nn.Module):
             tol=self.options.theta_tol,
             branch_free=branch_free,
             report=report,
+            groups=groups,
         )
 
     def step(
@@ -476,14 +489,17 @@ class DeformModel(nn.Module):
         branch_free: tuple[int, int] = (0, 0),
         report: ConvergenceReport | None = None,
         network_dtype: torch.dtype | None = None,
+        groups: int = 1,
     ) -> VertexMajorState:
         """:meth:`step` on a :class:`VertexMajorState`, ``grip_next`` (4, 3, B) and ``theta_ends``
-        (2, B): what compiled steps trace (their callers convert outside the graph)."""
+        (2, B): what compiled steps trace (their callers convert outside the graph). ``groups``: the
+        batch is that many equal runs of consecutive rods whose solvers each iterate until their own
+        rods converge (several models in one batch, each stepped as if alone: deform.diagnose.stack)."""
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
         force, theta, t_old = self._forces(
-            state, params, mass, theta_ends, create_graph, branch_free[0], report
+            state, params, mass, theta_ends, create_graph, branch_free[0], report, groups
         )
         accel = force / mass.unsqueeze(-2) + self.drag_acceleration(x, v)
         for ext in self.extensions:
@@ -511,6 +527,7 @@ class DeformModel(nn.Module):
             self.options.pbd_method,
             branch_free[1],
             report,
+            groups,
         )
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))

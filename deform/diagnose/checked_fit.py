@@ -1,5 +1,6 @@
 """A simulator fitted on the fit recordings and its errors on the check recordings: the unit of
-work of a diagnosis, run inline or in a worker process (:mod:`deform.diagnose.pool`)."""
+work of a diagnosis, run inline or in a worker process (:mod:`deform.diagnose.pool`), alone or
+with others stepped as one batch (:mod:`deform.diagnose.stack`)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from deform.diagnose.simulator import (
     per_recording_window_l1,
 )
 from deform.diagnose.spec import Inputs
+from deform.diagnose.stack import fit_together
 
 
 @dataclass
@@ -59,6 +61,34 @@ def fit_and_check(
     )
     fit(sim, inputs.fit, budget, desc=desc, new_term=new_term)
     return sim, CheckErrors.of(sim, inputs.check)
+
+
+def fit_and_check_together(
+    spec, nominal, members: list[tuple[list, int | None]], inputs: Inputs, budget: FitBudget, desc: str
+) -> list[tuple[Simulator, CheckErrors]]:
+    """:func:`fit_and_check` of several models that start from the same ``nominal`` and share a
+    budget, their descents stepped as one batch (:func:`deform.diagnose.stack.fit_together`).
+
+    Args:
+        spec: the rod.
+        nominal: the nominal parameters every model starts from (copied for each).
+        members: per model its terms and the index of its new term in them (or None).
+        inputs: fit and check recordings.
+        budget: the fits' budget.
+        desc: progress label.
+
+    Returns:
+        Per member ``(simulator, CheckErrors)``; its fitted new term is ``simulator.terms[index]``.
+    """
+    max_step = budget.max_step_s or MAX_STEP_S
+    sims = [Simulator(spec, copy.deepcopy(nominal), terms, max_step_s=max_step) for terms, _ in members]
+    fitted = fit_together(
+        [(sim, None if i is None else sim.terms[i]) for sim, (_, i) in zip(sims, members)],
+        inputs.fit,
+        budget,
+        desc,
+    )
+    return [(sim, CheckErrors.of(sim, inputs.check)) for sim, _ in fitted]
 
 
 def fit_nominal_at(

@@ -173,7 +173,7 @@ def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBu
     for point in [None] + points:
         _restore(sim, saved)
         apply_point(sim, term, point)
-        scored.append((_forward_loss(sim, windows, budget), point))
+        scored.append((forward_loss(sim, windows, budget), point))
     _restore(sim, saved)
     return sorted(scored, key=lambda lp: lp[0])
 
@@ -196,7 +196,7 @@ def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitB
 
 
 @torch.no_grad()
-def _forward_loss(sim: Simulator, windows, budget: FitBudget) -> float:
+def forward_loss(sim: Simulator, windows, budget: FitBudget) -> float:
     """Window loss without gradients; a diverged rollout scores infinity."""
     horizon = windows[0].shape[1] - 2 - 2 * budget.margin  # the windows' own length
     return float(torch.nan_to_num(window_loss(sim, windows, horizon, budget.margin, False), nan=math.inf))
@@ -255,7 +255,7 @@ def fit(
         apply_point(sim, new_term, point)
         out = _descend(sim, recordings, budget, f"{desc} (start {k + 1})", fit_nominal)
         sim.sync()
-        loss = _forward_loss(sim, held_out, budget)
+        loss = forward_loss(sim, held_out, budget)
         starts.append({"point": point, "loss_m": loss})
         if best is None or loss < best[0]:
             best = (loss, _snapshot(sim), out)
@@ -437,12 +437,12 @@ def fit_nominal(
         return {"coarse": coarse}
     held_out = held_out_windows(recordings, budget)
     sim.sync()
-    first_loss, first = _forward_loss(sim, held_out, budget), _snapshot(sim)
+    first_loss, first = forward_loss(sim, held_out, budget), _snapshot(sim)
     nom.set_clamp(clamp_restart_m, fitted=True)
     second_coarse = coarse_nominal(sim, recordings)
     fit(sim, recordings, budget, desc="nominal fit (clamp restart)")
     sim.sync()
-    second_loss = _forward_loss(sim, held_out, budget)
+    second_loss = forward_loss(sim, held_out, budget)
     kept = second_loss < (1.0 - RESTART_MIN_GAIN) * first_loss
     if not kept:
         _restore(sim, first)

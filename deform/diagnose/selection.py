@@ -20,7 +20,7 @@ from tqdm import tqdm
 from deform.diagnose.checked_fit import CheckErrors, fit_and_check
 from deform.diagnose.fitting import FitBudget, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.pool import FitPool, Job, fit_and_check_job, nominal_fit_job
+from deform.diagnose.pool import FitPool, Job, fit_and_check_job, fit_together_job, nominal_fit_job
 from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
@@ -31,6 +31,7 @@ from deform.diagnose.simulator import (
     arclength_of,
 )
 from deform.diagnose.spec import Inputs
+from deform.diagnose.stack import fits_rest_curvature, groups_of
 from deform.terms.library import LIBRARY, Term, beyond_material_level, make_term
 
 
@@ -400,25 +401,41 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
             plans.append((name, term, tb, (tb.final_horizon, tb.max_step_s, from_fine)))
 
         # a reference per fit-window kind and step (fitted once per round), and every candidate:
-        # all independent; those from the fine nominal fit start once it is there
-        def fit_job(start_from_fine: bool, terms: list, tb: FitBudget, desc: str, new_index):
-            def sent():
-                return fit_and_check_job, (spec, base_for(start_from_fine)[0], terms, tb, desc, new_index)
-
-            return sent
-
-        jobs, kinds = [], []
+        # all independent; those from the fine nominal fit start once it is there. The fits of one
+        # kind are stepped together in groups (deform.diagnose.stack), chosen from the round's
+        # candidates alone: the numbers do not depend on the workers
+        kinds: list[tuple] = []
+        items: dict[tuple, list] = {}  # (kind, fits a rest curvature) -> [(key, terms, new index, models)]
         for name, term, tb, kind in plans:
-            needs = fine_future if kind[2] else None
             if kind not in kinds:
                 kinds.append(kind)
                 refs = [copy.deepcopy(t) for t in selected]
-                make = fit_job(kind[2], refs, tb, f"round {rnd + 1}: reference", None)
-                jobs.append(Job(("reference", kind), fit_cost(tb), make, needs))
+                items.setdefault((kind, fits_rest_curvature(refs, spec.n_vertices)), []).append(
+                    (("reference", kind), refs, None, 1)
+                )
             terms = [copy.deepcopy(t) for t in selected] + [term]
-            make = fit_job(kind[2], terms, tb, f"round {rnd + 1}: {name}", len(selected))
-            jobs.append(Job(("candidate", name), fit_cost(tb, candidate=True), make, needs))
-        out = pool.run(jobs, f"round {rnd + 1}", busy=(fine_future,) if fine_future is not None else ())
+            models = min(tb.starts, 1 + len(term.grid())) if term.grid() and tb.starts > 1 else 1
+            items.setdefault((kind, fits_rest_curvature(terms, spec.n_vertices)), []).append(
+                (("candidate", name), terms, len(selected), models)
+            )
+        jobs, groups = [], []
+        budgets = {kind: tb for _, _, tb, kind in reversed(plans)}  # a kind's budget: its first plan's
+        for (kind, _), listed in items.items():
+            tb = budgets[kind]
+            for members in groups_of([m for *_, m in listed]):
+                group = [listed[i] for i in members]
+                label = ", ".join(k[1] if k[0] == "candidate" else "reference" for k, *_ in group)
+                desc = f"round {rnd + 1}: {label}"
+
+                def make(kind=kind, group=group, tb=tb, desc=desc):
+                    args = (spec, base_for(kind[2])[0], [(t, i) for _, t, i, _ in group], tb, desc)
+                    return fit_together_job, args
+
+                cost = fit_cost(tb) * (1 + 0.1 * sum(m for *_, m in group))
+                jobs.append(Job(("group", len(groups)), cost, make, fine_future if kind[2] else None))
+                groups.append([key for key, *_ in group])
+        ran = pool.run(jobs, f"round {rnd + 1}", busy=(fine_future,) if fine_future is not None else ())
+        out = {key: r for g, keys in enumerate(groups) for key, r in zip(keys, ran[("group", g)])}
         done = [out[("reference", k)] for k in kinds] + [out[("candidate", p[0])] for p in plans]
         references: dict[tuple, CheckErrors] = {}
         for kind, (_, c) in zip(kinds, done[: len(kinds)]):

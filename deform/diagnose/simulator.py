@@ -18,7 +18,7 @@ from deform.config import RodConfig
 from deform.diagnose.spec import RodSpec
 from deform.evaluate import batches_by_horizon, paper_l1
 from deform.io.recordings import arclength_of  # noqa: F401  (part of the simulator's API)
-from deform.model import DeformModel, ModelOptions, gripped_indices
+from deform.model import DeformModel, ModelOptions, VertexMajorState, gripped_indices
 from deform.rod import geometry as G
 from deform.rod.layout import batch_major, vertex_major
 from deform.terms.library import Term
@@ -387,6 +387,27 @@ class Simulator:
         (``rolls_material_frame``), each window's directors are rolled by its recording's
         :meth:`initial_roll`.
         -> (B, steps, n_markers, 3)."""
+        vm, held = self.begin(frames, steps, margin, d1, origin)
+        sub = self.substeps
+        out = []
+        for k in range(steps):
+            for j in range(sub):
+                vm = self.model.step_vertex_major(vm, held[k * sub + j], create_graph=create_graph)
+            out.append(vm.x[self.markers] if self.hidden else vm.x)
+        return self.end(torch.stack(out), frames, steps, margin)
+
+    def begin(
+        self,
+        frames: Tensor,
+        steps: int,
+        margin: int = 0,
+        d1: Tensor | None = None,
+        origin: Tensor | None = None,
+    ) -> tuple[VertexMajorState, Tensor]:
+        """What :meth:`rollout` steps from: the vertex-major state at ``frames[:, margin + 1]`` and
+        the held vertices of every model step, vertex-major (steps * substeps, 4, 3, B). Apart from
+        the stepping so that several simulators can be stepped as one batch
+        (:mod:`deform.diagnose.stack`)."""
         idx = gripped_indices(self.n_markers)
         grips = frames[:, :, idx]
         tau = self.delay()
@@ -440,17 +461,20 @@ class Simulator:
             grips_at([margin + 1 + k + j / sub for k in range(steps) for j in range(1, sub + 1)]), clamp
         )
         # stepped vertex-major (the layout the physics runs in), converted back once at the end
-        held = vertex_major(held, 3)  # (steps * sub, 4, 3, B)
-        vm = state.vertex_major()
-        out = []
-        for k in range(steps):
-            for j in range(sub):
-                vm = self.model.step_vertex_major(vm, held[k * sub + j], create_graph=create_graph)
-            out.append(vm.x[self.markers] if self.hidden else vm.x)
-        x = batch_major(torch.stack(out), (frames.shape[0],))  # (B, steps, n_markers, 3)
-        # the gripped markers are the protocol's inputs, given at every step: with a delay the rod's
-        # ends lag them and with a clamp its nodes 1 and n-2 are the clamp's ends, but the prediction
-        # is not scored on where the inputs are
+        return state.vertex_major(), vertex_major(held, 3)  # held: (steps * sub, 4, 3, B)
+
+    def end(self, x: Tensor, frames: Tensor, steps: int, margin: int = 0) -> Tensor:
+        """:meth:`rollout`'s output from the stepped markers ``x`` (steps, n_markers, 3, B), vertex-major.
+
+        The gripped markers are the protocol's inputs, given at every step: with a delay the rod's
+        ends lag them and with a clamp its nodes 1 and n-2 are the clamp's ends, but the prediction
+        is not scored on where the inputs are.
+
+        Returns:
+            (B, steps, n_markers, 3).
+        """
+        x = batch_major(x, (frames.shape[0],))  # (B, steps, n_markers, 3)
+        grips = frames[:, :, gripped_indices(self.n_markers)]
         recorded = grips[:, margin + 2 : margin + 2 + steps].to(x.dtype)
         return torch.cat([recorded[:, :, :2], x[:, :, 2:-2], recorded[:, :, 2:]], 2)
 

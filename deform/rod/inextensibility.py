@@ -114,6 +114,7 @@ def enforce_inextensibility(
     method: PBDMethod | str = PBDMethod.PROJECTION,
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
+    groups: int = 1,
 ) -> Tensor:
     """Project ``x`` (n, 3, B) so every edge has its rest length (m, B) within relative ``tol``.
 
@@ -133,6 +134,8 @@ def enforce_inextensibility(
         method: :class:`PBDMethod` (or its string).
         branch_free: sweeps without host synchronisation first.
         report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
+        groups: the batch is that many equal runs of consecutive rods, each swept until its own
+            rods are within ``tol``, as if it were projected alone (deform.diagnose.stack).
 
     Returns:
         (n, 3, B) projected vertices.
@@ -155,12 +158,32 @@ def enforce_inextensibility(
             return x
         max_sweeps -= branch_free
         err = err.amax()
+    elif groups > 1:
+        return _sweep_by_group(sweep, x, inv_mass, rest, tol, max_sweeps, groups)
     else:
         err = max_relative_error(x.detach(), rest.detach(), inv_mass)
     for _ in range(max_sweeps):
         if float(err) < tol:
             break
         x, err = _sweep_and_measure(sweep, x, inv_mass, rest)
+    return x
+
+
+def _sweep_by_group(
+    sweep, x: Tensor, inv_mass: Tensor, rest: Tensor, tol: float, max_sweeps: int, groups: int
+):
+    """The checked loop of :func:`enforce_inextensibility` for ``groups`` runs of consecutive rods,
+    each swept while its own largest error is above ``tol``: per group the sweeps of that group
+    projected alone."""
+    width = x.shape[-1] // groups
+    err = max_relative_error(x.detach(), rest.detach(), inv_mass, per_rod=True)
+    active = err.reshape(groups, width).amax(1) >= tol
+    for _ in range(max_sweeps):
+        if not bool(active.any()):
+            break
+        swept, err = _sweep_and_measure(sweep, x, inv_mass, rest, per_rod=True)
+        x = torch.where(active.repeat_interleave(width), swept, x)
+        active = active & (err.reshape(groups, width).amax(1) >= tol)
     return x
 
 

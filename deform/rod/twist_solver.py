@@ -130,6 +130,7 @@ def newton_theta(
     max_step: float = 0.5,
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
+    groups: int = 1,
 ) -> Tensor:
     """Minimise over the free angles by damped Newton; returns all m angles (ends included), detached.
 
@@ -162,6 +163,9 @@ def newton_theta(
         max_step: largest step [rad].
         branch_free: iterations without host synchronisation first.
         report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
+        groups: the batch is that many equal runs of consecutive rods, each iterated until its own
+            rods are converged, as if it were solved alone (several models stepped as one batch:
+            deform.diagnose.stack).
 
     Returns:
         (m, B) angles [rad].
@@ -193,6 +197,25 @@ def newton_theta(
             if torch.compiler.is_compiling() or not bool(active.any()):
                 return _with_free(theta_ends, free)
             max_iter -= branch_free
+        if groups > 1:
+            return _with_free(
+                theta_ends,
+                _newton_by_group(
+                    free,
+                    theta_ends,
+                    a,
+                    b,
+                    m_ref,
+                    beta,
+                    gamma,
+                    rest_vor,
+                    wbar,
+                    max_step,
+                    tol,
+                    max_iter,
+                    groups,
+                ),
+            )
         for _ in range(max_iter):
             free, size, exact = _newton_update(
                 free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step
@@ -202,6 +225,26 @@ def newton_theta(
             if size < tol or (exact and size * size < tol):
                 break
         return _with_free(theta_ends, free)
+
+
+def _newton_by_group(
+    free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step, tol, max_iter, groups
+):
+    """The checked Newton loop of :func:`newton_theta` for ``groups`` runs of consecutive rods, each
+    updated until its own largest step meets the stopping rule: per group the iterations, and so
+    the angles, of that group solved alone."""
+    active = torch.ones(groups, dtype=torch.bool, device=free.device)
+    width = free.shape[-1] // groups
+    for _ in range(max_iter):
+        new, size, exact = _newton_update(
+            free, theta_ends, a, b, m_ref, beta, gamma, rest_vor, wbar, max_step, per_rod=True
+        )
+        free = torch.where(active.repeat_interleave(width), new, free)
+        size, exact = size.reshape(groups, width).amax(1), exact.reshape(groups, width).all(1)
+        active = active & ~((size < tol) | (exact & (size * size < tol)))
+        if not bool(active.any()):
+            break
+    return free
 
 
 def _newton_update(
@@ -278,12 +321,13 @@ def solve_theta(
     max_iter: int = 30,
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
+    groups: int = 1,
 ) -> Tensor:
     """Fast batched solver; differentiable through the implicit function theorem when needed.
 
     Args:
         a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter, branch_free,
-        report: as for :func:`newton_theta`.
+        report, groups: as for :func:`newton_theta`.
 
     Returns:
         (m, B) energy-minimising angles [rad], differentiable when an input requires grad.
@@ -304,6 +348,7 @@ def solve_theta(
         max_iter,
         branch_free=branch_free,
         report=report,
+        groups=groups,
     )
     inputs = (a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar)
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):

@@ -76,7 +76,7 @@ def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end
     better = losses["clamp_restart"] < (1 - fitting.RESTART_MIN_GAIN) * losses["clamp_0"]
     assert info["kept"] == ("clamp_restart" if better else "clamp_0")
     with torch.no_grad():
-        now = fitting._forward_loss(sim, held_out, budget)
+        now = fitting.forward_loss(sim, held_out, budget)
     assert now == pytest.approx(losses[info["kept"]], rel=1e-9)
 
     # without a margin the lower end is kept, whichever it is
@@ -84,5 +84,5 @@ def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end
     sim = Simulator(SPEC, Nominal())
     info = fitting.fit_nominal(sim, recs, budget, 0.02)["clamp_restart"]
     with torch.no_grad():
-        now = fitting._forward_loss(sim, held_out, budget)
+        now = fitting.forward_loss(sim, held_out, budget)
     assert now == pytest.approx(min(info["held_out_loss_m"].values()), rel=1e-9)

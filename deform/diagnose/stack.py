@@ -1,0 +1,348 @@
+"""Several simulators stepped as one batch: the candidate fits of a selection round, together.
+
+A diagnosis fits many small models (a reference and, per candidate term, a descent from each of its
+grid's best starts) on the same windows of the same recordings. A step of one 13-vertex rod on 12
+windows is a few hundred small tensor operations whose cost is their count, not their size: on one
+core, 8 such models in one batch of 96 rods cost 1.7x one model's step, not 8x. So the models of
+one round are stepped together: one :class:`deform.model.DeformModel` whose parameters are per rod
+(each model's bound expressions repeated over its windows), whose terms act on their own model's
+rods only (:class:`PerModelTerms`), started and ended by each simulator's own
+:meth:`Simulator.begin` / :meth:`Simulator.end` (its clamp, delay, roll).
+
+Each model's loss, gradient, optimiser and clipping stay its own, so a stacked descent is the
+descent of each model alone but for the solvers' stopping rules (the twist solve and the length
+projection iterate until every rod of the batch is within tolerance): a model's numbers depend on
+its batch-mates at the solver tolerance (1e-6 rad, 1e-3 of an edge length). The groups are
+therefore chosen from the round's candidates alone (:func:`groups_of`), never from the workers, so
+that a diagnosis gives the same numbers whatever ``--workers`` is.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import random
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+from tqdm import tqdm
+
+from deform.diagnose.fitting import (
+    FitBudget,
+    apply_point,
+    forward_loss,
+    held_out_windows,
+    make_windows,
+    rank_starts,
+    window_schedule,
+)
+from deform.diagnose.simulator import Simulator
+from deform.io.recordings import Recording
+from deform.model import DeformModel, VertexMajorState
+
+# the most models stepped as one batch: per step a batch of 12 models x 12 windows costs about twice
+# one model's step on one core (deform.diagnose.stack docstring); past that the arithmetic, not the
+# count of operations, sets the time and a larger group gains little
+GROUP_MODELS = 12
+
+
+def groups_of(sizes: Sequence[int], most: int = GROUP_MODELS) -> list[list[int]]:
+    """Split items of ``sizes`` models each, in order, into the fewest groups of at most ``most``
+    models that are about equal (an item larger than ``most`` is a group of its own).
+
+    Args:
+        sizes: models per item (a candidate's starts, 1 for a reference).
+        most: models per group at most.
+
+    Returns:
+        Item indices per group.
+    """
+    total = sum(sizes)
+    if total == 0:
+        return []
+    n_groups = max(1, math.ceil(total / most))
+    target = total / n_groups
+    groups: list[list[int]] = [[]]
+    filled = 0
+    for i, size in enumerate(sizes):
+        if groups[-1] and (filled + size > most or filled >= target - 1e-9):
+            groups.append([])
+            filled = 0
+        groups[-1].append(i)
+        filled += size
+    return groups
+
+
+class PerModelTerms(nn.Module):
+    """The terms of each stacked model acting on that model's rods only: rods ``bounds[k]:bounds[k+1]``
+    of the batch belong to model ``k``. Batch-first, as :class:`deform.model.DeformModel` hands
+    terms their inputs."""
+
+    def __init__(self, terms: list[list[nn.Module]], width: int):
+        super().__init__()
+        self.per_model = [list(t) for t in terms]
+        self.width = width  # rods per model
+
+    def _slices(self):
+        for k, terms in enumerate(self.per_model):
+            yield terms, slice(k * self.width, (k + 1) * self.width)
+
+    def acceleration(self, x: Tensor, v: Tensor, mass: Tensor, rest: Tensor) -> Tensor:
+        parts = []
+        for terms, sl in self._slices():
+            a = torch.zeros_like(x[sl])
+            for t in terms:
+                if hasattr(t, "acceleration"):
+                    a = a + t.acceleration(x[sl], v[sl], mass[sl], rest[sl])
+            parts.append(a)
+        return torch.cat(parts, 0)
+
+    def mass(self, mass: Tensor) -> Tensor:
+        parts = []
+        for terms, sl in self._slices():
+            m = mass[sl]
+            for t in terms:
+                if hasattr(t, "mass"):
+                    m = t.mass(m)
+            parts.append(m)
+        return torch.cat(parts, 0)
+
+
+class Stack:
+    """Simulators of one rod, step and layout (the same node count, model step and substeps),
+    stepped as one batch. Each keeps its own nominal parameters and terms."""
+
+    def __init__(self, sims: list[Simulator]):
+        first = sims[0]
+        for s in sims[1:]:
+            if (s.n, s.substeps, s.hidden, s.model.dt) != (
+                first.n,
+                first.substeps,
+                first.hidden,
+                first.model.dt,
+            ):
+                raise ValueError("stacked simulators must share nodes, substeps and model step")
+        self.sims = sims
+        self.model = DeformModel(first.model.cfg, first.model.options)
+        self._width = None
+
+    def _bind(self, width: int) -> dict[str, Tensor]:
+        """Every model's bound expressions, repeated over its ``width`` rods, copied into the batch
+        model's per-rod parameters; -> the stacked expressions (for :meth:`backward`)."""
+        exprs = [s.sync() for s in self.sims]
+        stacked = {}
+        for k in exprs[0]:
+            per = [e[k] for e in exprs]
+            stacked[k] = torch.cat([p.unsqueeze(-1).expand(*p.shape, width) for p in per], -1)
+        if width != self._width:
+            for k, e in stacked.items():
+                setattr(self.model, k, nn.Parameter(torch.empty_like(e, dtype=getattr(self.model, k).dtype)))
+            self.model.extensions = nn.ModuleList(
+                [PerModelTerms([[t for t in s.model.extensions] for s in self.sims], width)]
+            )
+            self._width = width
+        with torch.no_grad():
+            for k, e in stacked.items():
+                getattr(self.model, k).copy_(e.detach())
+            for k in ("extra_mass_raw", "log_drag"):  # what every simulator's sync set, unbound
+                getattr(self.model, k).copy_(getattr(self.sims[0].model, k))
+                getattr(self.model, k).requires_grad_(False)
+        for k, e in stacked.items():
+            getattr(self.model, k).requires_grad_(e.requires_grad)
+        return stacked
+
+    def rollout(
+        self,
+        frames: Tensor,
+        steps: int,
+        margin: int = 0,
+        create_graph: bool = False,
+        d1: Tensor | None = None,
+        origin: Tensor | None = None,
+    ) -> tuple[list[Tensor], dict[str, Tensor]]:
+        """Every simulator's :meth:`Simulator.rollout` of the same windows.
+
+        Returns:
+            ``(predictions, stacked expressions)``: a (B, steps, n_markers, 3) per simulator, and
+            what :meth:`backward` takes.
+        """
+        width = frames.shape[0]
+        stacked = self._bind(width)
+        begun = [s.begin(frames, steps, margin, d1, origin) for s in self.sims]
+        vm = VertexMajorState(
+            *(torch.cat([getattr(b[0], f) for b in begun], -1) for f in ("x", "v", "d1", "theta", "rest"))
+        )
+        held = torch.cat([b[1] for b in begun], -1)
+        sub = self.sims[0].substeps
+        markers, hidden = self.sims[0].markers, self.sims[0].hidden
+        out = []
+        for k in range(steps):
+            for j in range(sub):
+                vm = self.model.step_vertex_major(
+                    vm, held[k * sub + j], create_graph=create_graph, groups=len(self.sims)
+                )
+            out.append(vm.x[markers] if hidden else vm.x)
+        x = torch.stack(out)  # (steps, n_markers, 3, models * B)
+        preds = [
+            s.end(x[..., k * width : (k + 1) * width], frames, steps, margin) for k, s in enumerate(self.sims)
+        ]
+        return preds, stacked
+
+    def backward(self, loss: Tensor, stacked: dict[str, Tensor]) -> None:
+        """Backpropagate ``loss`` to every simulator's nominal and term parameters (as
+        :meth:`Simulator.backward` does for one)."""
+        params = {k: getattr(self.model, k) for k in stacked}
+        for p in params.values():
+            p.grad = None
+        loss.backward()
+        outs, grads = [], []
+        for k, e in stacked.items():
+            g = params[k].grad
+            if g is not None and e.requires_grad:
+                outs.append(e)
+                grads.append(g.to(e.dtype))
+        if outs:
+            torch.autograd.backward(outs, grads)
+        for p in params.values():
+            p.grad = None
+
+
+def descend_together(
+    sims: list[Simulator], recordings: list[Recording], budget: FitBudget, desc: str, fit_nominal: bool = True
+) -> list[dict]:
+    """:func:`deform.diagnose.fitting._descend` of every simulator, stepped as one batch: the same
+    windows, each simulator its own loss, Adam, learning-rate schedule, gradient clipping and
+    skipped steps (a diverged model does not stop the others).
+
+    Args:
+        sims: the simulators (see :class:`Stack`).
+        recordings: fit recordings.
+        budget: iterations, windows, learning rates.
+        desc: progress bar label.
+        fit_nominal: also fit the nominal parameters.
+
+    Returns:
+        Per simulator ``{"loss_history_m", "skipped"}``.
+    """
+    stack = Stack(sims)
+    rng = random.Random(budget.seed)
+    opts, scheds = [], []
+    half = budget.iterations / 2
+    for s in sims:
+        groups = []
+        if s.term_parameters():
+            groups.append({"params": s.term_parameters(), "lr": budget.lr_terms})
+        if fit_nominal:
+            groups.append({"params": list(s.nominal.parameters()), "lr": budget.lr_nominal})
+        opt = torch.optim.Adam(groups)
+        opts.append(opt)
+        scheds.append(
+            torch.optim.lr_scheduler.LambdaLR(
+                opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))
+            )
+            if budget.anneal
+            else None
+        )
+    history: list[list[float]] = [[] for _ in sims]
+    skipped = [0] * len(sims)
+    bar = tqdm(
+        range(budget.iterations), desc=desc, disable=None if budget.progress else True, leave=False, unit="it"
+    )
+    for i in bar:
+        horizon, batch = window_schedule(budget, recordings, i)
+        X, d1, origin = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
+        for opt in opts:
+            opt.zero_grad(set_to_none=True)
+        preds, stacked = stack.rollout(X, horizon, budget.margin, create_graph=True, d1=d1, origin=origin)
+        truth = X[:, budget.margin + 2 : budget.margin + 2 + horizon]
+        losses = [(p - truth).abs().mean() for p in preds]
+        finite = [bool(torch.isfinite(loss)) for loss in losses]
+        if any(finite):
+            stack.backward(sum(loss for loss, ok in zip(losses, finite) if ok), stacked)
+        for k, s in enumerate(sims):
+            params = s.parameters()
+            if finite[k] and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
+                torch.nn.utils.clip_grad_norm_(params, 5.0)
+                opts[k].step()
+                s.clamp_()
+            else:
+                skipped[k] += 1
+            if scheds[k] is not None:
+                scheds[k].step()
+            history[k].append(float(losses[k].detach()))
+        bar.set_postfix(best=f"{min(h[-1] for h in history) * 100:.3f}cm")
+    return [{"loss_history_m": h, "skipped": n} for h, n in zip(history, skipped)]
+
+
+def fit_together(
+    members: list[tuple[Simulator, object | None]], recordings: list[Recording], budget: FitBudget, desc: str
+) -> list[tuple[Simulator, dict]]:
+    """:func:`deform.diagnose.fitting.fit` of several simulators, their descents stepped as one batch.
+
+    A member ``(simulator, new term or None)`` with a new term is started from the best
+    ``budget.starts`` points of its grid, each a copy of the simulator descended beside the others;
+    the end point with the lowest loss on held-out windows of the fit recordings is kept (first on a
+    tie), as :func:`~deform.diagnose.fitting.fit` keeps it.
+
+    Args:
+        members: simulators and the term each just added.
+        recordings: fit recordings.
+        budget: the fit's budget (one for all: they are stepped together).
+        desc: progress bar label.
+
+    Returns:
+        Per member the fitted simulator (a copy when it had several starts; its new term is at the
+        same index in ``terms``) and ``{"loss_history_m", "skipped"}``, with several starts also
+        ``"starts"``: each start's point and held-out loss.
+    """
+    runs: list[tuple[int, dict | None, Simulator]] = []
+    for i, (sim, term) in enumerate(members):
+        ranked = rank_starts(sim, term, recordings, budget) if term is not None else []
+        if len(ranked) <= 1 or budget.starts <= 1:
+            if ranked:
+                apply_point(sim, term, ranked[0][1])
+            runs.append((i, None, sim))
+            continue
+        index = sim.terms.index(term)
+        for _, point in ranked[: budget.starts]:
+            start = copy.deepcopy(sim)
+            apply_point(start, start.terms[index], point)
+            runs.append((i, point, start))
+    outs = descend_together([r[2] for r in runs], recordings, budget, desc)
+    held_out = None
+    best: dict[int, tuple] = {}
+    starts: dict[int, list] = {}
+    for (i, point, sim), out in zip(runs, outs):
+        if point is None and i not in starts:
+            best[i] = (0.0, sim, out)
+            continue
+        if held_out is None:
+            held_out = held_out_windows(recordings, budget)
+        sim.sync()
+        loss = forward_loss(sim, held_out, budget)
+        starts.setdefault(i, []).append({"point": point, "loss_m": loss})
+        if i not in best or loss < best[i][0]:
+            best[i] = (loss, sim, out)
+    return [
+        (best[i][1], {**best[i][2], **({"starts": starts[i]} if i in starts else {})})
+        for i in range(len(members))
+    ]
+
+
+def fits_rest_curvature(terms: Sequence[nn.Module], n_vertices: int) -> bool:
+    """Whether a model with these terms fits a rest curvature (a bound ``wbar`` that takes
+    gradients). Such a model's twist angles need the iterative solve; without one they come in
+    closed form (deform.rod.twist_solver), and a batch takes the iterative solve for all its rods
+    if one needs it, so the two kinds are stacked apart: each model's numbers stay those it gets
+    alone."""
+    m = n_vertices - 2
+    exprs = {
+        "log_beta": torch.zeros(m, dtype=torch.float64),
+        "log_gamma": torch.zeros(m, dtype=torch.float64),
+        "wbar": torch.zeros(m, 2, 2, dtype=torch.float64),
+        "log_damping": torch.zeros((), dtype=torch.float64),
+    }
+    for t in terms:
+        exprs = t.bind(exprs)
+    return bool(exprs["wbar"].requires_grad)
