@@ -296,25 +296,25 @@ def fit_together(
         same index in ``terms``) and ``{"loss_history_m", "skipped"}``, with several starts also
         ``"starts"``: each start's point and held-out loss.
     """
-    runs: list[tuple[int, dict | None, Simulator]] = []
+    runs: list[tuple[int, bool, dict | None, Simulator]] = []  # (member, one of several starts, point, sim)
     for i, (sim, term) in enumerate(members):
         ranked = rank_starts(sim, term, recordings, budget) if term is not None else []
         if len(ranked) <= 1 or budget.starts <= 1:
             if ranked:
                 apply_point(sim, term, ranked[0][1])
-            runs.append((i, None, sim))
+            runs.append((i, False, None, sim))
             continue
         index = sim.terms.index(term)
-        for _, point in ranked[: budget.starts]:
+        for _, point in ranked[: budget.starts]:  # a point None: the term's current values
             start = copy.deepcopy(sim)
             apply_point(start, start.terms[index], point)
-            runs.append((i, point, start))
-    outs = descend_together([r[2] for r in runs], recordings, budget, desc)
+            runs.append((i, True, point, start))
+    outs = descend_together([r[3] for r in runs], recordings, budget, desc)
     held_out = None
     best: dict[int, tuple] = {}
     starts: dict[int, list] = {}
-    for (i, point, sim), out in zip(runs, outs):
-        if point is None and i not in starts:
+    for (i, several, point, sim), out in zip(runs, outs):
+        if not several:
             best[i] = (0.0, sim, out)
             continue
         if held_out is None:

@@ -1,0 +1,124 @@
+"""Models stepped as one batch give each model's numbers alone (deform.diagnose.stack)."""
+
+import copy
+import random
+
+import numpy as np
+import pytest
+import torch
+
+from deform.diagnose.fitting import FitBudget, _descend, apply_point, fit, make_windows, rank_starts
+from deform.diagnose.simulator import Nominal, Simulator
+from deform.diagnose.stack import Stack, descend_together, fit_together, fits_rest_curvature, groups_of
+from deform.io.recordings import arclength_of
+from deform.terms.library import make_term
+
+from .conftest import SPEC, planted_inputs
+
+# a term of every kind of hook: an acceleration, a mass, a bound stiffness, shifted grips
+NAMES = [None, "aerodynamic_drag", "point_mass", "stiffness_variation", "actuation_delay", "ground_contact"]
+
+
+def _sims(recs, names=NAMES):
+    s = arclength_of(recs)
+    ctx = {"lowest_z": min(float(r.positions[:, 2:-2, 2].min()) for r in recs), "peak_s": 0.4}
+    out = []
+    for k, name in enumerate(names):
+        terms = [] if name is None else [make_term(name, SPEC.n_vertices, s, ctx)]
+        out.append(Simulator(SPEC, Nominal(damping=0.2 + 0.1 * k), terms))
+    with torch.no_grad():  # move every term off its defaults, so that a mix-up between models shows
+        for k, sim in enumerate(out):
+            for p in sim.term_parameters():
+                p.add_(0.05 * (k + 1))
+    return out
+
+
+@pytest.fixture(scope="module")
+def recordings(sources):
+    inputs, _ = planted_inputs("point_mass", sources)
+    return inputs.fit
+
+
+def test_a_stacked_rollout_is_each_models_own(recordings):
+    sims = _sims(recordings)
+    X, d1, origin = make_windows(recordings, 5, 15, 3, random.Random(0))
+    with torch.no_grad():
+        alone = []
+        for sim in sims:
+            sim.sync()
+            alone.append(sim.rollout(X, 15, 3, d1=d1, origin=origin))
+        stacked, _ = Stack(sims).rollout(X, 15, 3, d1=d1, origin=origin)
+    for a, b in zip(alone, stacked, strict=True):
+        assert torch.isfinite(a).all()
+        assert (a - b).abs().max() < 1e-12
+    # the models differ by more than that: the comparison would see a swapped model
+    assert (alone[0] - alone[1]).abs().max() > 1e-5
+
+
+def test_stacked_descents_are_each_models_own(recordings):
+    budget = FitBudget(iterations=4, batch=4, horizon=12, progress=False)
+    alone, stacked = _sims(recordings), _sims(recordings)
+    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
+    out_stacked = descend_together(stacked, recordings, budget, "stacked")
+    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
+        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
+        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+
+
+def test_fit_together_keeps_the_start_fit_keeps(recordings):
+    """Several starts per term (the first of them the term's own values) and a reference, as a
+    selection round fits them."""
+    budget = FitBudget(iterations=3, batch=4, horizon=12, progress=False, starts=2)
+    names = [None, "point_mass", "aerodynamic_drag"]
+
+    def sims():
+        out = _sims(recordings, names)
+        # the point mass starts at its grid's best point, which then ranks first as "the term's
+        # own values" (point None) beside the grid's points
+        pm = out[1]
+        apply_point(pm, pm.terms[0], rank_starts(pm, pm.terms[0], recordings, budget)[0][1])
+        return out
+
+    alone = sims()
+    outs = [fit(sim, recordings, budget, new_term=sim.terms[0] if sim.terms else None) for sim in alone]
+    together = fit_together([(s, s.terms[0] if s.terms else None) for s in sims()], recordings, budget, "x")
+    for sim, out, (tsim, tout) in zip(alone, outs, together, strict=True):
+        assert ("starts" in out) == ("starts" in tout)
+        if "starts" in out:
+            assert [s["point"] for s in tout["starts"]] == [s["point"] for s in out["starts"]]
+            np.testing.assert_allclose(
+                [s["loss_m"] for s in tout["starts"]], [s["loss_m"] for s in out["starts"]], rtol=1e-6
+            )
+        for pa, pb in zip(sim.parameters(), tsim.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    # the case of a start at the term's own values (point None) beside a grid point is exercised
+    assert any(s["point"] is None for out in outs for s in out.get("starts", []))
+
+
+def test_groups_are_few_even_and_in_order():
+    assert groups_of([]) == []
+    assert groups_of([1, 2, 2], most=12) == [[0, 1, 2]]
+    groups = groups_of([1] + [2] * 9, most=12)  # 19 models: two groups of about 10
+    assert [i for g in groups for i in g] == list(range(10))
+    assert len(groups) == 2
+    sizes = [sum(([1] + [2] * 9)[i] for i in g) for g in groups]
+    assert max(sizes) <= 12 and min(sizes) >= 8
+    assert groups_of([20, 1], most=12) == [[0], [1]]  # an item larger than a group stands alone
+
+
+def test_a_fitted_rest_curvature_is_stacked_apart(recordings):
+    s = arclength_of(recordings)
+    curvature = make_term("rest_curvature", SPEC.n_vertices, s, {})
+    drag = make_term("aerodynamic_drag", SPEC.n_vertices, s, {})
+    assert fits_rest_curvature([curvature], SPEC.n_vertices)
+    assert fits_rest_curvature([drag, copy.deepcopy(curvature)], SPEC.n_vertices)
+    assert not fits_rest_curvature([drag], SPEC.n_vertices)
+    assert not fits_rest_curvature([], SPEC.n_vertices)
+
+
+def test_stacked_simulators_must_share_their_step(recordings):
+    a = Simulator(SPEC, Nominal())
+    b = Simulator(SPEC, Nominal(), max_step_s=SPEC.dt / 2)
+    with pytest.raises(ValueError, match="substeps"):
+        Stack([a, b])
