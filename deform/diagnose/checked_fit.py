@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from deform.diagnose.fitting import FitBudget, fit, fit_nominal
+from deform.diagnose.joint_fit import fit_together
 from deform.diagnose.simulator import (
     MAX_STEP_S,
     Simulator,
@@ -18,7 +19,7 @@ from deform.diagnose.simulator import (
     per_recording_window_l1,
 )
 from deform.diagnose.spec import Inputs
-from deform.diagnose.stack import fit_together
+from deform.diagnose.stack import check_errors
 
 
 @dataclass
@@ -35,6 +36,11 @@ class CheckErrors:
         return cls(
             per_recording_l1(sim.predict(recordings), recordings), per_recording_window_l1(sim, recordings)
         )
+
+    @classmethod
+    def of_all(cls, sims: list[Simulator], recordings) -> list[CheckErrors]:
+        """:meth:`of` every simulator, stepped as one batch (:func:`deform.diagnose.stack.check_errors`)."""
+        return [cls(rollout, window) for rollout, window in check_errors(sims, recordings)]
 
 
 def fit_and_check(
@@ -88,7 +94,8 @@ def fit_and_check_together(
         budget,
         desc,
     )
-    return [(sim, CheckErrors.of(sim, inputs.check)) for sim, _ in fitted]
+    fitted_sims = [sim for sim, _ in fitted]
+    return list(zip(fitted_sims, CheckErrors.of_all(fitted_sims, inputs.check), strict=True))
 
 
 def fit_nominal_at(

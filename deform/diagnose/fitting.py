@@ -18,6 +18,7 @@ import torch
 from tqdm import tqdm
 
 from deform.diagnose.simulator import ROLL_FRAMES, Nominal, Simulator
+from deform.diagnose.stack import window_losses
 from deform.io.recordings import Recording
 
 
@@ -168,14 +169,22 @@ def rank_starts(sim: Simulator, term, recordings: list[Recording], budget: FitBu
         random.Random(budget.seed + 1),
         budget.transported,
     )
-    saved = _snapshot(sim)
-    scored = []
+    index = sim.terms.index(term)
+    copies = []
     for point in [None] + points:
-        _restore(sim, saved)
-        apply_point(sim, term, point)
-        scored.append((forward_loss(sim, windows, budget), point))
-    _restore(sim, saved)
-    return sorted(scored, key=lambda lp: lp[0])
+        c = copy.deepcopy(sim)
+        apply_point(c, c.terms[index], point)
+        copies.append(c)
+    losses = window_losses(copies, windows, budget.margin)  # every point in one batch
+    sim.sync()
+    return sorted(zip(losses, [None] + points), key=lambda lp: rank_key(lp[0]))
+
+
+def rank_key(loss: float) -> float:
+    """A loss rounded to 10 significant digits, to rank by: points that tie (a plane that touches
+    nothing at two heights) keep their order, whichever batch they were stepped in (a batch moves a
+    loss by about 1e-15 of itself: deform.diagnose.stack)."""
+    return float(f"{loss:.9e}")
 
 
 def coarse_start(sim: Simulator, term, recordings: list[Recording], budget: FitBudget) -> dict | None:
@@ -374,16 +383,25 @@ def coarse_nominal(
     X = torch.tensor(np.stack([r.positions[: steps + 2] for r in recs]), dtype=torch.float64)
     best = (math.inf, None)
     nom = sim.nominal
-    for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2):
-        for c in sorted({min(c, nom.damping_max) for c in (0.3, 1.0, 3.0)}):
-            with torch.no_grad():
-                nom.log_ei.fill_(math.log(ei))
-                nom.log_gj.fill_(math.log(0.7 * ei))
-                nom.log_damping.fill_(math.log(c))
-                sim.sync()
-                err = float(torch.nan_to_num((sim.rollout(X, steps) - X[:, 2:]).abs().mean(), nan=1.0))
-            if err < best[0]:
-                best = (err, (ei, c))
+    points = [
+        (ei, c)
+        for ei in (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
+        for c in sorted({min(c, nom.damping_max) for c in (0.3, 1.0, 3.0)})
+    ]
+    copies = []
+    for ei, c in points:
+        s = copy.deepcopy(sim)
+        with torch.no_grad():
+            s.nominal.log_ei.fill_(math.log(ei))
+            s.nominal.log_gj.fill_(math.log(0.7 * ei))
+            s.nominal.log_damping.fill_(math.log(c))
+        copies.append(s)
+    # every point in one batch: the full rollouts from the first frames (no margin, fresh frames)
+    losses = window_losses(copies, (X, None, None), 0)
+    for err, point in zip(losses, points):
+        err = 1.0 if math.isinf(err) else err  # a diverged rollout scores 1 m, as before
+        if err < best[0]:
+            best = (err, point)
     ei, c = best[1]
     with torch.no_grad():
         nom.log_ei.fill_(math.log(ei))

@@ -557,6 +557,7 @@ def per_recording_l1(predictions: list[np.ndarray], recordings) -> np.ndarray:
 # The horizon of the check statistic that decides (docs/diagnose.md, "Scoring"): one second ahead.
 CHECK_HORIZON = 100
 CHECK_EVERY = 20  # frames between window starts
+CHECK_MARGIN = 3  # frames kept before each window's start (a delay term's shifted inputs)
 
 
 def per_recording_window_l1(
@@ -564,7 +565,7 @@ def per_recording_window_l1(
     recordings,
     horizon: int = CHECK_HORIZON,
     every: int = CHECK_EVERY,
-    margin: int = 3,
+    margin: int = CHECK_MARGIN,
 ) -> np.ndarray:
     """Mean open-loop L1 of ``horizon``-step predictions restarted every ``every`` frames, per
     recording: the prediction a fit is made for (short windows from transported frames), scored
@@ -587,15 +588,30 @@ def per_recording_window_l1(
     out = []
     with torch.no_grad():
         for r in recordings:
-            h = max(1, min(horizon, r.n_frames - 2 - 2 * margin))
-            length = h + 2 + 2 * margin
-            starts = list(range(0, r.n_frames - length + 1, every))
-            X = torch.tensor(np.stack([r.positions[s : s + length] for s in starts]), dtype=torch.float64)
-            frames = r.reference_frames
-            d1 = torch.tensor(np.stack([frames[s + margin + 1] for s in starts]), dtype=torch.float64)
-            origin = torch.tensor(r.positions[: 2 + ROLL_FRAMES], dtype=torch.float64)
-            origin = origin.expand(len(starts), -1, -1, -1)
+            X, d1, origin, h = check_windows(r, horizon, every, margin)
             pred = sim.rollout(X, h, margin, d1=d1, origin=origin)
-            err = (pred - X[:, margin + 2 : margin + 2 + h]).abs().mean()
-            out.append(float(torch.nan_to_num(err, nan=1.0)))
+            out.append(window_l1(pred, X, margin))
     return np.array(out)
+
+
+def check_windows(
+    recording, horizon: int = CHECK_HORIZON, every: int = CHECK_EVERY, margin: int = CHECK_MARGIN
+):
+    """The windows :func:`per_recording_window_l1` predicts on one recording: ``(X, d1, origin,
+    steps)``, ``X`` (W, steps + 2 + 2 margin, n, 3) restarted every ``every`` frames, the reference
+    directors at each start and the recording's first frames (where a roll is read)."""
+    r = recording
+    h = max(1, min(horizon, r.n_frames - 2 - 2 * margin))
+    length = h + 2 + 2 * margin
+    starts = list(range(0, r.n_frames - length + 1, every))
+    X = torch.tensor(np.stack([r.positions[s : s + length] for s in starts]), dtype=torch.float64)
+    frames = r.reference_frames
+    d1 = torch.tensor(np.stack([frames[s + margin + 1] for s in starts]), dtype=torch.float64)
+    origin = torch.tensor(r.positions[: 2 + ROLL_FRAMES], dtype=torch.float64)
+    return X, d1, origin.expand(len(starts), -1, -1, -1), h
+
+
+def window_l1(pred: Tensor, X: Tensor, margin: int) -> float:
+    """Mean L1 [m] of window predictions ``pred`` (W, steps, n, 3) against ``X``; 1.0 where diverged."""
+    err = (pred - X[:, margin + 2 : margin + 2 + pred.shape[1]]).abs().mean()
+    return float(torch.nan_to_num(err, nan=1.0))

@@ -19,26 +19,15 @@ that a diagnosis gives the same numbers whatever ``--workers`` is.
 
 from __future__ import annotations
 
-import copy
 import math
-import random
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
-from tqdm import tqdm
 
-from deform.diagnose.fitting import (
-    FitBudget,
-    apply_point,
-    forward_loss,
-    held_out_windows,
-    make_windows,
-    rank_starts,
-    window_schedule,
-)
-from deform.diagnose.simulator import Simulator
-from deform.io.recordings import Recording
+from deform.diagnose.simulator import CHECK_MARGIN, Simulator, check_windows, per_recording_l1, window_l1
+from deform.evaluate import batches_by_horizon
 from deform.model import DeformModel, VertexMajorState
 
 # the most models stepped as one batch: per step a batch of 12 models x 12 windows costs about twice
@@ -208,128 +197,6 @@ class Stack:
             p.grad = None
 
 
-def descend_together(
-    sims: list[Simulator], recordings: list[Recording], budget: FitBudget, desc: str, fit_nominal: bool = True
-) -> list[dict]:
-    """:func:`deform.diagnose.fitting._descend` of every simulator, stepped as one batch: the same
-    windows, each simulator its own loss, Adam, learning-rate schedule, gradient clipping and
-    skipped steps (a diverged model does not stop the others).
-
-    Args:
-        sims: the simulators (see :class:`Stack`).
-        recordings: fit recordings.
-        budget: iterations, windows, learning rates.
-        desc: progress bar label.
-        fit_nominal: also fit the nominal parameters.
-
-    Returns:
-        Per simulator ``{"loss_history_m", "skipped"}``.
-    """
-    stack = Stack(sims)
-    rng = random.Random(budget.seed)
-    opts, scheds = [], []
-    half = budget.iterations / 2
-    for s in sims:
-        groups = []
-        if s.term_parameters():
-            groups.append({"params": s.term_parameters(), "lr": budget.lr_terms})
-        if fit_nominal:
-            groups.append({"params": list(s.nominal.parameters()), "lr": budget.lr_nominal})
-        opt = torch.optim.Adam(groups)
-        opts.append(opt)
-        scheds.append(
-            torch.optim.lr_scheduler.LambdaLR(
-                opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))
-            )
-            if budget.anneal
-            else None
-        )
-    history: list[list[float]] = [[] for _ in sims]
-    skipped = [0] * len(sims)
-    bar = tqdm(
-        range(budget.iterations), desc=desc, disable=None if budget.progress else True, leave=False, unit="it"
-    )
-    for i in bar:
-        horizon, batch = window_schedule(budget, recordings, i)
-        X, d1, origin = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
-        for opt in opts:
-            opt.zero_grad(set_to_none=True)
-        preds, stacked = stack.rollout(X, horizon, budget.margin, create_graph=True, d1=d1, origin=origin)
-        truth = X[:, budget.margin + 2 : budget.margin + 2 + horizon]
-        losses = [(p - truth).abs().mean() for p in preds]
-        finite = [bool(torch.isfinite(loss)) for loss in losses]
-        if any(finite):
-            stack.backward(sum(loss for loss, ok in zip(losses, finite) if ok), stacked)
-        for k, s in enumerate(sims):
-            params = s.parameters()
-            if finite[k] and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
-                torch.nn.utils.clip_grad_norm_(params, 5.0)
-                opts[k].step()
-                s.clamp_()
-            else:
-                skipped[k] += 1
-            if scheds[k] is not None:
-                scheds[k].step()
-            history[k].append(float(losses[k].detach()))
-        bar.set_postfix(best=f"{min(h[-1] for h in history) * 100:.3f}cm")
-    return [{"loss_history_m": h, "skipped": n} for h, n in zip(history, skipped)]
-
-
-def fit_together(
-    members: list[tuple[Simulator, object | None]], recordings: list[Recording], budget: FitBudget, desc: str
-) -> list[tuple[Simulator, dict]]:
-    """:func:`deform.diagnose.fitting.fit` of several simulators, their descents stepped as one batch.
-
-    A member ``(simulator, new term or None)`` with a new term is started from the best
-    ``budget.starts`` points of its grid, each a copy of the simulator descended beside the others;
-    the end point with the lowest loss on held-out windows of the fit recordings is kept (first on a
-    tie), as :func:`~deform.diagnose.fitting.fit` keeps it.
-
-    Args:
-        members: simulators and the term each just added.
-        recordings: fit recordings.
-        budget: the fit's budget (one for all: they are stepped together).
-        desc: progress bar label.
-
-    Returns:
-        Per member the fitted simulator (a copy when it had several starts; its new term is at the
-        same index in ``terms``) and ``{"loss_history_m", "skipped"}``, with several starts also
-        ``"starts"``: each start's point and held-out loss.
-    """
-    runs: list[tuple[int, bool, dict | None, Simulator]] = []  # (member, one of several starts, point, sim)
-    for i, (sim, term) in enumerate(members):
-        ranked = rank_starts(sim, term, recordings, budget) if term is not None else []
-        if len(ranked) <= 1 or budget.starts <= 1:
-            if ranked:
-                apply_point(sim, term, ranked[0][1])
-            runs.append((i, False, None, sim))
-            continue
-        index = sim.terms.index(term)
-        for _, point in ranked[: budget.starts]:  # a point None: the term's current values
-            start = copy.deepcopy(sim)
-            apply_point(start, start.terms[index], point)
-            runs.append((i, True, point, start))
-    outs = descend_together([r[3] for r in runs], recordings, budget, desc)
-    held_out = None
-    best: dict[int, tuple] = {}
-    starts: dict[int, list] = {}
-    for (i, several, point, sim), out in zip(runs, outs):
-        if not several:
-            best[i] = (0.0, sim, out)
-            continue
-        if held_out is None:
-            held_out = held_out_windows(recordings, budget)
-        sim.sync()
-        loss = forward_loss(sim, held_out, budget)
-        starts.setdefault(i, []).append({"point": point, "loss_m": loss})
-        if i not in best or loss < best[i][0]:
-            best[i] = (loss, sim, out)
-    return [
-        (best[i][1], {**best[i][2], **({"starts": starts[i]} if i in starts else {})})
-        for i in range(len(members))
-    ]
-
-
 def fits_rest_curvature(terms: Sequence[nn.Module], n_vertices: int) -> bool:
     """Whether a model with these terms fits a rest curvature (a bound ``wbar`` that takes
     gradients). Such a model's twist angles need the iterative solve; without one they come in
@@ -346,3 +213,54 @@ def fits_rest_curvature(terms: Sequence[nn.Module], n_vertices: int) -> bool:
     for t in terms:
         exprs = t.bind(exprs)
     return bool(exprs["wbar"].requires_grad)
+
+
+# models in one forward-only batch at most (grid points, check errors): no graph is kept, so the
+# batch may be larger than a descent's group
+FORWARD_MODELS = 24
+
+
+def _chunks(items: list, size: int) -> list[list]:
+    return [items[i : i + size] for i in range(0, len(items), size)]
+
+
+@torch.no_grad()
+def window_losses(sims: list[Simulator], windows, margin: int) -> list[float]:
+    """Each simulator's open-loop L1 [m] over the same windows (from
+    :func:`deform.diagnose.fitting.make_windows`), without gradients, stepped as one batch
+    (:data:`FORWARD_MODELS` at a time); a diverged rollout scores infinity."""
+    X, d1, origin = windows
+    horizon = X.shape[1] - 2 - 2 * margin
+    truth = X[:, margin + 2 : margin + 2 + horizon]
+    out = []
+    for part in _chunks(sims, FORWARD_MODELS):
+        preds, _ = Stack(part).rollout(X, horizon, margin, d1=d1, origin=origin)
+        out += [float(torch.nan_to_num((p - truth).abs().mean(), nan=math.inf)) for p in preds]
+    return out
+
+
+@torch.no_grad()
+def check_errors(sims: list[Simulator], recordings) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per simulator ``(paper's open-loop L1, one-second window L1)`` per recording [m]: what
+    :func:`~deform.diagnose.simulator.per_recording_l1` of :meth:`Simulator.predict` and
+    :func:`~deform.diagnose.simulator.per_recording_window_l1` give each alone, stepped as one batch."""
+    out = []
+    for part in _chunks(sims, FORWARD_MODELS):
+        stack = Stack(part)
+        full: list[dict[int, np.ndarray]] = [{} for _ in part]
+        for steps, ids in batches_by_horizon(recordings, None).items():
+            X = torch.tensor(np.stack([recordings[i].positions for i in ids]), dtype=torch.float64)
+            preds, _ = stack.rollout(X, steps)
+            for k, p in enumerate(preds):
+                for j, i in enumerate(ids):
+                    full[k][i] = p[j].numpy()
+        windows = np.zeros((len(part), len(recordings)))
+        for r_i, r in enumerate(recordings):
+            X, d1, origin, h = check_windows(r)
+            preds, _ = stack.rollout(X, h, CHECK_MARGIN, d1=d1, origin=origin)
+            windows[:, r_i] = [window_l1(p, X, CHECK_MARGIN) for p in preds]
+        out += [
+            (per_recording_l1([f[i] for i in range(len(recordings))], recordings), windows[k])
+            for k, f in enumerate(full)
+        ]
+    return out

@@ -7,9 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from deform.diagnose.fitting import FitBudget, _descend, apply_point, fit, make_windows, rank_starts
+from deform.diagnose.checked_fit import CheckErrors
+from deform.diagnose.fitting import (
+    FitBudget,
+    _descend,
+    apply_point,
+    fit,
+    forward_loss,
+    make_windows,
+    rank_starts,
+)
+from deform.diagnose.joint_fit import descend_together, fit_together
 from deform.diagnose.simulator import Nominal, Simulator
-from deform.diagnose.stack import Stack, descend_together, fit_together, fits_rest_curvature, groups_of
+from deform.diagnose.stack import Stack, fits_rest_curvature, groups_of
 from deform.io.recordings import arclength_of
 from deform.terms.library import make_term
 
@@ -122,3 +132,30 @@ def test_stacked_simulators_must_share_their_step(recordings):
     b = Simulator(SPEC, Nominal(), max_step_s=SPEC.dt / 2)
     with pytest.raises(ValueError, match="substeps"):
         Stack([a, b])
+
+
+def test_check_errors_of_a_batch_are_each_models_own(sources, recordings):
+    inputs, _ = planted_inputs("point_mass", sources)
+    sims = _sims(recordings)
+    together = CheckErrors.of_all(sims, inputs.check)
+    for sim, c in zip(sims, together, strict=True):
+        alone = CheckErrors.of(sim, inputs.check)
+        np.testing.assert_allclose(c.rollout, alone.rollout, rtol=1e-10)
+        np.testing.assert_allclose(c.window, alone.window, rtol=1e-10)
+    assert abs(together[0].window.mean() - together[1].window.mean()) > 1e-6  # the models differ
+
+
+def test_grid_ranking_scores_each_point_as_alone(recordings):
+    budget = FitBudget(batch=4, horizon=12, progress=False)
+    sim = _sims(recordings, ["ground_contact"])[0]
+    term = sim.terms[0]
+    ranked = rank_starts(sim, term, recordings, budget)
+    assert len(ranked) == 1 + len(term.grid())
+    windows = make_windows(
+        recordings, budget.batch, budget.horizon, budget.margin, random.Random(budget.seed + 1)
+    )
+    for loss, point in ranked[:3] + ranked[-2:]:
+        c = copy.deepcopy(sim)
+        apply_point(c, c.terms[0], point)
+        assert forward_loss(c, windows, budget) == pytest.approx(loss, rel=1e-10)
+    assert [lp[0] for lp in ranked] == sorted(lp[0] for lp in ranked)

@@ -1,0 +1,149 @@
+"""Fits of several models stepped as one batch (:mod:`deform.diagnose.stack`): what
+:mod:`deform.diagnose.fitting` does for one model, for a selection round's reference and candidates
+at once. Each model keeps its own loss, optimiser, schedule, clipping and skipped steps, and its
+start chosen as :func:`~deform.diagnose.fitting.fit` chooses it, so that it ends where it would
+alone (to rounding: 1e-15 of a step, grown by the optimiser to about 1e-9 of a parameter)."""
+
+from __future__ import annotations
+
+import copy
+import math
+import random
+
+import torch
+from tqdm import tqdm
+
+from deform.diagnose.fitting import (
+    FitBudget,
+    apply_point,
+    forward_loss,
+    held_out_windows,
+    make_windows,
+    rank_starts,
+    window_schedule,
+)
+from deform.diagnose.simulator import Simulator
+from deform.diagnose.stack import Stack
+from deform.io.recordings import Recording
+
+
+def descend_together(
+    sims: list[Simulator], recordings: list[Recording], budget: FitBudget, desc: str, fit_nominal: bool = True
+) -> list[dict]:
+    """:func:`deform.diagnose.fitting._descend` of every simulator, stepped as one batch: the same
+    windows, each simulator its own loss, Adam, learning-rate schedule, gradient clipping and
+    skipped steps (a diverged model does not stop the others).
+
+    Args:
+        sims: the simulators (see :class:`Stack`).
+        recordings: fit recordings.
+        budget: iterations, windows, learning rates.
+        desc: progress bar label.
+        fit_nominal: also fit the nominal parameters.
+
+    Returns:
+        Per simulator ``{"loss_history_m", "skipped"}``.
+    """
+    stack = Stack(sims)
+    rng = random.Random(budget.seed)
+    opts, scheds = [], []
+    half = budget.iterations / 2
+    for s in sims:
+        groups = []
+        if s.term_parameters():
+            groups.append({"params": s.term_parameters(), "lr": budget.lr_terms})
+        if fit_nominal:
+            groups.append({"params": list(s.nominal.parameters()), "lr": budget.lr_nominal})
+        opt = torch.optim.Adam(groups)
+        opts.append(opt)
+        scheds.append(
+            torch.optim.lr_scheduler.LambdaLR(
+                opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))
+            )
+            if budget.anneal
+            else None
+        )
+    history: list[list[float]] = [[] for _ in sims]
+    skipped = [0] * len(sims)
+    bar = tqdm(
+        range(budget.iterations), desc=desc, disable=None if budget.progress else True, leave=False, unit="it"
+    )
+    for i in bar:
+        horizon, batch = window_schedule(budget, recordings, i)
+        X, d1, origin = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
+        for opt in opts:
+            opt.zero_grad(set_to_none=True)
+        preds, stacked = stack.rollout(X, horizon, budget.margin, create_graph=True, d1=d1, origin=origin)
+        truth = X[:, budget.margin + 2 : budget.margin + 2 + horizon]
+        losses = [(p - truth).abs().mean() for p in preds]
+        finite = [bool(torch.isfinite(loss)) for loss in losses]
+        if any(finite):
+            stack.backward(sum(loss for loss, ok in zip(losses, finite) if ok), stacked)
+        for k, s in enumerate(sims):
+            params = s.parameters()
+            if finite[k] and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
+                torch.nn.utils.clip_grad_norm_(params, 5.0)
+                opts[k].step()
+                s.clamp_()
+            else:
+                skipped[k] += 1
+            if scheds[k] is not None:
+                scheds[k].step()
+            history[k].append(float(losses[k].detach()))
+        bar.set_postfix(best=f"{min(h[-1] for h in history) * 100:.3f}cm")
+    return [{"loss_history_m": h, "skipped": n} for h, n in zip(history, skipped)]
+
+
+def fit_together(
+    members: list[tuple[Simulator, object | None]], recordings: list[Recording], budget: FitBudget, desc: str
+) -> list[tuple[Simulator, dict]]:
+    """:func:`deform.diagnose.fitting.fit` of several simulators, their descents stepped as one batch.
+
+    A member ``(simulator, new term or None)`` with a new term is started from the best
+    ``budget.starts`` points of its grid, each a copy of the simulator descended beside the others;
+    the end point with the lowest loss on held-out windows of the fit recordings is kept (first on a
+    tie), as :func:`~deform.diagnose.fitting.fit` keeps it.
+
+    Args:
+        members: simulators and the term each just added.
+        recordings: fit recordings.
+        budget: the fit's budget (one for all: they are stepped together).
+        desc: progress bar label.
+
+    Returns:
+        Per member the fitted simulator (a copy when it had several starts; its new term is at the
+        same index in ``terms``) and ``{"loss_history_m", "skipped"}``, with several starts also
+        ``"starts"``: each start's point and held-out loss.
+    """
+    runs: list[tuple[int, bool, dict | None, Simulator]] = []  # (member, one of several starts, point, sim)
+    for i, (sim, term) in enumerate(members):
+        ranked = rank_starts(sim, term, recordings, budget) if term is not None else []
+        if len(ranked) <= 1 or budget.starts <= 1:
+            if ranked:
+                apply_point(sim, term, ranked[0][1])
+            runs.append((i, False, None, sim))
+            continue
+        index = sim.terms.index(term)
+        for _, point in ranked[: budget.starts]:  # a point None: the term's current values
+            start = copy.deepcopy(sim)
+            apply_point(start, start.terms[index], point)
+            runs.append((i, True, point, start))
+    outs = descend_together([r[3] for r in runs], recordings, budget, desc)
+    held_out = None
+    best: dict[int, tuple] = {}
+    starts: dict[int, list] = {}
+    for (i, several, point, sim), out in zip(runs, outs):
+        if not several:
+            best[i] = (0.0, sim, out)
+            continue
+        if held_out is None:
+            held_out = held_out_windows(recordings, budget)
+        sim.sync()
+        loss = forward_loss(sim, held_out, budget)
+        starts.setdefault(i, []).append({"point": point, "loss_m": loss})
+        if i not in best or loss < best[i][0]:
+            best[i] = (loss, sim, out)
+    return [
+        (best[i][1], {**best[i][2], **({"starts": starts[i]} if i in starts else {})})
+        for i in range(len(members))
+    ]
