@@ -21,7 +21,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from deform.diagnose.checked_fit import CheckErrors, fit_and_check, fit_and_check_together, fit_nominal_at
+from deform.diagnose.checked_fit import CheckErrors, fit_and_check_together, fit_nominal_at
 from deform.diagnose.spec import Inputs
 
 _INPUTS: Inputs | None = None  # a worker's recordings, set once by _start
@@ -41,14 +41,6 @@ def _start(inputs: Inputs) -> None:
     global _INPUTS
     _INPUTS = inputs
     torch.set_num_threads(1)
-
-
-def fit_and_check_job(spec, nominal, terms, budget, desc: str, new_index: int | None, inputs=None):
-    """:func:`deform.diagnose.checked_fit.fit_and_check` where the new term is ``terms[new_index]``
-    (identity does not survive pickling). -> ``(simulator, CheckErrors)``; the fitted new term is
-    ``simulator.terms[new_index]``."""
-    new_term = terms[new_index] if new_index is not None else None
-    return fit_and_check(spec, nominal, terms, inputs or _INPUTS, budget, desc, new_term=new_term)
 
 
 def fit_together_job(spec, nominal, members, budget, desc: str, inputs=None):

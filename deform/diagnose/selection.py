@@ -20,7 +20,7 @@ from tqdm import tqdm
 from deform.diagnose.checked_fit import CheckErrors, fit_and_check
 from deform.diagnose.fitting import FitBudget, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.pool import FitPool, Job, fit_and_check_job, fit_together_job, nominal_fit_job
+from deform.diagnose.pool import FitPool, Job, fit_together_job, nominal_fit_job
 from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
@@ -193,27 +193,17 @@ def fit_noise(
     """
     other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
     term = make_term(name, spec.n_vertices, s, context, read_roll=read_roll)
-    futures = [
-        pool.submit(
-            fit_and_check_job,
-            spec,
-            nominal,
-            [copy.deepcopy(t) for t in selected],
-            other,
-            "refit: reference",
-            None,
-        ),
-        pool.submit(
-            fit_and_check_job,
-            spec,
-            nominal,
-            [copy.deepcopy(t) for t in selected] + [term],
-            other,
-            f"refit: {name}",
-            len(selected),
-        ),
+    members = [
+        ([copy.deepcopy(t) for t in selected], None),
+        ([copy.deepcopy(t) for t in selected] + [term], len(selected)),
     ]
-    (_, c_ref), (_, c) = _gather(futures, pool, "refit")
+    # one batch (deform.diagnose.stack) unless only one of them fits a rest curvature
+    apart = fits_rest_curvature(members[0][0], spec.n_vertices) != fits_rest_curvature(
+        members[1][0], spec.n_vertices
+    )
+    parts = [[m] for m in members] if apart else [members]
+    futures = [pool.submit(fit_together_job, spec, nominal, part, other, f"refit: {name}") for part in parts]
+    (_, c_ref), (_, c) = [fitted for done in _gather(futures, pool, "refit") for fitted in done]
     again = float(((c_ref.window - c.window) / c_ref.window).mean())
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
