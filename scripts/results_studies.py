@@ -64,6 +64,26 @@ def render_diagnose(d: dict) -> list[str]:
         out += [f"Planted by: {d['simulator']} simulator.", ""]
     if d.get("budget"):
         out += [f"Budget: {d['budget']}.", ""]
+    if d.get("run_wall_s") is not None:
+        out += [
+            f"Wall time: {d['run_wall_s']:.0f} s for {d.get('datasets_run')} datasets ({d.get('workers', '-')}).",
+            "",
+        ]
+    against = d.get("names_against")
+    if against:
+        line = (
+            f"Against `{against['stem']}` ({against.get('commit')}), the same datasets: names the same on "
+            f"{against['same']}/{against['datasets']}"
+        )
+        if against.get("differ"):
+            line += " (differ: " + ", ".join(f"`{x['key']}`" for x in against["differ"]) + ")"
+        theirs = against.get("their_seconds_total_runs")
+        if theirs and d.get("run_wall_s") and against["datasets"] == d.get("datasets_run"):
+            line += (
+                f"; wall time {d['run_wall_s']:.0f} s against {theirs / 2:.0f} s for theirs fitted two at a "
+                f"time ({d['run_wall_s'] / (theirs / 2):.2f}x)"
+            )
+        out += [line + ".", ""]
     summary = d.get("summary", {})
     for rule, title in (
         ("tool", "rule of the tool"),

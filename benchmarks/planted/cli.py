@@ -150,6 +150,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="name of the result files (default diagnose, diagnose.elastica, diagnose.mujoco)",
     )
     p.add_argument(
+        "--names-against",
+        default=None,
+        metavar="STEM",
+        help="compare the names of each dataset with those stored in results/STEM.json (same "
+        "datasets, another run), and this run's wall time with that run's datasets fitted two at a time",
+    )
+    p.add_argument(
         "--step-scan",
         nargs="*",
         default=None,

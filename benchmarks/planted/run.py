@@ -103,6 +103,11 @@ def run_benchmark(args, results: Path = RESULTS, argv: list[str] | None = None) 
             failures = workers.run(tasks, stored, desc=stem)
             # the wall time of this invocation's datasets (the resumed ones not counted)
             ran = {"datasets_run": len(tasks), "run_wall_s": round(time.perf_counter() - start, 1)}
+    if args.summary_only:  # the wall time of the run that stored the rows, when it was this file's
+        old = results / f"{stem}.json"
+        if old.is_file():
+            before = json.loads(old.read_text())
+            ran = {k: before[k] for k in ("datasets_run", "run_wall_s") if k in before}
     prov = {
         **provenance(
             [a for a in (sys.argv[1:] if argv is None else argv) if a != "--summary-only"],
@@ -112,7 +117,7 @@ def run_benchmark(args, results: Path = RESULTS, argv: list[str] | None = None) 
         "workers": workers.describe(),
         **ran,
     }
-    write(result_of(store.load(config), args, prov, store.where(config)), stem, results)
+    write(result_of(store.load(config), args, prov, store.where(config), results), stem, results)
     if failures:
         print(f"{len(failures)} dataset(s) failed, not stored: {', '.join(failures)}", file=sys.stderr)
         return 1

@@ -273,9 +273,10 @@ def write(result: dict, stem: str = "diagnose", results: Path = RESULTS) -> None
     write_atomic(results / f"{stem}.md", "\n".join(lines) + "\n")
 
 
-def result_of(rows: dict[str, dict], args, provenance: dict, runs_name: str) -> dict:
+def result_of(rows: dict[str, dict], args, provenance: dict, runs_name: str, results: Path = RESULTS) -> dict:
     """The result file's content from every stored row of the run's configuration (``rows``):
-    ``provenance`` (command, commit, machine, workers) and ``runs_name`` (where the rows are) as given."""
+    ``provenance`` (command, commit, machine, workers) and ``runs_name`` (where the rows are) as
+    given; ``results``: where another run's file named by ``--names-against`` is."""
     planted = [r for r in rows.values() if r["kind"] == "planted"]
     planted.sort(key=lambda r: (r["effect"] != "none", r["effect"], r["seed"]))
     real = sorted((r for r in rows.values() if r["kind"] == "real"), key=lambda r: r["rod"])
@@ -303,4 +304,37 @@ def result_of(rows: dict[str, dict], args, provenance: dict, runs_name: str) -> 
         "planted": planted,
         "real": real,
         "diverged": sorted((r for r in rows.values() if r["kind"] == "diverged"), key=lambda r: r["key"]),
+        **(
+            {"names_against": names_against(planted, args.names_against, results)}
+            if args.names_against
+            else {}
+        ),
+    }
+
+
+def names_against(planted: list[dict], stem: str, results: Path = RESULTS) -> dict:
+    """The names of each dataset of this run against another run's of the same datasets
+    (``results/STEM.json``): the tool's names re-derived by today's rule and the names as run, and
+    that run's time per dataset, summed (``seconds_total_runs``: two at a time, half of it is the
+    wall time of a by-hand run on two cores)."""
+    other = json.loads((results / f"{stem}.json").read_text())
+    theirs = {r["key"]: r for r in other.get("planted", [])}
+    common = [r for r in planted if r["key"] in theirs]
+    differ = [
+        {
+            "key": r["key"],
+            "tool": [r["tool"]["selected"], theirs[r["key"]]["tool"]["selected"]],
+            "as_run": [r["selected"], theirs[r["key"]]["selected"]],
+        }
+        for r in common
+        if r["tool"]["selected"] != theirs[r["key"]]["tool"]["selected"]
+        or r["selected"] != theirs[r["key"]]["selected"]
+    ]
+    return {
+        "stem": stem,
+        "commit": other.get("commit"),
+        "datasets": len(common),
+        "same": len(common) - len(differ),
+        "differ": differ,
+        "their_seconds_total_runs": other.get("seconds_total_runs"),
     }

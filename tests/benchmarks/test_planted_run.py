@@ -97,3 +97,22 @@ def test_the_datasets_run_as_ray_tasks_with_one_torch_thread_each(tmp_path, monk
     result = json.loads((tmp_path / "diagnose.mujoco.json").read_text())
     assert result["workers"] == {"ray": "local", "tasks_at_once": 2}
     assert result["summary"] == stored_summary()["summary"]
+
+
+def test_names_against_another_run_and_the_wall_time_a_summary_keeps(tmp_path, fake):
+    args = args_for(tmp_path, "--inline")
+    assert run.run_benchmark(args, results=tmp_path, argv=[]) == 0
+    wall = json.loads((tmp_path / "diagnose.mujoco.json").read_text())["run_wall_s"]
+    # another run of the same datasets that named one of them differently
+    other = stored_summary()
+    changed = other["planted"][0]
+    changed["selected"] = ["point_mass"] if changed["selected"] != ["point_mass"] else []
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    args = args_for(tmp_path, "--summary-only", "--names-against", "other")
+    assert run.run_benchmark(args, results=tmp_path, argv=[]) == 0
+    result = json.loads((tmp_path / "diagnose.mujoco.json").read_text())
+    against = result["names_against"]
+    assert against["datasets"] == len(other["planted"])
+    assert against["same"] == against["datasets"] - 1
+    assert [d["key"] for d in against["differ"]] == [changed["key"]]
+    assert result["run_wall_s"] == wall  # the wall time of the run that stored the rows is kept
