@@ -200,6 +200,11 @@ class DeformModel(nn.Module):
         # optional physics terms added by tools (e.g. the discrepancy tool's candidate effects):
         # modules with `acceleration(x, v, mass, rest) -> (B, n, 3)` and/or `mass(mass) -> (B, n)`
         self.extensions = nn.ModuleList()
+        # with create_graph, the elastic parameters and masses of a rollout computed once (for its
+        # rest lengths) instead of at every step, as without a graph: right when each rollout is
+        # backpropagated once, as the discrepancy tool's fits do (a fifth of their steps); off for
+        # training, which may backpropagate a rollout in pieces
+        self.graph_params_per_rollout = False
         grip = torch.zeros(n)
         grip[gripped_indices(n)] = 1.0
         self.register_buffer("gripped", grip)
@@ -217,7 +222,7 @@ class DeformModel(nn.Module):
         At run time they are cached until a parameter changes (an optimiser step or a load bumps
         the parameters' version counters): recomputing them is a fifth of a 13-vertex step.
         """
-        if create_graph:
+        if create_graph and not self.graph_params_per_rollout:
             return self.elastic_params(rest), self.vertex_mass(rest)
         if torch.compiler.is_compiling():  # compiled code fuses these; a cache keyed on ids would recompile
             with torch.no_grad():
@@ -228,10 +233,15 @@ class DeformModel(nn.Module):
             rest.dtype,
             tuple(p._version for p in self.parameters()),
             len(self.extensions),
+            create_graph,
         )
         cached = getattr(self, "_physical_cache", None)
         if cached is not None and cached[0] == key and cached[1] is rest:
             return cached[2], cached[3]
+        if create_graph:  # graph_params_per_rollout: once per rollout (its rest lengths), in the graph
+            params, mass = self.elastic_params(rest), self.vertex_mass(rest)
+            self._physical_cache = (key, rest, params, mass)
+            return params, mass
         with torch.no_grad():
             p = self.elastic_params(rest)
             params = ElasticParams(*(t.detach() for t in (p.beta, p.gamma, p.wbar, p.rest_vor)))

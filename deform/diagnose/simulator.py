@@ -280,6 +280,7 @@ class Simulator:
             twist_stiffness=7e-4,
         )
         self.model = DeformModel(cfg, ModelOptions(residual=False))
+        self.model.graph_params_per_rollout = True  # every rollout here is backpropagated once
         self.n = n
         self.nominal = nominal
         self.clamp_max_m = clamp_bound(spec)

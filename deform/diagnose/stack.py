@@ -30,10 +30,10 @@ from deform.diagnose.simulator import CHECK_MARGIN, Simulator, check_windows, pe
 from deform.evaluate import batches_by_horizon
 from deform.model import DeformModel, VertexMajorState
 
-# the most models stepped as one batch: per step a batch of 12 models x 12 windows costs about twice
+# the most models stepped as one batch: per step a batch of 16 models x 12 windows costs about 2.5x
 # one model's step on one core (deform.diagnose.stack docstring); past that the arithmetic, not the
 # count of operations, sets the time and a larger group gains little
-GROUP_MODELS = 12
+GROUP_MODELS = 16
 
 
 def groups_of(sizes: Sequence[int], most: int = GROUP_MODELS) -> list[list[int]]:
@@ -64,38 +64,41 @@ def groups_of(sizes: Sequence[int], most: int = GROUP_MODELS) -> list[list[int]]
 
 
 class PerModelTerms(nn.Module):
-    """The terms of each stacked model acting on that model's rods only: rods ``bounds[k]:bounds[k+1]``
-    of the batch belong to model ``k``. Batch-first, as :class:`deform.model.DeformModel` hands
-    terms their inputs."""
+    """The terms of each stacked model acting on that model's rods only: rods ``k * width`` to
+    ``(k + 1) * width`` of the batch belong to model ``k``. Batch-first, as
+    :class:`deform.model.DeformModel` hands terms their inputs."""
 
     def __init__(self, terms: list[list[nn.Module]], width: int):
         super().__init__()
-        self.per_model = [list(t) for t in terms]
-        self.width = width  # rods per model
-
-    def _slices(self):
-        for k, terms in enumerate(self.per_model):
-            yield terms, slice(k * self.width, (k + 1) * self.width)
+        rods = [slice(k * width, (k + 1) * width) for k in range(len(terms))]
+        self.accelerating = [
+            (sl, [t for t in ts if hasattr(t, "acceleration")]) for sl, ts in zip(rods, terms)
+        ]
+        self.accelerating = [(sl, ts) for sl, ts in self.accelerating if ts]
+        self.weighing = [(sl, [t for t in ts if hasattr(t, "mass")]) for sl, ts in zip(rods, terms)]
+        self.weighing = [(sl, ts) for sl, ts in self.weighing if ts]
 
     def acceleration(self, x: Tensor, v: Tensor, mass: Tensor, rest: Tensor) -> Tensor:
-        parts = []
-        for terms, sl in self._slices():
-            a = torch.zeros_like(x[sl])
-            for t in terms:
-                if hasattr(t, "acceleration"):
-                    a = a + t.acceleration(x[sl], v[sl], mass[sl], rest[sl])
-            parts.append(a)
-        return torch.cat(parts, 0)
+        out = torch.zeros_like(x)
+        for sl, terms in self.accelerating:
+            a = terms[0].acceleration(x[sl], v[sl], mass[sl], rest[sl])
+            for t in terms[1:]:
+                a = a + t.acceleration(x[sl], v[sl], mass[sl], rest[sl])
+            out[sl] = a
+        return out
 
     def mass(self, mass: Tensor) -> Tensor:
-        parts = []
-        for terms, sl in self._slices():
+        if not self.weighing:
+            return mass
+        parts, done = [], 0
+        for sl, terms in self.weighing:
+            parts.append(mass[done : sl.start])
             m = mass[sl]
             for t in terms:
-                if hasattr(t, "mass"):
-                    m = t.mass(m)
+                m = t.mass(m)
             parts.append(m)
-        return torch.cat(parts, 0)
+            done = sl.stop
+        return torch.cat([*parts, mass[done:]], 0)
 
 
 class Stack:
@@ -114,6 +117,7 @@ class Stack:
                 raise ValueError("stacked simulators must share nodes, substeps and model step")
         self.sims = sims
         self.model = DeformModel(first.model.cfg, first.model.options)
+        self.model.graph_params_per_rollout = True
         self._width = None
 
     def _bind(self, width: int) -> dict[str, Tensor]:
