@@ -9,12 +9,15 @@ one round are stepped together: one :class:`deform.model.DeformModel` whose para
 rods only (:class:`PerModelTerms`), started and ended by each simulator's own
 :meth:`Simulator.begin` / :meth:`Simulator.end` (its clamp, delay, roll).
 
-Each model's loss, gradient, optimiser and clipping stay its own, so a stacked descent is the
-descent of each model alone but for the solvers' stopping rules (the twist solve and the length
-projection iterate until every rod of the batch is within tolerance): a model's numbers depend on
-its batch-mates at the solver tolerance (1e-6 rad, 1e-3 of an edge length). The groups are
-therefore chosen from the round's candidates alone (:func:`groups_of`), never from the workers, so
-that a diagnosis gives the same numbers whatever ``--workers`` is.
+Each model's loss, gradient, optimiser and clipping stay its own (:mod:`deform.diagnose.joint_fit`),
+and the twist solve and the length projection iterate per model until that model's rods converge
+(``groups``: they would otherwise go on until every rod of the batch does, moving a model by up to
+its solver tolerance, 0.1 mm over 25 steps): each model's numbers are those it gets alone, to
+rounding (1e-15 of a rollout). Even so the groups are chosen from the round's candidates alone
+(:func:`groups_of`), never from the workers, so that a diagnosis gives the same numbers whatever
+``--workers`` is. A fitted rest curvature needs the iterative twist solve where every other model
+takes the closed form (deform.rod.twist_solver), so such models are stacked apart
+(:func:`fits_rest_curvature`).
 """
 
 from __future__ import annotations

@@ -88,3 +88,16 @@ def test_branch_free_sweeps_stop_each_rod_by_the_checked_rule():
     plain = enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4)
     assert torch.equal(enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4, branch_free=1), plain)
     assert not torch.equal(y, plain)  # the nearly-right rod was swept less in the first
+
+
+def test_groups_of_rods_are_each_projected_as_alone():
+    """``groups``: consecutive runs of rods sweep until their own rods are within tol (several
+    models in one batch): each run ends as when projected alone."""
+    x, xp, rest, mass = _perturbed(2, batch=4)
+    xp[..., :2] = x[..., :2] + 1e-5 * (xp[..., :2] - x[..., :2])  # the first run nearly right: fewer sweeps
+    y = enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4, groups=2)
+    for g in range(2):
+        rods = slice(2 * g, 2 * g + 2)
+        alone = enforce_inextensibility(xp[..., rods], 1.0 / mass[:, rods], rest[:, rods], tol=1e-4)
+        assert torch.allclose(y[..., rods], alone, rtol=0, atol=1e-14)
+    assert not torch.equal(enforce_inextensibility(xp, 1.0 / mass, rest, tol=1e-4), y)  # batch-wide

@@ -136,3 +136,21 @@ def test_without_rest_curvature_the_closed_form_is_newtons_minimum_with_its_grad
     grad, _, _ = gradient_and_hessian(closed.detach(), a, b, m_ref, p.beta, gamma, p.rest_vor, p.wbar)
     assert grad.abs().max() < 1e-12
     assert torch.equal(closed[[0, -1]], ends)
+
+
+def test_groups_of_rods_are_each_solved_as_alone():
+    """``groups``: consecutive runs of rods iterate until their own rods converge (several models in
+    one batch): each run ends as when solved alone, where the batch-wide loop goes on for all."""
+    a, b, m_ref, ends, p = _problem(5, batch=4)
+    args = (m_ref, ends, p.beta, p.gamma, p.rest_vor, p.wbar)
+    exact = solve_theta(a, b, *args, tol=1e-13, max_iter=200)
+    noise = torch.randn(exact.shape, generator=torch.Generator().manual_seed(1), dtype=exact.dtype)
+    noise[:, :2] *= 1e-4  # the first run of two rods much closer: it stops earlier
+    warm = exact + 1e-2 * noise
+    grouped = solve_theta(a, b, *args, theta_init=warm, groups=2)
+    for g in range(2):
+        rods = slice(2 * g, 2 * g + 2)
+        one = (m_ref[:, rods], ends[:, rods], p.beta, p.gamma, p.rest_vor[:, rods], p.wbar)
+        alone = solve_theta(a[..., rods], b[..., rods], *one, theta_init=warm[:, rods])
+        assert torch.allclose(grouped[:, rods], alone, rtol=0, atol=1e-15)
+    assert not torch.equal(solve_theta(a, b, *args, theta_init=warm), grouped)  # the batch-wide loop
