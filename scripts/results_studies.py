@@ -72,7 +72,8 @@ def render_diagnose(d: dict) -> list[str]:
     against = d.get("names_against")
     if against:
         line = (
-            f"Against `{against['stem']}` ({against.get('commit')}), the same datasets: names the same on "
+            f"Against `{against['stem']}` ({against.get('commit')}), the same datasets: the first name the "
+            f"same on {against.get('same_first', '-')}/{against['datasets']}, every name on "
             f"{against['same']}/{against['datasets']}"
         )
         if against.get("differ"):

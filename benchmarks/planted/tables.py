@@ -330,11 +330,13 @@ def names_against(planted: list[dict], stem: str, results: Path = RESULTS) -> di
         if r["tool"]["selected"] != theirs[r["key"]]["tool"]["selected"]
         or r["selected"] != theirs[r["key"]]["selected"]
     ]
+    first = sum(r["tool"]["selected"][:1] == theirs[r["key"]]["tool"]["selected"][:1] for r in common)
     return {
         "stem": stem,
         "commit": other.get("commit"),
         "datasets": len(common),
         "same": len(common) - len(differ),
+        "same_first": first,
         "differ": differ,
         "their_seconds_total_runs": other.get("seconds_total_runs"),
     }

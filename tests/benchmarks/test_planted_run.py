@@ -115,4 +115,5 @@ def test_names_against_another_run_and_the_wall_time_a_summary_keeps(tmp_path, f
     assert against["datasets"] == len(other["planted"])
     assert against["same"] == against["datasets"] - 1
     assert [d["key"] for d in against["differ"]] == [changed["key"]]
+    assert against["same_first"] == against["datasets"]  # the names re-derived from the scores: unchanged
     assert result["run_wall_s"] == wall  # the wall time of the run that stored the rows is kept
