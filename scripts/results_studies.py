@@ -65,10 +65,9 @@ def render_diagnose(d: dict) -> list[str]:
     if d.get("budget"):
         out += [f"Budget: {d['budget']}.", ""]
     if d.get("run_wall_s") is not None:
-        out += [
-            f"Wall time: {d['run_wall_s']:.0f} s for {d.get('datasets_run')} datasets ({d.get('workers', '-')}).",
-            "",
-        ]
+        w = d.get("workers")
+        how = ", ".join(f"{k} {v}" for k, v in w.items()) if isinstance(w, dict) else str(w or "-")
+        out += [f"Wall time: {d['run_wall_s']:.0f} s for {d.get('datasets_run')} datasets ({how}).", ""]
     against = d.get("names_against")
     if against:
         line = (
