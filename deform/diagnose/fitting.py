@@ -319,18 +319,17 @@ def window_schedule(budget: FitBudget, recordings: list[Recording], iteration: i
     return h, max(budget.min_batch, round(budget.batch * h0 / h))
 
 
-def _descend(
-    sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: str, fit_nominal: bool
-) -> dict:
-    """Adam on open-loop window losses (the same window sequence for every call with one seed)."""
-    rng = random.Random(budget.seed)
+def optimiser(sim: Simulator, budget: FitBudget, fit_nominal: bool):
+    """A descent's Adam over the simulator's term parameters (and, when ``fit_nominal``, its nominal
+    ones at their own rate) and its learning-rate schedule (None without ``budget.anneal``): full
+    rate for the first half, then cosine decay to 0. -> ``(optimiser, schedule)``."""
     groups = []
     if sim.term_parameters():
         groups.append({"params": sim.term_parameters(), "lr": budget.lr_terms})
     if fit_nominal:
         groups.append({"params": list(sim.nominal.parameters()), "lr": budget.lr_nominal})
     opt = torch.optim.Adam(groups)
-    half = budget.iterations / 2  # full rate for the first half, then cosine decay to 0
+    half = budget.iterations / 2
     sched = (
         torch.optim.lr_scheduler.LambdaLR(
             opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))
@@ -338,6 +337,30 @@ def _descend(
         if budget.anneal
         else None
     )
+    return opt, sched
+
+
+def update(sim: Simulator, opt, sched, finite: bool) -> bool:
+    """One descent step after the backward pass: clipped, taken and clamped when the loss
+    (``finite``) and every gradient are finite, else skipped; the schedule advances either way.
+    -> whether the step was taken."""
+    params = sim.parameters()
+    taken = finite and all(p.grad is None or torch.isfinite(p.grad).all() for p in params)
+    if taken:
+        torch.nn.utils.clip_grad_norm_(params, 5.0)
+        opt.step()
+        sim.clamp_()
+    if sched is not None:
+        sched.step()
+    return taken
+
+
+def _descend(
+    sim: Simulator, recordings: list[Recording], budget: FitBudget, desc: str, fit_nominal: bool
+) -> dict:
+    """Adam on open-loop window losses (the same window sequence for every call with one seed)."""
+    rng = random.Random(budget.seed)
+    opt, sched = optimiser(sim, budget, fit_nominal)
     history, skipped = [], 0
     bar = tqdm(
         range(budget.iterations), desc=desc, disable=None if budget.progress else True, leave=False, unit="it"
@@ -348,17 +371,10 @@ def _descend(
         opt.zero_grad(set_to_none=True)
         exprs = sim.sync()
         loss = window_loss(sim, windows, horizon, budget.margin, create_graph=True)
-        params = sim.parameters()
-        if torch.isfinite(loss):
+        finite = bool(torch.isfinite(loss))
+        if finite:
             sim.backward(loss, exprs)
-        if torch.isfinite(loss) and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
-            torch.nn.utils.clip_grad_norm_(params, 5.0)
-            opt.step()
-            sim.clamp_()
-        else:
-            skipped += 1
-        if sched is not None:
-            sched.step()
+        skipped += not update(sim, opt, sched, finite)
         history.append(float(loss.detach()))
         bar.set_postfix(loss=f"{float(loss.detach()) * 100:.3f}cm")
     return {"loss_history_m": history, "skipped": skipped}

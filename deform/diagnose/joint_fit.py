@@ -7,7 +7,6 @@ alone (to rounding: 1e-15 of a step, grown by the optimiser to about 1e-9 of a p
 from __future__ import annotations
 
 import copy
-import math
 import random
 
 import torch
@@ -19,7 +18,9 @@ from deform.diagnose.fitting import (
     forward_loss,
     held_out_windows,
     make_windows,
+    optimiser,
     rank_starts,
+    update,
     window_schedule,
 )
 from deform.diagnose.simulator import Simulator
@@ -46,23 +47,7 @@ def descend_together(
     """
     stack = Stack(sims)
     rng = random.Random(budget.seed)
-    opts, scheds = [], []
-    half = budget.iterations / 2
-    for s in sims:
-        groups = []
-        if s.term_parameters():
-            groups.append({"params": s.term_parameters(), "lr": budget.lr_terms})
-        if fit_nominal:
-            groups.append({"params": list(s.nominal.parameters()), "lr": budget.lr_nominal})
-        opt = torch.optim.Adam(groups)
-        opts.append(opt)
-        scheds.append(
-            torch.optim.lr_scheduler.LambdaLR(
-                opt, lambda i: 1.0 if i < half else 0.5 * (1 + math.cos(math.pi * (i - half) / half))
-            )
-            if budget.anneal
-            else None
-        )
+    opts, scheds = zip(*(optimiser(s, budget, fit_nominal) for s in sims))
     history: list[list[float]] = [[] for _ in sims]
     skipped = [0] * len(sims)
     bar = tqdm(
@@ -80,15 +65,7 @@ def descend_together(
         if any(finite):
             stack.backward(sum(loss for loss, ok in zip(losses, finite) if ok), stacked)
         for k, s in enumerate(sims):
-            params = s.parameters()
-            if finite[k] and all(p.grad is None or torch.isfinite(p.grad).all() for p in params):
-                torch.nn.utils.clip_grad_norm_(params, 5.0)
-                opts[k].step()
-                s.clamp_()
-            else:
-                skipped[k] += 1
-            if scheds[k] is not None:
-                scheds[k].step()
+            skipped[k] += not update(s, opts[k], scheds[k], finite[k])
             history[k].append(float(losses[k].detach()))
         bar.set_postfix(best=f"{min(h[-1] for h in history) * 100:.3f}cm")
     return [{"loss_history_m": h, "skipped": n} for h, n in zip(history, skipped)]

@@ -244,6 +244,26 @@ def roll_directors(d1: Tensor, t: Tensor, roll: Tensor) -> Tensor:
     return c * d1 + s * torch.linalg.cross(t, d1, dim=-1)
 
 
+def backward_through_bound(model: DeformModel, loss: Tensor, exprs: dict[str, Tensor]) -> None:
+    """Backpropagate ``loss`` into ``model``'s bound parameters, then chain their gradients back to
+    the expressions ``exprs`` they were copied from (:meth:`Simulator.sync`); the model's own
+    gradients are cleared again."""
+    model_params = {k: getattr(model, k) for k in exprs}
+    for p in model_params.values():
+        p.grad = None
+    loss.backward()
+    outs, grads = [], []
+    for k, e in exprs.items():
+        g = model_params[k].grad
+        if g is not None and e.requires_grad:
+            outs.append(e)
+            grads.append(g.to(e.dtype))
+    if outs:
+        torch.autograd.backward(outs, grads)
+    for p in model_params.values():
+        p.grad = None
+
+
 class Simulator:
     """A DeformModel driven by a :class:`Nominal` and a list of :class:`Term`.
 
@@ -346,20 +366,7 @@ class Simulator:
 
     def backward(self, loss: Tensor, exprs: dict[str, Tensor]) -> None:
         """Backpropagate ``loss`` to the nominal and term parameters through the bound model."""
-        model_params = {k: getattr(self.model, k) for k in exprs}
-        for p in model_params.values():
-            p.grad = None
-        loss.backward()
-        outs, grads = [], []
-        for k, e in exprs.items():
-            g = model_params[k].grad
-            if g is not None and e.requires_grad:
-                outs.append(e)
-                grads.append(g.to(e.dtype))
-        if outs:
-            torch.autograd.backward(outs, grads)
-        for p in model_params.values():
-            p.grad = None
+        backward_through_bound(self.model, loss, exprs)
 
     def delay(self) -> Tensor | None:
         for t in self.terms:
@@ -529,15 +536,24 @@ class Simulator:
     def predict(self, recordings, steps: int | None = None) -> list[np.ndarray]:
         """Full open-loop predictions (paper's protocol) of recordings, batched by length."""
         self.sync()
-        out: dict[int, np.ndarray] = {}
-        with torch.no_grad():
-            for full, ids in batches_by_horizon(recordings, None).items():  # same length: one batch
-                s = full if steps is None else min(steps, full)
-                X = torch.tensor(np.stack([recordings[i].positions for i in ids]), dtype=torch.float64)
-                P = self.rollout(X, s).numpy()
-                for j, i in enumerate(ids):
-                    out[i] = P[j]
-        return [out[i] for i in range(len(recordings))]
+        return full_rollouts(lambda X, s: [self.rollout(X, s)], recordings, steps)[0]
+
+
+@torch.no_grad()
+def full_rollouts(rollout, recordings, steps: int | None = None) -> list[list[np.ndarray]]:
+    """Open loops over whole recordings from their first two frames, recordings of one length in
+    one batch: ``rollout(X, steps)`` gives one (B, steps, n, 3) prediction per model (one for a
+    :class:`Simulator`, several for a stack of them). -> per model, per recording, (S, n, 3)."""
+    out: list[dict[int, np.ndarray]] = []
+    for full, ids in batches_by_horizon(recordings, None).items():  # same length: one batch
+        s = full if steps is None else min(steps, full)
+        X = torch.tensor(np.stack([recordings[i].positions for i in ids]), dtype=torch.float64)
+        for k, P in enumerate(rollout(X, s)):
+            if k == len(out):
+                out.append({})
+            for j, i in enumerate(ids):
+                out[k][i] = P[j].numpy()
+    return [[o[i] for i in range(len(recordings))] for o in out]
 
 
 def per_recording_l1(predictions: list[np.ndarray], recordings) -> np.ndarray:

@@ -29,8 +29,15 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from deform.diagnose.simulator import CHECK_MARGIN, Simulator, check_windows, per_recording_l1, window_l1
-from deform.evaluate import batches_by_horizon
+from deform.diagnose.simulator import (
+    CHECK_MARGIN,
+    Simulator,
+    backward_through_bound,
+    check_windows,
+    full_rollouts,
+    per_recording_l1,
+    window_l1,
+)
 from deform.model import DeformModel, VertexMajorState
 
 # the most models stepped as one batch: per step a batch of 16 models x 12 windows costs about 2.5x
@@ -188,20 +195,7 @@ class Stack:
     def backward(self, loss: Tensor, stacked: dict[str, Tensor]) -> None:
         """Backpropagate ``loss`` to every simulator's nominal and term parameters (as
         :meth:`Simulator.backward` does for one)."""
-        params = {k: getattr(self.model, k) for k in stacked}
-        for p in params.values():
-            p.grad = None
-        loss.backward()
-        outs, grads = [], []
-        for k, e in stacked.items():
-            g = params[k].grad
-            if g is not None and e.requires_grad:
-                outs.append(e)
-                grads.append(g.to(e.dtype))
-        if outs:
-            torch.autograd.backward(outs, grads)
-        for p in params.values():
-            p.grad = None
+        backward_through_bound(self.model, loss, stacked)
 
 
 def fits_rest_curvature(terms: Sequence[nn.Module], n_vertices: int) -> bool:
@@ -254,20 +248,11 @@ def check_errors(sims: list[Simulator], recordings) -> list[tuple[np.ndarray, np
     out = []
     for part in _chunks(sims, FORWARD_MODELS):
         stack = Stack(part)
-        full: list[dict[int, np.ndarray]] = [{} for _ in part]
-        for steps, ids in batches_by_horizon(recordings, None).items():
-            X = torch.tensor(np.stack([recordings[i].positions for i in ids]), dtype=torch.float64)
-            preds, _ = stack.rollout(X, steps)
-            for k, p in enumerate(preds):
-                for j, i in enumerate(ids):
-                    full[k][i] = p[j].numpy()
+        full = full_rollouts(lambda X, s, stack=stack: stack.rollout(X, s)[0], recordings)
         windows = np.zeros((len(part), len(recordings)))
         for r_i, r in enumerate(recordings):
             X, d1, origin, h = check_windows(r)
             preds, _ = stack.rollout(X, h, CHECK_MARGIN, d1=d1, origin=origin)
             windows[:, r_i] = [window_l1(p, X, CHECK_MARGIN) for p in preds]
-        out += [
-            (per_recording_l1([f[i] for i in range(len(recordings))], recordings), windows[k])
-            for k, f in enumerate(full)
-        ]
+        out += [(per_recording_l1(f, recordings), windows[k]) for k, f in enumerate(full)]
     return out
