@@ -405,6 +405,7 @@ class DeformModel(nn.Module):
         branch_free: int = 0,
         report: ConvergenceReport | None = None,
         groups: int = 1,
+        closed_form_groups: int = 0,
     ):
         """(forces (n, 3, B), angles (m, B), tangents (m, 3, B)) of a vertex-major state."""
         x = state.x if create_graph else state.x.detach()
@@ -414,7 +415,7 @@ class DeformModel(nn.Module):
         geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
         a, b = curvature_projections(geo)
         theta = self._solve_theta(
-            a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report, groups
+            a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report, groups, closed_form_groups
         )
         return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
 
@@ -429,6 +430,7 @@ class DeformModel(nn.Module):
         branch_free: int = 0,
         report: ConvergenceReport | None = None,
         groups: int = 1,
+        closed_form_groups: int = 0,
     ):
         if self.options.theta_solver == ThetaSolver.THESEUS:
             from deform.rod.twist_theseus import theseus_theta
@@ -450,6 +452,7 @@ class DeformModel(nn.Module):
             branch_free=branch_free,
             report=report,
             groups=groups,
+            closed_form_groups=closed_form_groups,
         )
 
     def step(
@@ -500,16 +503,19 @@ class DeformModel(nn.Module):
         report: ConvergenceReport | None = None,
         network_dtype: torch.dtype | None = None,
         groups: int = 1,
+        closed_form_groups: int = 0,
     ) -> VertexMajorState:
         """:meth:`step` on a :class:`VertexMajorState`, ``grip_next`` (4, 3, B) and ``theta_ends``
         (2, B): what compiled steps trace (their callers convert outside the graph). ``groups``: the
         batch is that many equal runs of consecutive rods whose solvers each iterate until their own
-        rods converge (several models in one batch, each stepped as if alone: deform.diagnose.stack)."""
+        rods converge (several models in one batch, each stepped as if alone: deform.diagnose.stack);
+        the first ``closed_form_groups`` of them take the twist angles in closed form (no rest
+        curvature), the others the iterative solve (:func:`deform.rod.twist_solver.solve_theta`)."""
         dt = self.dt
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
         force, theta, t_old = self._forces(
-            state, params, mass, theta_ends, create_graph, branch_free[0], report, groups
+            state, params, mass, theta_ends, create_graph, branch_free[0], report, groups, closed_form_groups
         )
         accel = force / mass.unsqueeze(-2) + self.drag_acceleration(x, v)
         for ext in self.extensions:

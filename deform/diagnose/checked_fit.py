@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deform.diagnose.fitting import FitBudget, fit, fit_nominal
-from deform.diagnose.joint_fit import fit_together
+from deform.diagnose.fitting import FitBudget, fit
+from deform.diagnose.joint_fit import descend_together, fit_nominals_together, fit_together
 from deform.diagnose.simulator import (
     MAX_STEP_S,
     Simulator,
@@ -98,15 +98,19 @@ def fit_and_check_together(
     return list(zip(fitted_sims, CheckErrors.of_all(fitted_sims, inputs.check), strict=True))
 
 
-def fit_nominal_at(
-    spec, start, recordings, budget: FitBudget, max_step_s: float, desc: str, from_model: bool
-):
-    """The nominal parameters fitted from ``start`` with the model stepped at most ``max_step_s``:
-    ``(simulator, coarse grid's best point, clamp restart)``; from a given model (``from_model``),
-    a plain descent with no grid and no restart (a held clamp is not restarted either)."""
-    fsim = Simulator(spec, copy.deepcopy(start), max_step_s=max_step_s)
+def fit_nominals_at(
+    spec, start, recordings, budget: FitBudget, steps: list[float], desc: str, from_model: bool
+) -> list[tuple]:
+    """The nominal parameters fitted from ``start`` with the model stepped at most each of ``steps``
+    [s], stepped as one batch: per step ``(simulator, coarse grid's best point, clamp restart)``;
+    from a given model (``from_model``), a plain descent with no grid and no restart (a held clamp
+    is not restarted either)."""
+    sims = [Simulator(spec, copy.deepcopy(start), max_step_s=step) for step in steps]
     if from_model:
-        fit(fsim, recordings, budget, desc=desc)
-        return fsim, None, None
-    started = fit_nominal(fsim, recordings, budget, 0.5 * clamp_bound(spec))
-    return fsim, started["coarse"], started.get("clamp_restart")
+        if len(sims) == 1:
+            fit(sims[0], recordings, budget, desc=desc)
+        else:
+            descend_together(sims, recordings, budget, desc)
+        return [(sim, None, None) for sim in sims]
+    started = fit_nominals_together(sims, recordings, budget, 0.5 * clamp_bound(spec))
+    return [(sim, out["coarse"], out.get("clamp_restart")) for sim, out in zip(sims, started)]

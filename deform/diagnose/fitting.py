@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import math
 import random
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -460,35 +461,60 @@ def fit_nominal(
         ``{"coarse"}`` (the grid's best point) and, when a second start was run, ``"clamp_restart"``:
         its clamp, both ends' held-out losses and which was kept.
     """
-    coarse = coarse_nominal(sim, recordings)
-    fit(sim, recordings, budget, desc="nominal fit")
-    nom = sim.nominal
-    if (
-        clamp_restart_m is None
-        or not nom.clamp_dm.requires_grad
-        or float(nom.clamp_length().detach()) >= CLAMP_RESTART_M
-    ):
-        return {"coarse": coarse}
+    return fit_nominals([sim], recordings, budget, clamp_restart_m)[0]
+
+
+def fit_nominals(
+    sims: list[Simulator],
+    recordings: list[Recording],
+    budget: FitBudget,
+    clamp_restart_m: float | None,
+    descend: Callable[[list[Simulator], str], object] | None = None,
+) -> list[dict]:
+    """:func:`fit_nominal` of several simulators (the same rod at other model steps), their descents
+    run by ``descend(simulators, label)``: one after another by default, or stepped as one batch
+    (deform.diagnose.joint_fit.fit_nominals_together)."""
+
+    def one_by_one(group: list[Simulator], desc: str) -> None:
+        for sim in group:
+            fit(sim, recordings, budget, desc=desc)
+
+    descend = descend or one_by_one
+    out = [{"coarse": coarse_nominal(sim, recordings)} for sim in sims]
+    descend(sims, "nominal fit")
+    again = [
+        k
+        for k, sim in enumerate(sims)
+        if clamp_restart_m is not None
+        and sim.nominal.clamp_dm.requires_grad
+        and float(sim.nominal.clamp_length().detach()) < CLAMP_RESTART_M
+    ]
+    if not again:
+        return out
     held_out = held_out_windows(recordings, budget)
-    sim.sync()
-    first_loss, first = forward_loss(sim, held_out, budget), _snapshot(sim)
-    nom.set_clamp(clamp_restart_m, fitted=True)
-    second_coarse = coarse_nominal(sim, recordings)
-    fit(sim, recordings, budget, desc="nominal fit (clamp restart)")
-    sim.sync()
-    second_loss = forward_loss(sim, held_out, budget)
-    kept = second_loss < (1.0 - RESTART_MIN_GAIN) * first_loss
-    if not kept:
-        _restore(sim, first)
-    return {
-        "coarse": coarse,
-        "clamp_restart": {
+    first = {}
+    for k in again:
+        sims[k].sync()
+        first[k] = (forward_loss(sims[k], held_out, budget), _snapshot(sims[k]))
+        sims[k].nominal.set_clamp(clamp_restart_m, fitted=True)
+        out[k]["clamp_restart"] = {
             "clamp_start_m": clamp_restart_m,
-            "coarse": second_coarse,
-            "held_out_loss_m": {"clamp_0": first_loss, "clamp_restart": second_loss},
-            "kept": "clamp_restart" if kept else "clamp_0",
-        },
-    }
+            "coarse": coarse_nominal(sims[k], recordings),
+        }
+    descend([sims[k] for k in again], "nominal fit (clamp restart)")
+    for k in again:
+        sims[k].sync()
+        second_loss = forward_loss(sims[k], held_out, budget)
+        kept = second_loss < (1.0 - RESTART_MIN_GAIN) * first[k][0]
+        if not kept:
+            _restore(sims[k], first[k][1])
+        out[k]["clamp_restart"].update(
+            {
+                "held_out_loss_m": {"clamp_0": first[k][0], "clamp_restart": second_loss},
+                "kept": "clamp_restart" if kept else "clamp_0",
+            }
+        )
+    return out
 
 
 def clone_nominal(nominal: Nominal) -> Nominal:

@@ -15,6 +15,8 @@ from tqdm import tqdm
 from deform.diagnose.fitting import (
     FitBudget,
     apply_point,
+    fit,
+    fit_nominals,
     forward_loss,
     held_out_windows,
     make_windows,
@@ -124,3 +126,19 @@ def fit_together(
         (best[i][1], {**best[i][2], **({"starts": starts[i]} if i in starts else {})})
         for i in range(len(members))
     ]
+
+
+def fit_nominals_together(
+    sims: list[Simulator], recordings: list[Recording], budget: FitBudget, clamp_restart_m: float | None
+) -> list[dict]:
+    """:func:`deform.diagnose.fitting.fit_nominal` of several simulators of one rod (at other model
+    steps: the tool's fits at the candidates' step and at the slow terms' finer one), their descents
+    stepped as one batch; a descent of one of them alone is :func:`~deform.diagnose.fitting.fit`."""
+
+    def descend(group: list[Simulator], desc: str) -> None:
+        if len(group) == 1:
+            fit(group[0], recordings, budget, desc=desc)
+        else:
+            descend_together(group, recordings, budget, desc)
+
+    return fit_nominals(sims, recordings, budget, clamp_restart_m, descend)

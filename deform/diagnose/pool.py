@@ -21,7 +21,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from deform.diagnose.checked_fit import CheckErrors, fit_and_check_together, fit_nominal_at
+from deform.diagnose.checked_fit import CheckErrors, fit_and_check_together, fit_nominals_at
 from deform.diagnose.spec import Inputs
 
 _INPUTS: Inputs | None = None  # a worker's recordings, set once by _start
@@ -49,23 +49,23 @@ def fit_together_job(spec, nominal, members, budget, desc: str, inputs=None):
     return fit_and_check_together(spec, nominal, members, inputs or _INPUTS, budget, desc)
 
 
-def nominal_fit_job(spec, start, budget, max_step_s: float, desc: str, from_model: bool, inputs=None):
-    """:func:`deform.diagnose.checked_fit.fit_nominal_at` -> ``(simulator, coarse, clamp restart,
-    CheckErrors on the check recordings)``."""
+def nominal_fits_job(spec, start, budget, steps: list[float], desc: str, from_model: bool, inputs=None):
+    """:func:`deform.diagnose.checked_fit.fit_nominals_at` -> per model step ``(simulator, coarse,
+    clamp restart, CheckErrors on the check recordings)``."""
     inputs = inputs or _INPUTS
-    sim, coarse, restart = fit_nominal_at(spec, start, inputs.fit, budget, max_step_s, desc, from_model)
-    return sim, coarse, restart, CheckErrors.of(sim, inputs.check)
+    fitted = fit_nominals_at(spec, start, inputs.fit, budget, steps, desc, from_model)
+    checked = CheckErrors.of_all([sim for sim, _, _ in fitted], inputs.check)
+    return [(*f, c) for f, c in zip(fitted, checked, strict=True)]
 
 
 @dataclass
 class Job:
     """One fit of a batch: ``make()`` -> ``(job function, args)``, called when the job is sent (so
-    it may read what ``needs``, a Future, gives); ``cost`` ranks jobs, the costliest first."""
+    it may read what earlier jobs gave); ``cost`` ranks jobs, the costliest first."""
 
     key: Any
     cost: float
     make: Callable[[], tuple]
-    needs: Future | None = None
 
 
 class FitPool:
@@ -99,14 +99,13 @@ class FitPool:
             out.set_exception(exc)
         return out
 
-    def run(self, jobs: list[Job], desc: str, busy: tuple = ()) -> dict:
-        """Every job's result, by key. Whenever a process is free, the costliest job whose ``needs``
-        is done is sent (longest first: the round does not end on one long fit started last).
+    def run(self, jobs: list[Job], desc: str) -> dict:
+        """Every job's result, by key. Whenever a process is free, the costliest job left is sent
+        (longest first: the round does not end on one long fit started last).
 
         Args:
             jobs: the batch.
             desc: the bar's label (worker processes only; inline fits show their own bars).
-            busy: Futures of this pool's still running outside the batch (they hold a process).
         """
         pending = sorted(jobs, key=lambda j: -j.cost)
         running: dict[Future, Any] = {}
@@ -115,20 +114,11 @@ class FitPool:
             total=len(jobs), desc=desc, unit="fit", leave=False, disable=True if not self.parallel else None
         )
         while pending or running:
-            held = sum(1 for f in busy if not f.done())
-            while pending and len(running) + held < self.workers:
-                ready = [j for j in pending if j.needs is None or j.needs.done()]
-                if not ready:
-                    break
-                job = ready[0]
-                pending.remove(job)
+            while pending and len(running) < self.workers:
+                job = pending.pop(0)
                 fn, args = job.make()
                 running[self.submit(fn, *args)] = job.key
-            waiting = [j.needs for j in pending if j.needs is not None and not j.needs.done()]
-            waiting += [f for f in busy if not f.done()]
-            if not running and not waiting:
-                continue
-            done, _ = wait([*running, *waiting], return_when=FIRST_COMPLETED)
+            done, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for f in done:
                 if f in running:
                     results[running.pop(f)] = f.result()

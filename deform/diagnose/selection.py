@@ -20,7 +20,7 @@ from tqdm import tqdm
 from deform.diagnose.checked_fit import CheckErrors, fit_and_check
 from deform.diagnose.fitting import FitBudget, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
-from deform.diagnose.pool import FitPool, Job, fit_together_job, nominal_fit_job
+from deform.diagnose.pool import FitPool, Job, fit_together_job, nominal_fits_job
 from deform.diagnose.scoring import Score, bootstrap_ci, choose, nameable, penalised, score
 from deform.diagnose.simulator import (
     CHECK_HORIZON,
@@ -31,7 +31,7 @@ from deform.diagnose.simulator import (
     arclength_of,
 )
 from deform.diagnose.spec import Inputs
-from deform.diagnose.stack import fits_rest_curvature, groups_of
+from deform.diagnose.stack import groups_of
 from deform.terms.library import LIBRARY, Term, beyond_material_level, make_term
 
 
@@ -197,13 +197,9 @@ def fit_noise(
         ([copy.deepcopy(t) for t in selected], None),
         ([copy.deepcopy(t) for t in selected] + [term], len(selected)),
     ]
-    # one batch (deform.diagnose.stack) unless only one of them fits a rest curvature
-    apart = fits_rest_curvature(members[0][0], spec.n_vertices) != fits_rest_curvature(
-        members[1][0], spec.n_vertices
-    )
-    parts = [[m] for m in members] if apart else [members]
-    futures = [pool.submit(fit_together_job, spec, nominal, part, other, f"refit: {name}") for part in parts]
-    (_, c_ref), (_, c) = [fitted for done in _gather(futures, pool, "refit") for fitted in done]
+    # one batch (deform.diagnose.stack)
+    future = pool.submit(fit_together_job, spec, nominal, members, other, f"refit: {name}")
+    (_, c_ref), (_, c) = _gather([future], pool, "refit")[0]
     again = float(((c_ref.window - c.window) / c_ref.window).mean())
     return {"improvement_refit": again, "noise": abs(again - improvement)}
 
@@ -308,26 +304,18 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
     nb = dataclasses.replace(cb, iterations=budget.nominal_iterations)
     from_model = bool(start_model)
     # round 1 starts slow terms from a nominal fit at the slow step (fine_nominal): it needs only
-    # the start, so it is fitted beside the 10 ms one
+    # the start, so it is fitted with the 10 ms one, the two stepped as one batch
+    # (deform.diagnose.stack: each its own model step)
     wants_fine = (
         budget.fine_nominal
         and budget.slow_step_s is not None
         and budget.max_rounds > 0
         and any(LIBRARY[name].slow for name in budget.candidates)
     )
-    nominal_future = pool.submit(nominal_fit_job, spec, start, nb, MAX_STEP_S, "nominal fit", from_model)
-    fine_future = None
-    if wants_fine:
-        fine_future = pool.submit(
-            nominal_fit_job,
-            spec,
-            start,
-            nb,
-            budget.slow_step_s,
-            f"nominal fit at {budget.slow_step_s * 1e3:g} ms",
-            from_model,
-        )
-    sim, coarse, clamp_restart, c_nom = _gather([nominal_future], pool, "nominal fit")[0]
+    steps = [MAX_STEP_S] + ([budget.slow_step_s] if wants_fine else [])
+    nominal_future = pool.submit(nominal_fits_job, spec, start, nb, steps, "nominal fit", from_model)
+    nominals = _gather([nominal_future], pool, "nominal fit")[0]
+    sim, coarse, clamp_restart, c_nom = nominals[0]
     nominal = sim.nominal
     e_nom = c_nom.rollout
     loc_recs = (inputs.fit[: budget.localization_recordings // 2] + inputs.check)[
@@ -367,7 +355,7 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
         if not from_fine:
             return base_nominal, base_err
         if not fine:
-            fsim, _, _, checked = fine_future.result()
+            fsim, _, _, checked = nominals[1]
             fine.update(sim=fsim, checked=checked)
             fine["current"] = checked if checked.window.mean() < c_nom.window.mean() else c_nom
         return fine["sim"].nominal, fine["current"]
@@ -395,22 +383,18 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
         # kind are stepped together in groups (deform.diagnose.stack), chosen from the round's
         # candidates alone: the numbers do not depend on the workers
         kinds: list[tuple] = []
-        items: dict[tuple, list] = {}  # (kind, fits a rest curvature) -> [(key, terms, new index, models)]
+        items: dict[tuple, list] = {}  # kind -> [(key, terms, new index, models)]
         for name, term, tb, kind in plans:
             if kind not in kinds:
                 kinds.append(kind)
                 refs = [copy.deepcopy(t) for t in selected]
-                items.setdefault((kind, fits_rest_curvature(refs, spec.n_vertices)), []).append(
-                    (("reference", kind), refs, None, 1)
-                )
+                items.setdefault(kind, []).append((("reference", kind), refs, None, 1))
             terms = [copy.deepcopy(t) for t in selected] + [term]
             models = min(tb.starts, 1 + len(term.grid())) if term.grid() and tb.starts > 1 else 1
-            items.setdefault((kind, fits_rest_curvature(terms, spec.n_vertices)), []).append(
-                (("candidate", name), terms, len(selected), models)
-            )
+            items.setdefault(kind, []).append((("candidate", name), terms, len(selected), models))
         jobs, groups = [], []
         budgets = {kind: tb for _, _, tb, kind in reversed(plans)}  # a kind's budget: its first plan's
-        for (kind, _), listed in items.items():
+        for kind, listed in items.items():
             tb = budgets[kind]
             for members in groups_of([m for *_, m in listed]):
                 group = [listed[i] for i in members]
@@ -422,9 +406,9 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
                     return fit_together_job, args
 
                 cost = fit_cost(tb) * (1 + 0.1 * sum(m for *_, m in group))
-                jobs.append(Job(("group", len(groups)), cost, make, fine_future if kind[2] else None))
+                jobs.append(Job(("group", len(groups)), cost, make))
                 groups.append([key for key, *_ in group])
-        ran = pool.run(jobs, f"round {rnd + 1}", busy=(fine_future,) if fine_future is not None else ())
+        ran = pool.run(jobs, f"round {rnd + 1}")
         out = {key: r for g, keys in enumerate(groups) for key, r in zip(keys, ran[("group", g)])}
         done = [out[("reference", k)] for k in kinds] + [out[("candidate", p[0])] for p in plans]
         references: dict[tuple, CheckErrors] = {}

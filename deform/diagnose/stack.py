@@ -15,9 +15,9 @@ and the twist solve and the length projection iterate per model until that model
 its solver tolerance, 0.1 mm over 25 steps): each model's numbers are those it gets alone, to
 rounding (1e-15 of a rollout). Even so the groups are chosen from the round's candidates alone
 (:func:`groups_of`), never from the workers, so that a diagnosis gives the same numbers whatever
-``--workers`` is. A fitted rest curvature needs the iterative twist solve where every other model
-takes the closed form (deform.rod.twist_solver), so such models are stacked apart
-(:func:`fits_rest_curvature`).
+``--workers`` is. A model with a rest curvature (fitted or not zero) needs the iterative twist
+solve where every other model takes the closed form (deform.rod.twist_solver): the stack puts the
+others first and the solve gives each part its own method (``closed_form_groups``).
 """
 
 from __future__ import annotations
@@ -112,28 +112,43 @@ class PerModelTerms(nn.Module):
 
 
 class Stack:
-    """Simulators of one rod, step and layout (the same node count, model step and substeps),
-    stepped as one batch. Each keeps its own nominal parameters and terms."""
+    """Simulators of one rod and layout (the same node count and frame period), stepped as one
+    batch. Each keeps its own nominal parameters, terms and model step: a model stepped every
+    ``r``-th tick of the finest one (its substeps a divisor of the finest's) keeps its state on the
+    ticks between, and is stepped with its own step length on its own grips, as alone."""
 
     def __init__(self, sims: list[Simulator]):
         first = sims[0]
+        frame = first.model.dt * first.substeps
+        self.ticks = max(s.substeps for s in sims)  # model steps per frame of the finest model
         for s in sims[1:]:
-            if (s.n, s.substeps, s.hidden, s.model.dt) != (
-                first.n,
-                first.substeps,
-                first.hidden,
-                first.model.dt,
+            if (s.n, s.hidden) != (first.n, first.hidden) or not math.isclose(
+                s.model.dt * s.substeps, frame, rel_tol=1e-12
             ):
-                raise ValueError("stacked simulators must share nodes, substeps and model step")
-        self.sims = sims
-        self.model = DeformModel(first.model.cfg, first.model.options)
+                raise ValueError("stacked simulators must share nodes, hidden nodes and frame period")
+        if any(self.ticks % s.substeps for s in sims):
+            raise ValueError(
+                f"stacked simulators' substeps {sorted({s.substeps for s in sims})} must divide the finest's"
+            )
+        # the models whose twist angles come in closed form first (see :meth:`_bind`); the caller's
+        # order is given back by :meth:`rollout`
+        closed = [_closed_form(s._exprs()["wbar"]) for s in sims]
+        self._order = sorted(range(len(sims)), key=lambda k: not closed[k])
+        self.sims = [sims[k] for k in self._order]
+        finest = next(s for s in self.sims if s.substeps == self.ticks)
+        self.model = DeformModel(finest.model.cfg, finest.model.options)
         self.model.graph_params_per_rollout = True
         self._width = None
+        self._closed_form_groups = 0
 
     def _bind(self, width: int) -> dict[str, Tensor]:
         """Every model's bound expressions, repeated over its ``width`` rods, copied into the batch
         model's per-rod parameters; -> the stacked expressions (for :meth:`backward`)."""
         exprs = [s.sync() for s in self.sims]
+        # the leading models without a rest curvature (none learnt) take the closed-form twist
+        # angles, as each does alone; the others the iterative solve
+        closed = [_closed_form(e["wbar"]) for e in exprs] + [False]
+        self._closed_form_groups = closed.index(False)
         stacked = {}
         for k in exprs[0]:
             per = [e[k] for e in exprs]
@@ -176,21 +191,54 @@ class Stack:
         vm = VertexMajorState(
             *(torch.cat([getattr(b[0], f) for b in begun], -1) for f in ("x", "v", "d1", "theta", "rest"))
         )
-        held = torch.cat([b[1] for b in begun], -1)
-        sub = self.sims[0].substeps
+        ticks = self.ticks
         markers, hidden = self.sims[0].markers, self.sims[0].hidden
+        # per tick j of a frame, a model of r = ticks / substeps ticks per step is due when
+        # (j + 1) % r == 0, on its step (frame * substeps + j // r): the grips of every tick at once
+        every = [ticks // s.substeps for s in self.sims]
+        held = torch.cat(
+            [
+                b[1].index_select(
+                    0, torch.tensor([f * s.substeps + j // r for f in range(steps) for j in range(ticks)])
+                )
+                if r > 1
+                else b[1]
+                for b, s, r in zip(begun, self.sims, every)
+            ],
+            -1,
+        )
+        due = [
+            None
+            if all((j + 1) % r == 0 for r in every)
+            else torch.tensor([(j + 1) % r == 0 for r in every]).repeat_interleave(width)
+            for j in range(ticks)
+        ]
+        if len(set(every)) > 1:  # each rod its own step length
+            self.model.dt = torch.cat([torch.full((width,), s.model.dt, dtype=vm.x.dtype) for s in self.sims])
         out = []
         for k in range(steps):
-            for j in range(sub):
-                vm = self.model.step_vertex_major(
-                    vm, held[k * sub + j], create_graph=create_graph, groups=len(self.sims)
+            for j in range(ticks):
+                new = self.model.step_vertex_major(
+                    vm,
+                    held[k * ticks + j],
+                    create_graph=create_graph,
+                    groups=len(self.sims),
+                    closed_form_groups=self._closed_form_groups,
                 )
+                if due[j] is not None:  # the models not due keep their state
+                    new = VertexMajorState(
+                        *(torch.where(due[j], a, b) for a, b in zip(_moving(new), _moving(vm))), vm.rest
+                    )
+                vm = new
             out.append(vm.x[markers] if hidden else vm.x)
         x = torch.stack(out)  # (steps, n_markers, 3, models * B)
         preds = [
             s.end(x[..., k * width : (k + 1) * width], frames, steps, margin) for k, s in enumerate(self.sims)
         ]
-        return preds, stacked
+        ordered: list[Tensor] = [None] * len(preds)  # type: ignore[list-item]
+        for k, p in zip(self._order, preds):
+            ordered[k] = p
+        return ordered, stacked
 
     def backward(self, loss: Tensor, stacked: dict[str, Tensor]) -> None:
         """Backpropagate ``loss`` to every simulator's nominal and term parameters (as
@@ -198,22 +246,15 @@ class Stack:
         backward_through_bound(self.model, loss, stacked)
 
 
-def fits_rest_curvature(terms: Sequence[nn.Module], n_vertices: int) -> bool:
-    """Whether a model with these terms fits a rest curvature (a bound ``wbar`` that takes
-    gradients). Such a model's twist angles need the iterative solve; without one they come in
-    closed form (deform.rod.twist_solver), and a batch takes the iterative solve for all its rods
-    if one needs it, so the two kinds are stacked apart: each model's numbers stay those it gets
-    alone."""
-    m = n_vertices - 2
-    exprs = {
-        "log_beta": torch.zeros(m, dtype=torch.float64),
-        "log_gamma": torch.zeros(m, dtype=torch.float64),
-        "wbar": torch.zeros(m, 2, 2, dtype=torch.float64),
-        "log_damping": torch.zeros((), dtype=torch.float64),
-    }
-    for t in terms:
-        exprs = t.bind(exprs)
-    return bool(exprs["wbar"].requires_grad)
+def _moving(state: VertexMajorState) -> tuple[Tensor, ...]:
+    """The fields of a state that a step changes (not the rest lengths)."""
+    return state.x, state.v, state.d1, state.theta
+
+
+def _closed_form(wbar: Tensor) -> bool:
+    """Whether a model's bound rest curvature ``wbar`` lets its twist angles come in closed form:
+    none, and none being learnt (deform.rod.twist_solver.solve_theta's own rule for one model)."""
+    return not wbar.requires_grad and not bool(wbar.detach().any())
 
 
 # models in one forward-only batch at most (grid points, check errors): no graph is kept, so the

@@ -322,16 +322,37 @@ def solve_theta(
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
     groups: int = 1,
+    closed_form_groups: int = 0,
 ) -> Tensor:
     """Fast batched solver; differentiable through the implicit function theorem when needed.
 
     Args:
         a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter, branch_free,
         report, groups: as for :func:`newton_theta`.
+        closed_form_groups: the first that many of the ``groups`` runs of rods have no rest curvature
+            and none being learnt: their angles come in closed form (:func:`twist_minimiser`), each
+            other run's from the iterative solve, as each would alone (several models stepped as one
+            batch, some fitting a rest curvature: deform.diagnose.stack).
 
     Returns:
         (m, B) energy-minimising angles [rad], differentiable when an input requires grad.
     """
+    if closed_form_groups:
+        return _closed_form_first(
+            closed_form_groups,
+            a,
+            b,
+            m_ref,
+            theta_ends,
+            beta,
+            gamma,
+            rest_vor,
+            wbar,
+            theta_init,
+            tol,
+            max_iter,
+            groups,
+        )
     if _quadratic(wbar, branch_free, report):
         return _with_free(theta_ends, twist_minimiser(m_ref, theta_ends, 2.0 * gamma / rest_vor))
     theta_star = newton_theta(
@@ -354,6 +375,32 @@ def solve_theta(
     if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
         return attach_implicit_gradient(theta_star, *inputs)
     return theta_star
+
+
+def _closed_form_first(
+    closed_groups, a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init, tol, max_iter, groups
+) -> Tensor:
+    """:func:`solve_theta` of a batch whose first ``closed_groups`` of ``groups`` equal runs of rods
+    take the closed form and the rest the iterative solve: each part on its own rods, joined."""
+    if not 0 < closed_groups <= groups:
+        raise ValueError(f"closed_form_groups must be in 1..groups ({groups}), got {closed_groups}")
+    k = theta_ends.shape[-1] // groups * closed_groups
+
+    def rods(t: Tensor | None, part: slice) -> Tensor | None:
+        return t if t is None or t.shape[-1] == 1 else t[..., part]  # (m, 1): shared by every rod
+
+    head, tail = slice(None, k), slice(k, None)
+    c = rods(2.0 * gamma / rest_vor, head)
+    closed = _with_free(rods(theta_ends, head), twist_minimiser(rods(m_ref, head), rods(theta_ends, head), c))
+    if k == theta_ends.shape[-1]:
+        return closed
+    iterative = solve_theta(
+        *(rods(t, tail) for t in (a, b, m_ref, theta_ends, beta, gamma, rest_vor, wbar, theta_init)),
+        tol=tol,
+        max_iter=max_iter,
+        groups=groups - closed_groups,
+    )
+    return torch.cat([closed, iterative], -1)
 
 
 def _quadratic(wbar: Tensor, branch_free: int, report: ConvergenceReport | None) -> bool:

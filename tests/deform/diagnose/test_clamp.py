@@ -86,3 +86,30 @@ def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end
     with torch.no_grad():
         now = fitting.forward_loss(sim, held_out, budget)
     assert now == pytest.approx(min(info["held_out_loss_m"].values()), rel=1e-9)
+
+
+def test_nominal_fits_at_two_model_steps_together_end_as_alone(sources, monkeypatch):
+    """The tool's two nominal fits (the candidates' model step and the slow terms' finer one) are
+    stepped as one batch, restarts included: each ends where it ends alone."""
+    import deform.diagnose.fitting as fitting
+    from deform.diagnose.joint_fit import fit_nominals_together
+
+    recs = _recordings_with_clamp(sources, 0.0)
+    budget = dataclasses.replace(tiny_budget([]).candidate, iterations=6)
+    monkeypatch.setattr(fitting, "CLAMP_RESTART_M", 1.0)  # both restart
+
+    def sims():
+        return [Simulator(SPEC, Nominal()), Simulator(SPEC, Nominal(), max_step_s=SPEC.dt / 2)]
+
+    alone = sims()
+    outs = [fitting.fit_nominal(sim, recs, budget, 0.02) for sim in alone]
+    together = sims()
+    touts = fit_nominals_together(together, recs, budget, 0.02)
+    for sim, out, tsim, tout in zip(alone, outs, together, touts, strict=True):
+        assert tout["coarse"] == out["coarse"]
+        assert tout["clamp_restart"]["kept"] == out["clamp_restart"]["kept"]
+        for k, v in out["clamp_restart"]["held_out_loss_m"].items():
+            assert tout["clamp_restart"]["held_out_loss_m"][k] == pytest.approx(v, rel=1e-6)
+        for pa, pb in zip(sim.parameters(), tsim.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    assert outs[0]["coarse"] != outs[1]["coarse"] or alone[0].nominal.params() != alone[1].nominal.params()

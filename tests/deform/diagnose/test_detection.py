@@ -126,10 +126,11 @@ def test_slow_terms_are_fitted_with_the_finer_step_from_a_nominal_fit_of_their_o
     coarse = diagnose(inputs, dataclasses.replace(b, slow_step_s=None)).report  # tool v10: all at 10 ms
     assert all(c["model_step_s"] == pytest.approx(0.01) for c in coarse["candidates"])
     assert coarse["nominal"]["fine"] is None
-    # the other candidates and their common reference do not depend on the option
+    # the other candidates and their common reference do not depend on the option (to rounding: the
+    # 10 ms nominal fit is stepped in one batch with the fine one)
     old = {c["name"]: c for c in coarse["candidates"] if c["round"] == 1}
     for name in ("external_force", "point_mass"):
-        assert first[name]["improvement"] == old[name]["improvement"]
+        assert first[name]["improvement"] == pytest.approx(old[name]["improvement"], rel=1e-9)
 
 
 def test_later_rounds_keep_the_finer_step_once_a_slow_term_is_in():

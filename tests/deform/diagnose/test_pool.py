@@ -14,7 +14,7 @@ pytestmark = pytest.mark.slow  # two whole diagnoses on the tiny rod, one of the
 
 def test_workers_give_the_same_names_and_numbers(sources):
     inputs, _ = planted_inputs("external_force", sources)
-    # a slow term (its round-1 start is the nominal fit at the fine step, fitted beside the 10 ms
+    # a slow term (its round-1 start is the nominal fit at the fine step, stepped with the 10 ms
     # one) and two rounds (the chosen term's refit on other windows runs through the pool too)
     # few iterations, no window growth: the two runs must agree, whatever they name
     tiny = tiny_budget(("external_force", "internal_damping"))

@@ -19,7 +19,7 @@ from deform.diagnose.fitting import (
 )
 from deform.diagnose.joint_fit import descend_together, fit_together
 from deform.diagnose.simulator import Nominal, Simulator
-from deform.diagnose.stack import Stack, fits_rest_curvature, groups_of
+from deform.diagnose.stack import Stack, groups_of
 from deform.io.recordings import arclength_of
 from deform.terms.library import make_term
 
@@ -117,21 +117,69 @@ def test_groups_are_few_even_and_in_order():
     assert groups_of([20, 1], most=12) == [[0], [1]]  # an item larger than a group stands alone
 
 
-def test_a_fitted_rest_curvature_is_stacked_apart(recordings):
-    s = arclength_of(recordings)
-    curvature = make_term("rest_curvature", SPEC.n_vertices, s, {})
-    drag = make_term("aerodynamic_drag", SPEC.n_vertices, s, {})
-    assert fits_rest_curvature([curvature], SPEC.n_vertices)
-    assert fits_rest_curvature([drag, copy.deepcopy(curvature)], SPEC.n_vertices)
-    assert not fits_rest_curvature([drag], SPEC.n_vertices)
-    assert not fits_rest_curvature([], SPEC.n_vertices)
+def test_a_fitted_rest_curvature_stacked_with_others_is_each_models_own(recordings):
+    """A model fitting a rest curvature takes the iterative twist solve, the others the closed form,
+    in one batch (the rest curvature model listed between the others)."""
+    names = [None, "rest_curvature", "aerodynamic_drag"]
+    budget = FitBudget(iterations=3, batch=4, horizon=12, progress=False)
+    alone, stacked = _sims(recordings, names), _sims(recordings, names)
+    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
+    out_stacked = descend_together(stacked, recordings, budget, "stacked")
+    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
+        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
+        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    # forward: the fitted curvature is not zero, so its model is solved iteratively there too
+    assert stacked[1].terms[0].params() != _sims(recordings, names)[1].terms[0].params()
+    X, d1, origin = make_windows(recordings, 3, 10, 3, random.Random(1))
+    with torch.no_grad():
+        own = []
+        for sim in stacked:
+            sim.sync()
+            own.append(sim.rollout(X, 10, 3, d1=d1, origin=origin))
+        together, _ = Stack(stacked).rollout(X, 10, 3, d1=d1, origin=origin)
+    for a, b in zip(own, together, strict=True):
+        assert (a - b).abs().max() < 1e-12
+    assert (own[0] - own[1]).abs().max() > 1e-6
 
 
-def test_stacked_simulators_must_share_their_step(recordings):
-    a = Simulator(SPEC, Nominal())
-    b = Simulator(SPEC, Nominal(), max_step_s=SPEC.dt / 2)
-    with pytest.raises(ValueError, match="substeps"):
+def test_models_at_other_model_steps_stacked_are_each_models_own(recordings):
+    """A model stepped at half the step of another (the tool's two nominal fits) keeps its state on
+    the ticks between its steps, and takes its own step length and grips."""
+
+    def sims():
+        coarse = Simulator(SPEC, Nominal(damping=0.3))
+        fine = Simulator(SPEC, Nominal(damping=0.4), max_step_s=SPEC.dt / 2)
+        return [coarse, fine, Simulator(SPEC, Nominal(damping=0.5))]
+
+    alone, stacked = sims(), sims()
+    assert [s.substeps for s in alone] == [1, 2, 1]
+    X, d1, origin = make_windows(recordings, 3, 12, 3, random.Random(2))
+    with torch.no_grad():
+        own = []
+        for sim in alone:
+            sim.sync()
+            own.append(sim.rollout(X, 12, 3, d1=d1, origin=origin))
+        together, _ = Stack(stacked).rollout(X, 12, 3, d1=d1, origin=origin)
+    for a, b in zip(own, together, strict=True):
+        assert (a - b).abs().max() < 1e-12
+    assert (own[0] - own[1]).abs().max() > 1e-6
+    budget = FitBudget(iterations=3, batch=4, horizon=10, progress=False)
+    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
+    out_stacked = descend_together(stacked, recordings, budget, "stacked")
+    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
+        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
+        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+
+
+def test_stacked_simulators_must_share_their_frames_and_divide_the_finest_step(recordings):
+    a = Simulator(SPEC, Nominal(), max_step_s=SPEC.dt / 2)
+    b = Simulator(SPEC, Nominal(), max_step_s=SPEC.dt / 3)
+    with pytest.raises(ValueError, match="divide"):
         Stack([a, b])
+    with pytest.raises(ValueError, match="hidden"):
+        Stack([a, Simulator(SPEC, Nominal(), hidden=1)])
 
 
 def test_check_errors_of_a_batch_are_each_models_own(sources, recordings):

@@ -154,3 +154,47 @@ def test_groups_of_rods_are_each_solved_as_alone():
         alone = solve_theta(a[..., rods], b[..., rods], *one, theta_init=warm[:, rods])
         assert torch.allclose(grouped[:, rods], alone, rtol=0, atol=1e-15)
     assert not torch.equal(solve_theta(a, b, *args, theta_init=warm), grouped)  # the batch-wide loop
+
+
+def test_closed_form_groups_solve_each_run_by_its_own_method():
+    """``closed_form_groups``: the leading runs of rods (no rest curvature) take the closed form to
+    the bit, the other runs the iterative solve as alone, with its implicit gradient (a stack of
+    models of which some fit a rest curvature)."""
+    a, b, m_ref, ends, p = _problem(6, batch=6)
+    wbar = torch.cat(
+        [torch.zeros(*p.wbar.shape[:-1], 2, dtype=p.wbar.dtype), p.wbar.expand(-1, -1, -1, 4)], -1
+    )
+    wbar = wbar.clone().requires_grad_(True)  # the last two runs of two rods fit a rest curvature
+    args = (m_ref, ends, p.beta, p.gamma, p.rest_vor)
+    split = solve_theta(a, b, *args, wbar, groups=3, closed_form_groups=1)
+    head, tail = slice(0, 2), slice(2, 6)
+    closed = solve_theta(
+        a[..., head],
+        b[..., head],
+        m_ref[:, head],
+        ends[:, head],
+        p.beta,
+        p.gamma,
+        p.rest_vor[:, head],
+        torch.zeros_like(p.wbar),
+    )
+    assert torch.equal(split[:, head], closed)
+    iterative = solve_theta(
+        a[..., tail],
+        b[..., tail],
+        m_ref[:, tail],
+        ends[:, tail],
+        p.beta,
+        p.gamma,
+        p.rest_vor[:, tail],
+        wbar[..., tail],
+        groups=2,
+    )
+    assert torch.equal(split[:, tail], iterative)
+    (g_split,) = torch.autograd.grad(split.sum(), wbar)
+    (g_tail,) = torch.autograd.grad(iterative.sum(), wbar)
+    assert torch.equal(g_split, g_tail) and g_tail[..., tail].abs().max() > 0
+    # the whole batch through the iterative solve is not the closed form to the bit
+    assert not torch.equal(solve_theta(a, b, *args, wbar, groups=3)[:, head], closed)
+    with pytest.raises(ValueError, match="closed_form_groups"):
+        solve_theta(a, b, *args, wbar, groups=3, closed_form_groups=4)
