@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -13,6 +14,7 @@ from deform.diagnose.fitting import FitBudget, fit
 from deform.diagnose.joint_fit import descend_together, fit_nominals_together, fit_together
 from deform.diagnose.simulator import (
     MAX_STEP_S,
+    Nominal,
     Simulator,
     clamp_bound,
     per_recording_l1,
@@ -69,16 +71,27 @@ def fit_and_check(
     return sim, CheckErrors.of(sim, inputs.check)
 
 
+class Member(NamedTuple):
+    """One model of :func:`fit_and_check_together`: its terms, the index of its new term in them
+    (None: none new), and where it differs from the group: its start (None: the group's nominal)
+    and the seed of its windows (None: the budget's)."""
+
+    terms: list
+    index: int | None
+    nominal: Nominal | None = None
+    seed: int | None = None
+
+
 def fit_and_check_together(
-    spec, nominal, members: list[tuple[list, int | None]], inputs: Inputs, budget: FitBudget, desc: str
+    spec, nominal, members: list[tuple], inputs: Inputs, budget: FitBudget, desc: str
 ) -> list[tuple[Simulator, CheckErrors]]:
-    """:func:`fit_and_check` of several models that start from the same ``nominal`` and share a
-    budget, their descents stepped as one batch (:func:`deform.diagnose.stack.fit_together`).
+    """:func:`fit_and_check` of several models that share a budget, their descents stepped as one
+    batch (:func:`deform.diagnose.joint_fit.fit_together`).
 
     Args:
         spec: the rod.
-        nominal: the nominal parameters every model starts from (copied for each).
-        members: per model its terms and the index of its new term in them (or None).
+        nominal: the nominal parameters the models start from (copied for each).
+        members: per model a :class:`Member` (or its fields as a tuple).
         inputs: fit and check recordings.
         budget: the fits' budget.
         desc: progress label.
@@ -86,13 +99,18 @@ def fit_and_check_together(
     Returns:
         Per member ``(simulator, CheckErrors)``; its fitted new term is ``simulator.terms[index]``.
     """
+    members = [Member(*m) for m in members]
     max_step = budget.max_step_s or MAX_STEP_S
-    sims = [Simulator(spec, copy.deepcopy(nominal), terms, max_step_s=max_step) for terms, _ in members]
+    sims = [
+        Simulator(spec, copy.deepcopy(m.nominal or nominal), m.terms, max_step_s=max_step) for m in members
+    ]
+    own_seeds = any(m.seed is not None for m in members)
     fitted = fit_together(
-        [(sim, None if i is None else sim.terms[i]) for sim, (_, i) in zip(sims, members)],
+        [(sim, None if m.index is None else sim.terms[m.index]) for sim, m in zip(sims, members)],
         inputs.fit,
         budget,
         desc,
+        seeds=[budget.seed if m.seed is None else m.seed for m in members] if own_seeds else None,
     )
     fitted_sims = [sim for sim, _ in fitted]
     return list(zip(fitted_sims, CheckErrors.of_all(fitted_sims, inputs.check), strict=True))

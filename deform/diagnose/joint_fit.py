@@ -7,6 +7,7 @@ alone (to rounding: 1e-15 of a step, grown by the optimiser to about 1e-9 of a p
 from __future__ import annotations
 
 import copy
+import dataclasses
 import random
 
 import torch
@@ -31,11 +32,17 @@ from deform.io.recordings import Recording
 
 
 def descend_together(
-    sims: list[Simulator], recordings: list[Recording], budget: FitBudget, desc: str, fit_nominal: bool = True
+    sims: list[Simulator],
+    recordings: list[Recording],
+    budget: FitBudget,
+    desc: str,
+    fit_nominal: bool = True,
+    seeds: list[int] | None = None,
 ) -> list[dict]:
     """:func:`deform.diagnose.fitting._descend` of every simulator, stepped as one batch: the same
-    windows, each simulator its own loss, Adam, learning-rate schedule, gradient clipping and
-    skipped steps (a diverged model does not stop the others).
+    windows (or each simulator those of its own seed), each simulator its own loss, Adam,
+    learning-rate schedule, gradient clipping and skipped steps (a diverged model does not stop the
+    others).
 
     Args:
         sims: the simulators (see :class:`Stack`).
@@ -43,12 +50,14 @@ def descend_together(
         budget: iterations, windows, learning rates.
         desc: progress bar label.
         fit_nominal: also fit the nominal parameters.
+        seeds: per simulator the seed of its windows (None: ``budget.seed`` for all).
 
     Returns:
         Per simulator ``{"loss_history_m", "skipped"}``.
     """
     stack = Stack(sims)
-    rng = random.Random(budget.seed)
+    seeds = seeds or [budget.seed] * len(sims)
+    rngs = {seed: random.Random(seed) for seed in seeds}
     opts, scheds = zip(*(optimiser(s, budget, fit_nominal) for s in sims))
     history: list[list[float]] = [[] for _ in sims]
     skipped = [0] * len(sims)
@@ -57,12 +66,16 @@ def descend_together(
     )
     for i in bar:
         horizon, batch = window_schedule(budget, recordings, i)
-        X, d1, origin = make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
+        drawn = {
+            seed: make_windows(recordings, batch, horizon, budget.margin, rng, budget.transported)
+            for seed, rng in rngs.items()
+        }
+        X, d1, origin = (list(w) for w in zip(*(drawn[seed] for seed in seeds)))
         for opt in opts:
             opt.zero_grad(set_to_none=True)
         preds, stacked = stack.rollout(X, horizon, budget.margin, create_graph=True, d1=d1, origin=origin)
-        truth = X[:, budget.margin + 2 : budget.margin + 2 + horizon]
-        losses = [(p - truth).abs().mean() for p in preds]
+        end = budget.margin + 2 + horizon
+        losses = [(p - x[:, budget.margin + 2 : end]).abs().mean() for p, x in zip(preds, X)]
         finite = [bool(torch.isfinite(loss)) for loss in losses]
         if any(finite):
             stack.backward(sum(loss for loss, ok in zip(losses, finite) if ok), stacked)
@@ -74,7 +87,11 @@ def descend_together(
 
 
 def fit_together(
-    members: list[tuple[Simulator, object | None]], recordings: list[Recording], budget: FitBudget, desc: str
+    members: list[tuple[Simulator, object | None]],
+    recordings: list[Recording],
+    budget: FitBudget,
+    desc: str,
+    seeds: list[int] | None = None,
 ) -> list[tuple[Simulator, dict]]:
     """:func:`deform.diagnose.fitting.fit` of several simulators, their descents stepped as one batch.
 
@@ -88,15 +105,19 @@ def fit_together(
         recordings: fit recordings.
         budget: the fit's budget (one for all: they are stepped together).
         desc: progress bar label.
+        seeds: per member the seed of its windows, as ``budget.seed`` (None: the budget's for all).
 
     Returns:
         Per member the fitted simulator (a copy when it had several starts; its new term is at the
         same index in ``terms``) and ``{"loss_history_m", "skipped"}``, with several starts also
         ``"starts"``: each start's point and held-out loss.
     """
+    budgets = [
+        budget if seeds is None else dataclasses.replace(budget, seed=seed) for seed in seeds or members
+    ]
     runs: list[tuple[int, bool, dict | None, Simulator]] = []  # (member, one of several starts, point, sim)
     for i, (sim, term) in enumerate(members):
-        ranked = rank_starts(sim, term, recordings, budget) if term is not None else []
+        ranked = rank_starts(sim, term, recordings, budgets[i]) if term is not None else []
         if len(ranked) <= 1 or budget.starts <= 1:
             if ranked:
                 apply_point(sim, term, ranked[0][1])
@@ -107,18 +128,21 @@ def fit_together(
             start = copy.deepcopy(sim)
             apply_point(start, start.terms[index], point)
             runs.append((i, True, point, start))
-    outs = descend_together([r[3] for r in runs], recordings, budget, desc)
-    held_out = None
+    outs = descend_together(
+        [r[3] for r in runs], recordings, budget, desc, seeds=[budgets[r[0]].seed for r in runs]
+    )
+    held_out: dict[int, tuple] = {}  # per seed
     best: dict[int, tuple] = {}
     starts: dict[int, list] = {}
     for (i, several, point, sim), out in zip(runs, outs):
         if not several:
             best[i] = (0.0, sim, out)
             continue
-        if held_out is None:
-            held_out = held_out_windows(recordings, budget)
+        b = budgets[i]
+        if b.seed not in held_out:
+            held_out[b.seed] = held_out_windows(recordings, b)
         sim.sync()
-        loss = forward_loss(sim, held_out, budget)
+        loss = forward_loss(sim, held_out[b.seed], b)
         starts.setdefault(i, []).append({"point": point, "loss_m": loss})
         if i not in best or loss < best[i][0]:
             best[i] = (loss, sim, out)

@@ -164,44 +164,63 @@ def equivalence_class(
     return {"equivalence_class": members, "equivalence_why": why}
 
 
-def fit_noise(
-    spec,
-    nominal,
-    selected,
-    name,
-    s,
-    context,
-    pool: FitPool,
-    budget: FitBudget,
-    improvement: float,
-    read_roll: bool = True,
-) -> dict:
-    """The chosen candidate and its reference fitted again on other windows of fit/ (another seed):
-    how much of the improvement is the fit's own noise. -> {"improvement_refit", "noise"}
+NOISE_SEED = 101  # the refit's windows: the candidate budget's seed plus this
 
-    Args:
-        spec: the rod.
-        nominal: the nominal parameters.
-        selected: terms selected in earlier rounds.
-        name: the chosen term.
-        s: (n,) normalised marker arc length.
-        context: data-driven starts.
-        pool: where the two fits run (side by side with worker processes).
-        budget: the candidate fit's budget.
-        improvement: the improvement measured first.
-        read_roll: see :attr:`DiagnoseBudget.read_roll`.
-    """
-    other = dataclasses.replace(budget, seed=budget.seed + 101, progress=False)
-    term = make_term(name, spec.n_vertices, s, context, read_roll=read_roll)
-    members = [
-        ([copy.deepcopy(t) for t in selected], None),
-        ([copy.deepcopy(t) for t in selected] + [term], len(selected)),
-    ]
-    # one batch (deform.diagnose.stack)
-    future = pool.submit(fit_together_job, spec, nominal, members, other, f"refit: {name}")
+
+@dataclass
+class NoiseRefit:
+    """The chosen candidate and its reference to be fitted again on other windows of fit/ (the
+    budget's seed plus :data:`NOISE_SEED`): how much of the improvement is the fit's own noise.
+    Independent of the next round, so it is fitted with that round's fits of the same budget, as
+    one batch, or alone (:func:`fit_noise`) when there is none."""
+
+    name: str
+    nominal: Nominal  # the start of the chosen candidate's fit
+    members: list  # (terms, index of the new one): the reference's and the candidate's
+    budget: FitBudget  # the chosen candidate's
+    improvement: float  # the improvement measured first
+    entry: dict  # the candidate's report entry, which receives "fit_noise"
+
+    @classmethod
+    def of(cls, spec, nominal, selected, name, s, context, budget, improvement, entry, read_roll=True):
+        term = make_term(name, spec.n_vertices, s, context, read_roll=read_roll)
+        members = [
+            ([copy.deepcopy(t) for t in selected], None),
+            ([copy.deepcopy(t) for t in selected] + [term], len(selected)),
+        ]
+        return cls(name, nominal, members, budget, improvement, entry)
+
+    @property
+    def seed(self) -> int:
+        return self.budget.seed + NOISE_SEED
+
+    def fits_with(self, budget: FitBudget) -> bool:
+        """Whether its fits can be stepped with fits of ``budget`` (the same but for the seed)."""
+        return dataclasses.replace(self.budget, seed=budget.seed, progress=budget.progress) == budget
+
+    def record(self, c_ref: CheckErrors, c: CheckErrors) -> None:
+        """Store ``{"improvement_refit", "noise"}`` from the refits' check errors."""
+        again = float(((c_ref.window - c.window) / c_ref.window).mean())
+        self.entry["fit_noise"] = {"improvement_refit": again, "noise": abs(again - self.improvement)}
+
+
+def fit_noise(refit: NoiseRefit, spec, pool: FitPool) -> None:
+    """:class:`NoiseRefit`'s two fits as one batch of their own."""
+    other = dataclasses.replace(refit.budget, seed=refit.seed, progress=False)
+    future = pool.submit(fit_together_job, spec, refit.nominal, refit.members, other, f"refit: {refit.name}")
     (_, c_ref), (_, c) = _gather([future], pool, "refit")[0]
-    again = float(((c_ref.window - c.window) / c_ref.window).mean())
-    return {"improvement_refit": again, "noise": abs(again - improvement)}
+    refit.record(c_ref, c)
+
+
+def _models(budget: FitBudget, term) -> int:
+    """Models a candidate's fit descends: one per start of its grid (at most ``budget.starts``)."""
+    return min(budget.starts, 1 + len(term.grid())) if term.grid() and budget.starts > 1 else 1
+
+
+def _label(key: tuple) -> str:
+    """A fit's name in a group's progress label."""
+    kind, name = key
+    return {"candidate": name, "reference": "reference", "noise": f"{name} refit"}[kind]
 
 
 def selected_uncertainty(sim: Simulator, selected: list[Term], recordings, budget_for) -> list[dict]:
@@ -342,6 +361,7 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
     candidates_out: list[dict] = []
     slow_cb = dataclasses.replace(cb, final_horizon=CHECK_HORIZON if budget.grow_slow_terms else None)
     fine: dict = {}  # the nominal fit at slow_step_s (fine_nominal), once round 1 uses it
+    noise: NoiseRefit | None = None  # the last choice's refit, not yet fitted
 
     def from_fine_nominal(term: Term, rnd: int) -> bool:
         """Whether a candidate starts from the nominal model fitted at the slow step: in round 1,
@@ -383,33 +403,46 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
         # kind are stepped together in groups (deform.diagnose.stack), chosen from the round's
         # candidates alone: the numbers do not depend on the workers
         kinds: list[tuple] = []
-        items: dict[tuple, list] = {}  # kind -> [(key, terms, new index, models)]
+        items: dict[tuple, list] = {}  # kind -> [(key, terms, new index, models, start or None, seed)]
         for name, term, tb, kind in plans:
             if kind not in kinds:
                 kinds.append(kind)
                 refs = [copy.deepcopy(t) for t in selected]
-                items.setdefault(kind, []).append((("reference", kind), refs, None, 1))
+                items.setdefault(kind, []).append((("reference", kind), refs, None, 1, None, None))
             terms = [copy.deepcopy(t) for t in selected] + [term]
-            models = min(tb.starts, 1 + len(term.grid())) if term.grid() and tb.starts > 1 else 1
-            items.setdefault(kind, []).append((("candidate", name), terms, len(selected), models))
-        jobs, groups = [], []
+            items.setdefault(kind, []).append(
+                (("candidate", name), terms, len(selected), _models(tb, term), None, None)
+            )
         budgets = {kind: tb for _, _, tb, kind in reversed(plans)}  # a kind's budget: its first plan's
+        if noise is not None:  # the last choice's refit, with this round's fits of its budget
+            kind = next((k for k in kinds if noise.fits_with(budgets[k])), None)
+            if kind is None:
+                fit_noise(noise, spec, pool)
+                noise = None
+            else:
+                for key, (terms, index) in zip(("reference", "candidate"), noise.members):
+                    models = _models(budgets[kind], terms[index]) if index is not None else 1
+                    items[kind].append((("noise", key), terms, index, models, noise.nominal, noise.seed))
+        jobs, groups = [], []
         for kind, listed in items.items():
             tb = budgets[kind]
-            for members in groups_of([m for *_, m in listed]):
+            for members in groups_of([item[3] for item in listed]):
                 group = [listed[i] for i in members]
-                label = ", ".join(k[1] if k[0] == "candidate" else "reference" for k, *_ in group)
+                label = ", ".join(_label(key) for key, *_ in group)
                 desc = f"round {rnd + 1}: {label}"
 
                 def make(kind=kind, group=group, tb=tb, desc=desc):
-                    args = (spec, base_for(kind[2])[0], [(t, i) for _, t, i, _ in group], tb, desc)
-                    return fit_together_job, args
+                    fits = [(t, i, nominal, seed) for _, t, i, _, nominal, seed in group]
+                    return fit_together_job, (spec, base_for(kind[2])[0], fits, tb, desc)
 
-                cost = fit_cost(tb) * (1 + 0.1 * sum(m for *_, m in group))
+                cost = fit_cost(tb) * (1 + 0.1 * sum(item[3] for item in group))
                 jobs.append(Job(("group", len(groups)), cost, make))
                 groups.append([key for key, *_ in group])
         ran = pool.run(jobs, f"round {rnd + 1}")
         out = {key: r for g, keys in enumerate(groups) for key, r in zip(keys, ran[("group", g)])}
+        if noise is not None:
+            noise.record(out[("noise", "reference")][1], out[("noise", "candidate")][1])
+            noise = None
         done = [out[("reference", k)] for k in kinds] + [out[("candidate", p[0])] for p in plans]
         references: dict[tuple, CheckErrors] = {}
         for kind, (_, c) in zip(kinds, done[: len(kinds)]):
@@ -468,26 +501,27 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
             best.reference,
             [(r.name, r.checked.window) for r in sig if r.name != name],
         )
-        cls["fit_noise"] = fit_noise(
+        entry = next(c for c in candidates_out if c["name"] == name and c["round"] == rnd + 1)
+        entry.update(cls)
+        noise = NoiseRefit.of(
             spec,
             best.base,
             selected,
             name,
             s,
             context,
-            pool,
             best.budget,
             best.score.improvement,
+            entry,
             read_roll=budget.read_roll,
         )
-        for c in candidates_out:
-            if c["name"] == name and c["round"] == rnd + 1:
-                c.update(cls)
         selected.append(best.term)
         selected_names.append(name)
         base_nominal, base_err, base_sim = best.sim.nominal, best.checked, best.sim
         order = sorted((r for r in results if r.name != name), key=lambda r: -r.score.improvement)
         remaining = [r.name for r in order if r.score.improvement > 0][: budget.later_round_candidates]
+    if noise is not None:  # the last choice's refit: no later round to join
+        fit_noise(noise, spec, pool)
     for t, std in zip(
         selected, selected_uncertainty(base_sim, selected, inputs.fit, budget_for), strict=True
     ):

@@ -172,22 +172,31 @@ class Stack:
 
     def rollout(
         self,
-        frames: Tensor,
+        frames: Tensor | list[Tensor],
         steps: int,
         margin: int = 0,
         create_graph: bool = False,
-        d1: Tensor | None = None,
-        origin: Tensor | None = None,
+        d1: Tensor | list | None = None,
+        origin: Tensor | list | None = None,
     ) -> tuple[list[Tensor], dict[str, Tensor]]:
-        """Every simulator's :meth:`Simulator.rollout` of the same windows.
+        """Every simulator's :meth:`Simulator.rollout` of the same windows, or of its own: ``frames``,
+        ``d1`` and ``origin`` a list with one per simulator (of equal shapes).
 
         Returns:
             ``(predictions, stacked expressions)``: a (B, steps, n_markers, 3) per simulator, and
             what :meth:`backward` takes.
         """
-        width = frames.shape[0]
+        own = isinstance(frames, list)
+
+        def mine(value, k: int):  # the caller's k-th model's windows
+            return value[self._order[k]] if own else value
+
+        width = mine(frames, 0).shape[0]
         stacked = self._bind(width)
-        begun = [s.begin(frames, steps, margin, d1, origin) for s in self.sims]
+        begun = [
+            s.begin(mine(frames, k), steps, margin, mine(d1, k), mine(origin, k))
+            for k, s in enumerate(self.sims)
+        ]
         vm = VertexMajorState(
             *(torch.cat([getattr(b[0], f) for b in begun], -1) for f in ("x", "v", "d1", "theta", "rest"))
         )
@@ -233,7 +242,8 @@ class Stack:
             out.append(vm.x[markers] if hidden else vm.x)
         x = torch.stack(out)  # (steps, n_markers, 3, models * B)
         preds = [
-            s.end(x[..., k * width : (k + 1) * width], frames, steps, margin) for k, s in enumerate(self.sims)
+            s.end(x[..., k * width : (k + 1) * width], mine(frames, k), steps, margin)
+            for k, s in enumerate(self.sims)
         ]
         ordered: list[Tensor] = [None] * len(preds)  # type: ignore[list-item]
         for k, p in zip(self._order, preds):

@@ -1,6 +1,7 @@
 """Models stepped as one batch give each model's numbers alone (deform.diagnose.stack)."""
 
 import copy
+import dataclasses
 import random
 
 import numpy as np
@@ -207,3 +208,33 @@ def test_grid_ranking_scores_each_point_as_alone(recordings):
         apply_point(c, c.terms[0], point)
         assert forward_loss(c, windows, budget) == pytest.approx(loss, rel=1e-10)
     assert [lp[0] for lp in ranked] == sorted(lp[0] for lp in ranked)
+
+
+def test_a_refit_on_windows_of_its_own_stacked_with_other_fits_is_its_own(sources):
+    """The chosen candidate's refit (another start, windows of another seed) stepped with the next
+    round's fits ends as when fitted alone."""
+    from deform.diagnose.checked_fit import fit_and_check_together
+
+    inputs, _ = planted_inputs("point_mass", sources)
+    s = arclength_of(inputs.fit)
+    budget = FitBudget(iterations=3, batch=4, horizon=10, progress=False, starts=2)
+    seed = budget.seed + 101
+    group_start, own_start = Nominal(damping=0.3), Nominal(damping=0.6)
+
+    def term(name):
+        return make_term(name, SPEC.n_vertices, s, {"peak_s": 0.4})
+
+    refit = [([], None, own_start, seed), ([term("point_mass")], 0, own_start, seed)]
+    together = fit_and_check_together(
+        SPEC, group_start, [([term("aerodynamic_drag")], 0), *refit], inputs, budget, "together"
+    )
+    alone = fit_and_check_together(
+        SPEC, own_start, [m[:2] for m in refit], inputs, dataclasses.replace(budget, seed=seed), "alone"
+    )
+    for (asim, ac), (tsim, tc) in zip(alone, together[1:], strict=True):
+        np.testing.assert_allclose(tc.window, ac.window, rtol=1e-6)
+        for pa, pb in zip(asim.parameters(), tsim.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    # the other seed's windows matter: the same refit on the group's windows ends elsewhere
+    same_windows = fit_and_check_together(SPEC, own_start, [m[:2] for m in refit], inputs, budget, "x")
+    assert np.abs(same_windows[0][1].window - alone[0][1].window).max() > 1e-6
