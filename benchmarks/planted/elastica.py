@@ -21,9 +21,12 @@ written by others, and nothing of ours is inside the simulation:
   unlike our nominal model;
 * contact: PyElastica's rod-plane contact (a spring-dashpot on the rod's surface, radius included)
   with its Coulomb friction (static and kinetic, axial and rolling), not our penalty plane;
-* air drag: a quadratic normal-velocity drag forcing; wind: PyElastica's GravityForces with a
-  horizontal acceleration; rest curvature: PyElastica's rest_kappa; a clip: extra nodal mass;
+* air drag: a quadratic normal-velocity drag forcing; wind: a horizontal acceleration (the law of
+  PyElastica's GravityForces); rest curvature: PyElastica's rest_kappa; a clip: extra nodal mass;
   a stiff segment: the bend matrix scaled over a stretch.
+
+All rods (one per source) are simulated together in one PyElastica collection; each feature (grips,
+forces, damping) is added once and acts on every rod, which steps them fast (see ``_features``).
 
 Each source recording gives the gripper motion of one output recording, over a window of
 ``n_frames`` frames at a seeded offset. The grippers that drive the rod move as the recorded ones
@@ -45,6 +48,7 @@ The rope's geometry (markers, grips, starting curve) is shared with MuJoCo's: be
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -233,10 +237,19 @@ def _grip_tracks(
 # ----------------------------------------------------------------------------------------------
 
 
+@functools.cache  # compiled once per process (cache=False: no on-disk cache, see below)
 def _kernels():
+    """The per-rod kernels, and their ``*_all`` loops over the rods' column ranges of the memory
+    block (``n0:n1`` nodes, ``e0:e1`` elements of rod r), which call the per-rod kernels on the rods'
+    slices: one Python call per step acts on every rod, with each rod's arithmetic unchanged."""
+    from elastica._contact_functions import (
+        _calculate_contact_forces_rod_plane_with_anisotropic_friction as rod_plane_contact,
+    )
     from numba import njit
 
-    @njit(cache=False)  # no on-disk cache: it records the importing module path (benchmarks.x vs x)
+    jit = njit(cache=False)  # no on-disk cache: it records the importing module path (benchmarks.x vs x)
+
+    @jit
     def grip_values(tau, P, Q, nodes, elems, pos, dirs):
         T = P.shape[0]
         f = min(max(tau, 0.0), T - 1.0)
@@ -249,7 +262,7 @@ def _kernels():
                 for j in range(elems.shape[0]):
                     dirs[r, c, elems[j]] = (1 - a) * Q[i, r, c, j] + a * Q[i + 1, r, c, j]
 
-    @njit(cache=False)  # no on-disk cache: it records the importing module path (benchmarks.x vs x)
+    @jit
     def grip_rates(tau, V, W, nodes, elems, vel, omega):
         T = V.shape[0]
         inside = 0.0 <= tau < T - 1.0
@@ -260,7 +273,7 @@ def _kernels():
             for j in range(elems.shape[0]):
                 omega[c, elems[j]] = W[i, c, j] if inside else 0.0
 
-    @njit(cache=False)  # no on-disk cache: it records the importing module path (benchmarks.x vs x)
+    @jit
     def fourth_difference_damp(rate, weight):
         # rate -= weight * (D4 rate) / 16: PyElastica's order-2 Laplace filter with a weight; the
         # two end values are left untouched (and the filter term at them is zero), as in PyElastica
@@ -273,7 +286,13 @@ def _kernels():
             for k in range(1, n - 1):
                 rate[c, k] -= weight * 0.25 * (2.0 * lap[c, k] - lap[c, k - 1] - lap[c, k + 1])
 
-    @njit(cache=False)  # no on-disk cache: it records the importing module path (benchmarks.x vs x)
+    @jit
+    def add_acceleration(acc, mass, forces):  # PyElastica's GravityForces: forces += acc (x) mass
+        for c in range(3):
+            for k in range(mass.shape[0]):
+                forces[c, k] += acc[c] * mass[k]
+
+    @jit
     def quadratic_drag(coef, mass, vel, tangents, forces):
         n = vel.shape[1]
         for k in range(n):  # node tangent: mean of the adjacent element tangents
@@ -290,7 +309,55 @@ def _kernels():
             forces[1, k] -= c * n1
             forces[2, k] -= c * n2
 
-    return grip_values, grip_rates, fourth_difference_damp, quadratic_drag
+    @jit
+    def grip_values_all(tau, P, Q, nodes, elems, n0, n1, e0, e1, pos, dirs):
+        for r in range(n0.shape[0]):
+            grip_values(tau, P[r], Q[r], nodes, elems, pos[:, n0[r] : n1[r]], dirs[:, :, e0[r] : e1[r]])
+
+    @jit
+    def grip_rates_all(tau, V, W, nodes, elems, n0, n1, e0, e1, vel, omega):
+        for r in range(n0.shape[0]):
+            grip_rates(tau, V[r], W[r], nodes, elems, vel[:, n0[r] : n1[r]], omega[:, e0[r] : e1[r]])
+
+    @jit
+    def damp_all(weight, settling, factor, n0, n1, e0, e1, vel, omega):
+        for r in range(n0.shape[0]):
+            v, w = vel[:, n0[r] : n1[r]], omega[:, e0[r] : e1[r]]
+            fourth_difference_damp(v, weight)
+            fourth_difference_damp(w, weight)
+            if settling:  # then the settling damping of the same rod
+                for c in range(3):
+                    for k in range(v.shape[1]):
+                        v[c, k] *= factor
+                    for k in range(w.shape[1]):
+                        w[c, k] *= factor
+
+    @jit
+    def forces_all(gravity, wind, drag, n0, n1, e0, e1, mass, vel, tangents, forces):
+        # per rod, in the order the per-rod forcings were added: gravity, wind (an acceleration), drag
+        for r in range(n0.shape[0]):
+            m, f = mass[n0[r] : n1[r]], forces[:, n0[r] : n1[r]]
+            add_acceleration(gravity, m, f)
+            if wind.shape[0] == 3:
+                add_acceleration(wind, m, f)
+            if drag > 0.0:
+                quadratic_drag(drag, m, vel[:, n0[r] : n1[r]], tangents[:, e0[r] : e1[r]], f)
+
+    @jit
+    def contact_all(
+        origin, normal, c, n0, n1, e0, e1, radius, mass, tangents, pos, dirs, vel, omega, fi, fe, ti, te
+    ):
+        # PyElastica's RodPlaneContactWithAnisotropicFriction.apply_contact on each rod's slices;
+        # c: surface_tol, slip_velocity_tol, k, nu, kinetic mu (3), static mu (3)
+        for r in range(n0.shape[0]):
+            nr, er = slice(n0[r], n1[r]), slice(e0[r], e1[r])
+            rod_plane_contact(
+                origin, normal, c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9],
+                radius[er], mass[nr], tangents[:, er], pos[:, nr], dirs[:, :, er], vel[:, nr],
+                omega[:, er], fi[:, nr], fe[:, nr], ti[:, er], te[:, er],
+            )  # fmt: skip
+
+    return grip_values_all, grip_rates_all, damp_all, forces_all, contact_all
 
 
 # ----------------------------------------------------------------------------------------------
@@ -299,18 +366,50 @@ def _kernels():
 
 
 def _features(ea, kernels):
-    """PyElastica feature classes (defined here so that importing this module needs no PyElastica)."""
-    grip_values, grip_rates, fourth_difference_damp, quadratic_drag = kernels
+    """PyElastica feature classes (defined here so that importing this module needs no PyElastica).
 
-    class Sim(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.Damping, ea.Contact):
+    Each feature is added once, on the first rod, and acts on every rod: PyElastica keeps all rods
+    of a collection in one memory block (each rod's arrays are views of its columns) and steps the
+    block as one system, so per-rod features would cost a Python call per rod and step for a few
+    microseconds of work each. A feature's operator runs when every rod is at the same point of the
+    step (constraints after the block's kinematic / dynamic update, forcings after its internal
+    forces, dampers after all constraints' rates), touches only rod r's columns for rod r, and
+    does each rod's work in the order the per-rod features did: the same numbers, bit for bit."""
+    grip_values_all, grip_rates_all, damp_all, forces_all, contact_all = kernels
+
+    class Sim(ea.BaseSystemCollection, ea.Constraints, ea.Forcing, ea.Damping):
         pass
 
-    class GripTracks(ea.ConstraintBase):
-        """Both gripped end portions follow the recorded gripper poses (fractional frame
-        ``(t - settle) / frame_dt - delay``; the first frame's pose before that)."""
+    class RodBlock:
+        """The memory block of ``rods`` (found at the first call, after ``sim.finalize`` built it)
+        and each rod's node and element column ranges in it."""
 
-        def __init__(self, tracks, settle_s, frame_dt, delay_frames, **kwargs):
+        def __init__(self, sim, rods):
+            self.sim, self.rods, self.block = sim, rods, None
+
+        def __call__(self):
+            if self.block is None:
+                (block,) = [b for b in self.sim.final_systems() if hasattr(b, "start_idx_in_rod_nodes")]
+                R = len(self.rods)
+                ranges = [block.start_idx_in_rod_nodes[:R], block.end_idx_in_rod_nodes[:R]]
+                ranges += [block.start_idx_in_rod_elems[:R], block.end_idx_in_rod_elems[:R]]
+                self.ranges = tuple(np.ascontiguousarray(x, dtype=np.int64) for x in ranges)
+                n0, _, e0, _ = self.ranges
+                for r, rod in enumerate(self.rods):  # the rods' arrays are these columns of the block
+                    for name, start in (("position_collection", n0), ("director_collection", e0)):
+                        column = getattr(block, name)[..., start[r]]
+                        assert getattr(rod, name).ctypes.data == column.ctypes.data, (name, r)
+                self.block = block
+            return self.block
+
+    class GripTracks(ea.ConstraintBase):
+        """Every rod's two gripped end portions follow its recorded gripper poses (fractional frame
+        ``(t - settle) / frame_dt - delay``; the first frame's pose before that). ``tracks``: the
+        rods' :func:`_grip_tracks` stacked (P, V, Q, W with a leading rod axis; shared node ids)."""
+
+        def __init__(self, block, tracks, settle_s, frame_dt, delay_frames, **kwargs):
             super().__init__(**kwargs)
+            self.rod_block = block
             self.P, self.V, self.Q, self.W, self.nodes, self.elems = tracks
             self.settle_s, self.frame_dt, self.delay = settle_s, frame_dt, delay_frames
 
@@ -318,65 +417,62 @@ def _features(ea, kernels):
             return (float(time) - self.settle_s) / self.frame_dt - self.delay
 
         def constrain_values(self, system, time):
-            grip_values(
-                self._tau(time),
-                self.P,
-                self.Q,
-                self.nodes,
-                self.elems,
-                system.position_collection,
-                system.director_collection,
-            )
+            b = self.rod_block()
+            args = (self.P, self.Q, self.nodes, self.elems, *self.rod_block.ranges)
+            grip_values_all(self._tau(time), *args, b.position_collection, b.director_collection)
 
         def constrain_rates(self, system, time):
-            grip_rates(
-                self._tau(time),
-                self.V,
-                self.W,
-                self.nodes,
-                self.elems,
-                system.velocity_collection,
-                system.omega_collection,
-            )
+            b = self.rod_block()
+            args = (self.V, self.W, self.nodes, self.elems, *self.rod_block.ranges)
+            grip_rates_all(self._tau(time), *args, b.velocity_collection, b.omega_collection)
 
     class MaterialDamping(ea.DamperBase):
-        """Kelvin-Voigt-like damping: a weighted 4th-difference (order-2 Laplace) filter of the nodal
-        velocities and the element angular velocities, every step. Continuum equivalent: a bending
-        rate damping dv/dt = -nu d4v/ds4 with nu = weight dx^4 / (16 dt) [m^4/s]."""
+        """Kelvin-Voigt-like damping of every rod: a weighted 4th-difference (order-2 Laplace) filter
+        of the nodal velocities and the element angular velocities, every step. Continuum
+        equivalent: a bending rate damping dv/dt = -nu d4v/ds4 with nu = weight dx^4 / (16 dt)
+        [m^4/s]. Then, while the rods settle (``time < until_s``), a uniform velocity damping
+        ``settle_rate`` [1/s]."""
 
-        def __init__(self, weight, **kwargs):
+        def __init__(self, block, weight, settle_rate, until_s, time_step, **kwargs):
             super().__init__(**kwargs)
-            self.weight = float(weight)
+            self.rod_block, self.weight = block, float(weight)
+            self.factor, self.until = math.exp(-settle_rate * time_step), until_s
 
         def dampen_rates(self, system, time):
-            fourth_difference_damp(system.velocity_collection, self.weight)
-            fourth_difference_damp(system.omega_collection, self.weight)
+            b = self.rod_block()
+            args = (self.weight, bool(time < self.until), self.factor, *self.rod_block.ranges)
+            damp_all(*args, b.velocity_collection, b.omega_collection)
 
-    class SettleDamping(ea.DamperBase):
-        """Uniform velocity damping while the rod settles (before the first recorded frame)."""
+    class RodForces(ea.NoForces):
+        """On every rod: gravity, then ``wind`` (a uniform acceleration, PyElastica's GravityForces
+        law) if given, then air drag quadratic in the normal velocity (f = -c m |v_n| v_n at every
+        node, c = ``drag``) if ``drag`` > 0, then the rod-plane ``contact`` (PyElastica's
+        RodPlaneContactWithAnisotropicFriction with a Plane) if given."""
 
-        def __init__(self, rate, until_s, time_step, **kwargs):
-            super().__init__(**kwargs)
-            self.factor, self.until = math.exp(-rate * time_step), until_s
-
-        def dampen_rates(self, system, time):
-            if time < self.until:
-                system.velocity_collection *= self.factor
-                system.omega_collection *= self.factor
-
-    class QuadraticDrag(ea.NoForces):
-        """Air drag quadratic in the normal velocity: f = -c m |v_n| v_n at every node."""
-
-        def __init__(self, coef):
+        def __init__(self, block, gravity, wind=None, drag=0.0, contact=None):
             super().__init__()
-            self.coef = float(coef)
+            self.rod_block, self.gravity, self.drag = block, np.asarray(gravity, float), float(drag)
+            self.wind = np.zeros(0) if wind is None else np.asarray(wind, float)
+            self.law, self.plane = (None, None) if contact is None else contact
+            if self.law is not None:  # its coefficients, in the order of its numba kernel's arguments
+                c = self.law
+                mu = [c.kinetic_mu_forward, c.kinetic_mu_backward, c.kinetic_mu_sideways]
+                mu += [c.static_mu_forward, c.static_mu_backward, c.static_mu_sideways]
+                self.coefs = np.array([c.surface_tol, c.slip_velocity_tol, c.k, c.nu, *mu], float)
 
         def apply_forces(self, system, time=0.0):
-            quadratic_drag(
-                self.coef, system.mass, system.velocity_collection, system.tangents, system.external_forces
-            )
+            b = self.rod_block()
+            ranges = self.rod_block.ranges
+            args = (b.mass, b.velocity_collection, b.tangents, b.external_forces)
+            forces_all(self.gravity, self.wind, self.drag, *ranges, *args)
+            if self.law is not None:
+                contact_all(
+                    self.plane.origin, self.plane.normal, self.coefs, *ranges, b.radius, b.mass, b.tangents,
+                    b.position_collection, b.director_collection, b.velocity_collection, b.omega_collection,
+                    b.internal_forces, b.external_forces, b.internal_torques, b.external_torques,
+                )  # fmt: skip
 
-    return Sim, GripTracks, MaterialDamping, SettleDamping, QuadraticDrag
+    return Sim, RodBlock, GripTracks, MaterialDamping, RodForces
 
 
 def planted_truth(
@@ -448,7 +544,7 @@ def generate_elastica(
     if rod_kind not in ROD_KINDS:
         raise ValueError(f"unknown rod kind {rod_kind!r}; expected one of {tuple(ROD_KINDS)}")
     ea = _elastica()
-    Sim, GripTracks, MaterialDamping, SettleDamping, QuadraticDrag = _features(ea, _kernels())
+    Sim, RodBlock, GripTracks, MaterialDamping, RodForces = _features(ea, _kernels())
     kind = ROD_KINDS[rod_kind]
     rng = np.random.default_rng(seed)
     n = spec.n_vertices
@@ -483,7 +579,7 @@ def generate_elastica(
         [r.positions[s : s + n_frames][:, gripped_indices(n)] for r, s in zip(sources, starts)]
     )
     sim = Sim()
-    rods = []
+    rods, tracks = [], []
     for i, (r, st) in enumerate(zip(sources, starts)):
         drive = driving_grips(grips_rec[i])
         markers0 = r.positions[st].copy()
@@ -525,44 +621,57 @@ def generate_elastica(
             rod.rest_kappa[1, :] = truth["kappa2_per_m"]
         sim.append(rod)
         rods.append(rod)
-        tracks = _grip_tracks(
-            drive,
-            s_markers,
-            s_nodes,
-            held_a,
-            held_b,
-            directors[0, :, held_a[0]],
-            directors[0, :, held_b[-1] - 1],
-            frame_dt,
-        )
-        sim.constrain(rod).using(
-            GripTracks, tracks=tracks, settle_s=SETTLE_S, frame_dt=frame_dt, delay_frames=delay
-        )
-        sim.add_forcing_to(rod).using(ea.GravityForces, acc_gravity=np.array([0.0, 0.0, -GRAVITY]))
-        if effect == "external_force":
-            sim.add_forcing_to(rod).using(
-                ea.GravityForces, acc_gravity=np.array([truth["ax_m_per_s2"], truth["ay_m_per_s2"], 0.0])
+        tracks.append(
+            _grip_tracks(
+                drive,
+                s_markers,
+                s_nodes,
+                held_a,
+                held_b,
+                directors[0, :, held_a[0]],
+                directors[0, :, held_b[-1] - 1],
+                frame_dt,
             )
-        elif effect == "aerodynamic_drag":
-            sim.add_forcing_to(rod).using(QuadraticDrag, coef=truth["quadratic_1_per_m"])
-        elif effect == "ground_contact":
-            if i == 0:
-                plane = ea.Plane(
-                    plane_origin=np.array([0.0, 0.0, lowest - r0]), plane_normal=np.array([0.0, 0, 1])
-                )
-                sim.append(plane)
-            m_el = spec.mass_kg / n_el
-            k_c = truth["stiffness_1_per_s2"] * m_el
-            sim.detect_contact_between(rod, plane).using(
-                ea.RodPlaneContactWithAnisotropicFriction,
-                k=k_c,
-                nu=2.0 * math.sqrt(k_c * m_el),
-                slip_velocity_tol=1e-4,
-                static_mu_array=np.full(3, truth["friction"]),
-                kinetic_mu_array=np.full(3, truth["friction"]),
-            )
-        sim.dampen(rod).using(MaterialDamping, weight=16.0 * nu * dt / dx**4)
-        sim.dampen(rod).using(SettleDamping, rate=SETTLE_DAMPING, until_s=SETTLE_S, time_step=dt)
+        )
+    # each feature is added once and acts on every rod (see _features)
+    block = RodBlock(sim, rods)
+    stacked = tuple(np.ascontiguousarray(np.stack([tr[k] for tr in tracks])) for k in range(4))
+    sim.constrain(rods[0]).using(
+        GripTracks,
+        block=block,
+        tracks=(*stacked, *tracks[0][4:]),
+        settle_s=SETTLE_S,
+        frame_dt=frame_dt,
+        delay_frames=delay,
+    )
+    forcing = {}
+    if effect == "external_force":
+        forcing["wind"] = np.array([truth["ax_m_per_s2"], truth["ay_m_per_s2"], 0.0])
+    elif effect == "aerodynamic_drag":
+        forcing["drag"] = truth["quadratic_1_per_m"]
+    elif effect == "ground_contact":
+        plane = ea.Plane(plane_origin=np.array([0.0, 0.0, lowest - r0]), plane_normal=np.array([0.0, 0, 1]))
+        m_el = spec.mass_kg / n_el
+        k_c = truth["stiffness_1_per_s2"] * m_el
+        law = ea.RodPlaneContactWithAnisotropicFriction(
+            k=k_c,
+            nu=2.0 * math.sqrt(k_c * m_el),
+            slip_velocity_tol=1e-4,
+            static_mu_array=np.full(3, truth["friction"]),
+            kinetic_mu_array=np.full(3, truth["friction"]),
+        )
+        forcing["contact"] = (law, plane)
+    sim.add_forcing_to(rods[0]).using(
+        RodForces, block=block, gravity=np.array([0.0, 0.0, -GRAVITY]), **forcing
+    )
+    sim.dampen(rods[0]).using(
+        MaterialDamping,
+        block=block,
+        weight=16.0 * nu * dt / dx**4,
+        settle_rate=SETTLE_DAMPING,
+        until_s=SETTLE_S,
+        time_step=dt,
+    )
     sim.finalize()
     stepper = ea.PositionVerlet()
     jm, am = _marker_weights(s_markers, dx, n_el + 1)
