@@ -153,6 +153,7 @@ def renderer(name: str):
     if name.startswith("diagnose.") and name.endswith(".json"):
         return render_diagnose
     for stem, render in (
+        ("diagnose_ab.", render_diagnose_ab),
         ("tracking_peers.", render_tracking_peers),
         ("calibrate_rods.", render_calibrate_rods),
     ):
