@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from deform.diagnose.fitting import FitBudget, fit
-from deform.diagnose.joint_fit import descend_together, fit_nominals_together, fit_together
+from deform.diagnose.joint_fit import descend_nominals, fit_nominals_together, fit_together
 from deform.diagnose.simulator import (
     MAX_STEP_S,
     Nominal,
@@ -125,10 +125,7 @@ def fit_nominals_at(
     is not restarted either)."""
     sims = [Simulator(spec, copy.deepcopy(start), max_step_s=step) for step in steps]
     if from_model:
-        if len(sims) == 1:
-            fit(sims[0], recordings, budget, desc=desc)
-        else:
-            descend_together(sims, recordings, budget, desc)
+        descend_nominals(sims, recordings, budget, desc)
         return [(sim, None, None) for sim in sims]
     started = fit_nominals_together(sims, recordings, budget, 0.5 * clamp_bound(spec))
     return [(sim, out["coarse"], out.get("clamp_restart")) for sim, out in zip(sims, started)]

@@ -152,17 +152,27 @@ def fit_together(
     ]
 
 
+def descend_nominals(
+    sims: list[Simulator], recordings: list[Recording], budget: FitBudget, desc: str
+) -> None:
+    """A descent of simulators with no new term, stepped as one batch; of one alone,
+    :func:`~deform.diagnose.fitting.fit` (its numbers to the bit)."""
+    if len(sims) == 1:
+        fit(sims[0], recordings, budget, desc=desc)
+    else:
+        descend_together(sims, recordings, budget, desc)
+
+
 def fit_nominals_together(
     sims: list[Simulator], recordings: list[Recording], budget: FitBudget, clamp_restart_m: float | None
 ) -> list[dict]:
     """:func:`deform.diagnose.fitting.fit_nominal` of several simulators of one rod (at other model
     steps: the tool's fits at the candidates' step and at the slow terms' finer one), their descents
-    stepped as one batch; a descent of one of them alone is :func:`~deform.diagnose.fitting.fit`."""
-
-    def descend(group: list[Simulator], desc: str) -> None:
-        if len(group) == 1:
-            fit(group[0], recordings, budget, desc=desc)
-        else:
-            descend_together(group, recordings, budget, desc)
-
-    return fit_nominals(sims, recordings, budget, clamp_restart_m, descend)
+    stepped as one batch (:func:`descend_nominals`)."""
+    return fit_nominals(
+        sims,
+        recordings,
+        budget,
+        clamp_restart_m,
+        lambda group, desc: descend_nominals(group, recordings, budget, desc),
+    )

@@ -120,9 +120,8 @@ class FitPool:
                 running[self.submit(fn, *args)] = job.key
             done, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for f in done:
-                if f in running:
-                    results[running.pop(f)] = f.result()
-                    bar.update()
+                results[running.pop(f)] = f.result()
+                bar.update()
         bar.close()
         return results
 

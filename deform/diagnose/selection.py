@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from deform.diagnose.checked_fit import CheckErrors, fit_and_check
+from deform.diagnose.checked_fit import CheckErrors, Member, fit_and_check
 from deform.diagnose.fitting import FitBudget, laplace_uncertainty
 from deform.diagnose.localize import localize, short_rollout_residuals
 from deform.diagnose.pool import FitPool, Job, fit_together_job, nominal_fits_job
@@ -399,19 +399,19 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
             plans.append((name, term, tb, (tb.final_horizon, tb.max_step_s, from_fine)))
 
         # a reference per fit-window kind and step (fitted once per round), and every candidate:
-        # all independent; those from the fine nominal fit start once it is there. The fits of one
-        # kind are stepped together in groups (deform.diagnose.stack), chosen from the round's
-        # candidates alone: the numbers do not depend on the workers
+        # all independent. The fits of one kind are stepped together in groups
+        # (deform.diagnose.stack), chosen from the round's candidates alone: the numbers do not
+        # depend on the workers
         kinds: list[tuple] = []
-        items: dict[tuple, list] = {}  # kind -> [(key, terms, new index, models, start or None, seed)]
+        items: dict[tuple, list] = {}  # kind -> [(key, Member, models)]
         for name, term, tb, kind in plans:
             if kind not in kinds:
                 kinds.append(kind)
                 refs = [copy.deepcopy(t) for t in selected]
-                items.setdefault(kind, []).append((("reference", kind), refs, None, 1, None, None))
+                items.setdefault(kind, []).append((("reference", kind), Member(refs, None), 1))
             terms = [copy.deepcopy(t) for t in selected] + [term]
             items.setdefault(kind, []).append(
-                (("candidate", name), terms, len(selected), _models(tb, term), None, None)
+                (("candidate", name), Member(terms, len(selected)), _models(tb, term))
             )
         budgets = {kind: tb for _, _, tb, kind in reversed(plans)}  # a kind's budget: its first plan's
         if noise is not None:  # the last choice's refit, with this round's fits of its budget
@@ -422,20 +422,21 @@ def _diagnose(inputs: Inputs, budget: DiagnoseBudget, start_model: str | None, p
             else:
                 for key, (terms, index) in zip(("reference", "candidate"), noise.members):
                     models = _models(budgets[kind], terms[index]) if index is not None else 1
-                    items[kind].append((("noise", key), terms, index, models, noise.nominal, noise.seed))
+                    member = Member(terms, index, noise.nominal, noise.seed)
+                    items[kind].append((("noise", key), member, models))
         jobs, groups = [], []
         for kind, listed in items.items():
             tb = budgets[kind]
-            for members in groups_of([item[3] for item in listed]):
+            for members in groups_of([models for *_, models in listed]):
                 group = [listed[i] for i in members]
                 label = ", ".join(_label(key) for key, *_ in group)
                 desc = f"round {rnd + 1}: {label}"
 
                 def make(kind=kind, group=group, tb=tb, desc=desc):
-                    fits = [(t, i, nominal, seed) for _, t, i, _, nominal, seed in group]
+                    fits = [member for _, member, _ in group]
                     return fit_together_job, (spec, base_for(kind[2])[0], fits, tb, desc)
 
-                cost = fit_cost(tb) * (1 + 0.1 * sum(item[3] for item in group))
+                cost = fit_cost(tb) * (1 + 0.1 * sum(models for *_, models in group))
                 jobs.append(Job(("group", len(groups)), cost, make))
                 groups.append([key for key, *_ in group])
         ran = pool.run(jobs, f"round {rnd + 1}")

@@ -354,7 +354,7 @@ def solve_theta(
             groups,
         )
     if _quadratic(wbar, branch_free, report):
-        return _with_free(theta_ends, twist_minimiser(m_ref, theta_ends, 2.0 * gamma / rest_vor))
+        return _closed_form_angles(m_ref, theta_ends, gamma, rest_vor)
     theta_star = newton_theta(
         a,
         b,
@@ -390,8 +390,7 @@ def _closed_form_first(
         return t if t is None or t.shape[-1] == 1 else t[..., part]  # (m, 1): shared by every rod
 
     head, tail = slice(None, k), slice(k, None)
-    c = rods(2.0 * gamma / rest_vor, head)
-    closed = _with_free(rods(theta_ends, head), twist_minimiser(rods(m_ref, head), rods(theta_ends, head), c))
+    closed = _closed_form_angles(*(rods(t, head) for t in (m_ref, theta_ends, gamma, rest_vor)))
     if k == theta_ends.shape[-1]:
         return closed
     iterative = solve_theta(
@@ -401,6 +400,11 @@ def _closed_form_first(
         groups=groups - closed_groups,
     )
     return torch.cat([closed, iterative], -1)
+
+
+def _closed_form_angles(m_ref: Tensor, theta_ends: Tensor, gamma: Tensor, rest_vor: Tensor) -> Tensor:
+    """All m angles, the free ones from :func:`twist_minimiser` (no rest curvature)."""
+    return _with_free(theta_ends, twist_minimiser(m_ref, theta_ends, 2.0 * gamma / rest_vor))
 
 
 def _quadratic(wbar: Tensor, branch_free: int, report: ConvergenceReport | None) -> bool:

@@ -44,6 +44,27 @@ def _sims(recs, names=NAMES):
     return out
 
 
+def _rollouts_alone_and_stacked(alone, stacked, X, steps, margin, d1, origin):
+    """Each of ``alone``'s rollouts on its own, and ``stacked``'s as one :class:`Stack`."""
+    with torch.no_grad():
+        own = []
+        for sim in alone:
+            sim.sync()
+            own.append(sim.rollout(X, steps, margin, d1=d1, origin=origin))
+        together, _ = Stack(stacked).rollout(X, steps, margin, d1=d1, origin=origin)
+    return own, together
+
+
+def _assert_descents_as_alone(alone, stacked, recordings, budget):
+    """``alone`` descended one by one and ``stacked`` (the same models) together end alike."""
+    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
+    out_stacked = descend_together(stacked, recordings, budget, "stacked")
+    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
+        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
+        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+
+
 @pytest.fixture(scope="module")
 def recordings(sources):
     inputs, _ = planted_inputs("point_mass", sources)
@@ -53,12 +74,7 @@ def recordings(sources):
 def test_a_stacked_rollout_is_each_models_own(recordings):
     sims = _sims(recordings)
     X, d1, origin = make_windows(recordings, 5, 15, 3, random.Random(0))
-    with torch.no_grad():
-        alone = []
-        for sim in sims:
-            sim.sync()
-            alone.append(sim.rollout(X, 15, 3, d1=d1, origin=origin))
-        stacked, _ = Stack(sims).rollout(X, 15, 3, d1=d1, origin=origin)
+    alone, stacked = _rollouts_alone_and_stacked(sims, sims, X, 15, 3, d1, origin)
     for a, b in zip(alone, stacked, strict=True):
         assert torch.isfinite(a).all()
         assert (a - b).abs().max() < 1e-12
@@ -69,12 +85,7 @@ def test_a_stacked_rollout_is_each_models_own(recordings):
 def test_stacked_descents_are_each_models_own(recordings):
     budget = FitBudget(iterations=4, batch=4, horizon=12, progress=False)
     alone, stacked = _sims(recordings), _sims(recordings)
-    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
-    out_stacked = descend_together(stacked, recordings, budget, "stacked")
-    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
-        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
-        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
-            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    _assert_descents_as_alone(alone, stacked, recordings, budget)
 
 
 def test_fit_together_keeps_the_start_fit_keeps(recordings):
@@ -124,21 +135,11 @@ def test_a_fitted_rest_curvature_stacked_with_others_is_each_models_own(recordin
     names = [None, "rest_curvature", "aerodynamic_drag"]
     budget = FitBudget(iterations=3, batch=4, horizon=12, progress=False)
     alone, stacked = _sims(recordings, names), _sims(recordings, names)
-    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
-    out_stacked = descend_together(stacked, recordings, budget, "stacked")
-    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
-        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
-        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
-            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    _assert_descents_as_alone(alone, stacked, recordings, budget)
     # forward: the fitted curvature is not zero, so its model is solved iteratively there too
     assert stacked[1].terms[0].params() != _sims(recordings, names)[1].terms[0].params()
     X, d1, origin = make_windows(recordings, 3, 10, 3, random.Random(1))
-    with torch.no_grad():
-        own = []
-        for sim in stacked:
-            sim.sync()
-            own.append(sim.rollout(X, 10, 3, d1=d1, origin=origin))
-        together, _ = Stack(stacked).rollout(X, 10, 3, d1=d1, origin=origin)
+    own, together = _rollouts_alone_and_stacked(stacked, stacked, X, 10, 3, d1, origin)
     for a, b in zip(own, together, strict=True):
         assert (a - b).abs().max() < 1e-12
     assert (own[0] - own[1]).abs().max() > 1e-6
@@ -156,22 +157,12 @@ def test_models_at_other_model_steps_stacked_are_each_models_own(recordings):
     alone, stacked = sims(), sims()
     assert [s.substeps for s in alone] == [1, 2, 1]
     X, d1, origin = make_windows(recordings, 3, 12, 3, random.Random(2))
-    with torch.no_grad():
-        own = []
-        for sim in alone:
-            sim.sync()
-            own.append(sim.rollout(X, 12, 3, d1=d1, origin=origin))
-        together, _ = Stack(stacked).rollout(X, 12, 3, d1=d1, origin=origin)
+    own, together = _rollouts_alone_and_stacked(alone, stacked, X, 12, 3, d1, origin)
     for a, b in zip(own, together, strict=True):
         assert (a - b).abs().max() < 1e-12
     assert (own[0] - own[1]).abs().max() > 1e-6
     budget = FitBudget(iterations=3, batch=4, horizon=10, progress=False)
-    out_alone = [_descend(sim, recordings, budget, "alone", True) for sim in alone]
-    out_stacked = descend_together(stacked, recordings, budget, "stacked")
-    for a, b, oa, ob in zip(alone, stacked, out_alone, out_stacked, strict=True):
-        np.testing.assert_allclose(ob["loss_history_m"], oa["loss_history_m"], rtol=1e-6)
-        for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
-            torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-5, atol=1e-7)
+    _assert_descents_as_alone(alone, stacked, recordings, budget)
 
 
 def test_stacked_simulators_must_share_their_frames_and_divide_the_finest_step(recordings):

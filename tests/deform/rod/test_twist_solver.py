@@ -168,28 +168,16 @@ def test_closed_form_groups_solve_each_run_by_its_own_method():
     args = (m_ref, ends, p.beta, p.gamma, p.rest_vor)
     split = solve_theta(a, b, *args, wbar, groups=3, closed_form_groups=1)
     head, tail = slice(0, 2), slice(2, 6)
-    closed = solve_theta(
-        a[..., head],
-        b[..., head],
-        m_ref[:, head],
-        ends[:, head],
-        p.beta,
-        p.gamma,
-        p.rest_vor[:, head],
-        torch.zeros_like(p.wbar),
-    )
+
+    def on(rods, wbar_part, **kw):  # the solve of these rods alone
+        return solve_theta(
+            a[..., rods], b[..., rods], m_ref[:, rods], ends[:, rods], p.beta, p.gamma, p.rest_vor[:, rods],
+            wbar_part, **kw,
+        )  # fmt: skip
+
+    closed = on(head, torch.zeros_like(p.wbar))
     assert torch.equal(split[:, head], closed)
-    iterative = solve_theta(
-        a[..., tail],
-        b[..., tail],
-        m_ref[:, tail],
-        ends[:, tail],
-        p.beta,
-        p.gamma,
-        p.rest_vor[:, tail],
-        wbar[..., tail],
-        groups=2,
-    )
+    iterative = on(tail, wbar[..., tail], groups=2)
     assert torch.equal(split[:, tail], iterative)
     (g_split,) = torch.autograd.grad(split.sum(), wbar)
     (g_tail,) = torch.autograd.grad(iterative.sum(), wbar)
