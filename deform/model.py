@@ -28,8 +28,14 @@ from deform.config import RodConfig, generic_rod, load_rod_config
 from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
 from deform.rod.convergence import ConvergenceReport
-from deform.rod.energy import ElasticParams, curvature_projections, rod_geometry
-from deform.rod.forces import rod_forces
+from deform.rod.energy import (
+    ElasticParams,
+    curvature_projections,
+    fused_geometry_and_projections,
+    geometry_and_projections,
+    rod_geometry,
+)
+from deform.rod.forces import fused_rod_forces, rod_forces
 from deform.rod.inextensibility import (
     PBDMethod,
     enforce_inextensibility,
@@ -205,6 +211,10 @@ class DeformModel(nn.Module):
         # backpropagated once, as the discrepancy tool's fits do (a fifth of their steps); off for
         # training, which may backpropagate a rollout in pieces
         self.graph_params_per_rollout = False
+        # the straight-line pieces of a step compiled, forward and backward (deform.rod.fusion): for
+        # the discrepancy tool's many small descents; off where a step is compiled whole or
+        # differentiated twice (training)
+        self.fused_pieces = False
         grip = torch.zeros(n)
         grip[gripped_indices(n)] = 1.0
         self.register_buffer("gripped", grip)
@@ -412,12 +422,13 @@ class DeformModel(nn.Module):
         if theta_ends is None:
             theta_ends = state.theta[[0, -1]].detach()
         # the frame is carried along by parallel transport: identity at x, but it moves with x
-        geo = rod_geometry(x, state.d1)  # the frame moves with x by parallel transport
-        a, b = curvature_projections(geo)
+        fused = self.fused_pieces
+        geo, a, b = (fused_geometry_and_projections if fused else geometry_and_projections)(x, state.d1)
         theta = self._solve_theta(
             a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report, groups, closed_form_groups
         )
-        return rod_forces(x, geo, a, b, theta, params, mass), theta, geo.t
+        force = (fused_rod_forces if fused else rod_forces)(x, geo, a, b, theta, params, mass)
+        return force, theta, geo.t
 
     def _solve_theta(
         self,
@@ -544,6 +555,7 @@ class DeformModel(nn.Module):
             branch_free[1],
             report,
             groups,
+            self.fused_pieces,
         )
         v_new = (x_new - x) / dt
         t_new = G.normalize(G.edges(x_new))

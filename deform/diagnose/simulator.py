@@ -301,6 +301,7 @@ class Simulator:
         )
         self.model = DeformModel(cfg, ModelOptions(residual=False))
         self.model.graph_params_per_rollout = True  # every rollout here is backpropagated once
+        self.model.fused_pieces = True  # many small descents: pieces compiled (deform.rod.fusion)
         self.n = n
         self.nominal = nominal
         self.clamp_max_m = clamp_bound(spec)

@@ -138,6 +138,7 @@ class Stack:
         finest = next(s for s in self.sims if s.substeps == self.ticks)
         self.model = DeformModel(finest.model.cfg, finest.model.options)
         self.model.graph_params_per_rollout = True
+        self.model.fused_pieces = finest.model.fused_pieces
         self._width = None
         self._closed_form_groups = 0
 

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from deform.rod import geometry as G
+from deform.rod.fusion import Fused
 
 GRAVITY = 9.81
 
@@ -78,6 +79,25 @@ def curvature_projections(geo: RodGeometry) -> tuple[Tensor, Tensor]:
     a = torch.stack([G.dot(kb, geo.d1[:-1]), G.dot(kb, geo.d1[1:])], dim=-2)
     b = torch.stack([G.dot(kb, geo.d2[:-1]), G.dot(kb, geo.d2[1:])], dim=-2)
     return a, b
+
+
+def geometry_and_projections(x: Tensor, d1_prev: Tensor) -> tuple[RodGeometry, Tensor, Tensor]:
+    """:func:`rod_geometry` (the directors belong to ``x``) and its :func:`curvature_projections`:
+    one piece for :data:`fused_geometry_and_projections`.
+
+    Args:
+        x: (n, 3, B) vertices.
+        d1_prev: (m, 3, B) reference directors of ``x``.
+
+    Returns:
+        ``(geometry, A, B)``.
+    """
+    geo = rod_geometry(x, d1_prev)
+    a, b = curvature_projections(geo)
+    return geo, a, b
+
+
+fused_geometry_and_projections = Fused(geometry_and_projections)
 
 
 def material_curvature(a: Tensor, b: Tensor, theta_lr: Tensor) -> tuple[Tensor, Tensor]:

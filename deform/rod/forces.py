@@ -23,6 +23,7 @@ from torch import Tensor
 
 from deform.rod import geometry as G
 from deform.rod.energy import GRAVITY, ElasticParams, RodGeometry, left_right, material_curvature, twist_of
+from deform.rod.fusion import Fused
 
 
 def edge_gradient_to_vertices(g_e: Tensor) -> Tensor:
@@ -91,3 +92,6 @@ def rod_forces(
     gravity = torch.zeros_like(force)
     gravity[:, 2] = -g * mass
     return force + gravity
+
+
+fused_rod_forces = Fused(rod_forces)

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from deform.rod import geometry as G
 from deform.rod.convergence import ConvergenceReport, masked_loop
+from deform.rod.fusion import Fused
 from deform.rod.tridiagonal import solve_tridiagonal
 
 
@@ -103,6 +104,7 @@ class PBDMethod(str, enum.Enum):
 
 
 SWEEPS = {PBDMethod.PROJECTION: _projection_sweep, PBDMethod.GAUSS_SEIDEL: _gauss_seidel_sweep}
+FUSED_SWEEPS = {method: Fused(sweep) for method, sweep in SWEEPS.items()}  # deform.rod.fusion
 
 
 def enforce_inextensibility(
@@ -115,6 +117,7 @@ def enforce_inextensibility(
     branch_free: int = 0,
     report: ConvergenceReport | None = None,
     groups: int = 1,
+    fused: bool = False,
 ) -> Tensor:
     """Project ``x`` (n, 3, B) so every edge has its rest length (m, B) within relative ``tol``.
 
@@ -136,11 +139,13 @@ def enforce_inextensibility(
         report: a :class:`deform.rod.convergence.ConvergenceReport` to fill, or None.
         groups: the batch is that many equal runs of consecutive rods, each swept until its own
             rods are within ``tol``, as if it were projected alone (deform.diagnose.stack).
+        fused: sweeps compiled (:data:`FUSED_SWEEPS`, :mod:`deform.rod.fusion`).
 
     Returns:
         (n, 3, B) projected vertices.
     """
-    sweep = SWEEPS[method]  # a PBDMethod or its string: str enums hash and compare as their values
+    # a PBDMethod or its string: str enums hash and compare as their values
+    sweep = (FUSED_SWEEPS if fused else SWEEPS)[method]
     if branch_free:
 
         def iteration(carry, active):

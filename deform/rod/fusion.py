@@ -1,0 +1,58 @@
+"""Straight-line pieces of a differentiable step, fused by ``torch.compile`` (forward and backward).
+
+Why: the discrepancy tool descends many small models (13 vertices, a dozen windows each); a step
+with its backward is ~370 tiny autograd nodes whose cost is their count, not their arithmetic.
+Inductor fuses each pure piece (geometry and curvature projections, the closed-form forces, a
+length-projection sweep) into a few C++ kernels, forward and backward; the data-dependent loops
+(the twist solve, the sweeps' stopping rule) stay eager between them. Unlike :mod:`deform.compiled`
+(whole inference steps, padded to bucket sizes) the pieces are compiled with symbolic sizes, once
+for every batch of rods and vertex count, and they keep first-order autograd.
+
+Compiling costs about a minute the first time (inductor caches it on disk for later processes).
+Anything that fails to compile (no C++ compiler, an unsupported build) runs eagerly after one
+warning; ``DEFORM_COMPILE=0`` in the environment keeps every piece eager.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+from typing import Generic, ParamSpec, TypeVar
+
+import torch
+
+log = logging.getLogger("deform.fusion")
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+_failed: list[str] = []  # set once a compile failed: every piece is eager from then on
+
+
+def fusion_enabled() -> bool:
+    """Whether fused pieces are wanted: not switched off by ``DEFORM_COMPILE=0`` and no compile
+    has failed in this process."""
+    return os.environ.get("DEFORM_COMPILE", "1") != "0" and not _failed
+
+
+class Fused(Generic[P, R]):
+    """``fn`` compiled on first call (symbolic sizes), or ``fn`` itself when fusion is off, inside
+    another compiled graph (which inlines it anyway), or after a failed compile."""
+
+    def __init__(self, fn: Callable[P, R]):
+        self.fn = fn
+        self._compiled: Callable[P, R] | None = None
+
+    def __call__(self, *args: P.args, **kwargs: P.kwargs) -> R:
+        if not fusion_enabled() or torch.compiler.is_compiling():
+            return self.fn(*args, **kwargs)
+        if self._compiled is None:
+            self._compiled = torch.compile(self.fn, dynamic=True)
+        try:
+            return self._compiled(*args, **kwargs)
+        except Exception as exc:  # a missing compiler or an unsupported build: eager from now on
+            if not _failed:
+                log.warning("fused pieces unavailable (%s: %s); stepping eagerly", type(exc).__name__, exc)
+            _failed.append(type(exc).__name__)
+            return self.fn(*args, **kwargs)
