@@ -21,6 +21,7 @@ from collections.abc import Callable
 from typing import Generic, ParamSpec, TypeVar
 
 import torch
+import torch.fx.experimental._config as shape_config
 
 log = logging.getLogger("deform.fusion")
 
@@ -50,7 +51,10 @@ class Fused(Generic[P, R]):
         if self._compiled is None:
             self._compiled = torch.compile(self.fn, dynamic=True)
         try:
-            return self._compiled(*args, **kwargs)
+            # sizes that happen to be equal (12 windows of a 13-vertex rod: 12 edges) get symbols of
+            # their own, not one shared one that a loop over the edges would then fix for the batch
+            with shape_config.patch(use_duck_shape=False):
+                return self._compiled(*args, **kwargs)
         except Exception as exc:  # a missing compiler or an unsupported build: eager from now on
             if not _failed:
                 log.warning("fused pieces unavailable (%s: %s); stepping eagerly", type(exc).__name__, exc)
