@@ -268,7 +268,7 @@ class DeformModel(nn.Module):
         mass = rod + nn.functional.softplus(self.extra_mass_raw).to(rest.dtype)[:, None] * 1e-3
         for ext in self.extensions:
             if hasattr(ext, "mass"):  # terms take and give (B, n)
-                mass = ext.mass(mass.T).T
+                mass = ext.mass(mass.T).T.contiguous()  # one layout for every model: fused pieces
         return mass
 
     def elastic_params(self, rest: Tensor) -> ElasticParams:
@@ -278,9 +278,14 @@ class DeformModel(nn.Module):
         ``log_gamma`` (m, B), ``wbar`` (m, 2, 2, B) and ``log_damping`` (B,) give each rod its own
         (the discrepancy tool steps several candidate models as one batch: deform.diagnose.stack)."""
         dtype = rest.dtype
+        # fused pieces (deform.rod.fusion) are compiled for per-rod parameters, shared ones widened
+        # to them: one compiled piece for a model alone and for several stacked
+        rods = rest.shape[-1] if self.fused_pieces else 1
 
         def per_rod(p: Tensor, dims: int) -> Tensor:
-            return p.to(dtype)[..., None] if p.dim() == dims else p.to(dtype)
+            return (
+                p.to(dtype)[..., None].expand(*p.shape, rods).contiguous() if p.dim() == dims else p.to(dtype)
+            )
 
         return ElasticParams(
             beta=per_rod(self.log_beta.exp(), 1),

@@ -8,8 +8,10 @@ length-projection sweep) into a few C++ kernels, forward and backward; the data-
 (whole inference steps, padded to bucket sizes) the pieces are compiled with symbolic sizes, once
 for every batch of rods and vertex count, and they keep first-order autograd.
 
-Compiling costs about a minute the first time (inductor caches it on disk for later processes).
-Anything that fails to compile (no C++ compiler, an unsupported build) runs eagerly after one
+Only steps with gradients are fused (the descents, where the backward gains most): a forward-only
+batch of the same rods gained nothing in a diagnosis, and every traced variant costs a process about
+2.5 s. Compiling costs about a minute the first time (inductor caches it on disk for later
+processes). Anything that fails to compile (no C++ compiler, an unsupported build) runs eagerly after one
 warning; ``DEFORM_COMPILE=0`` in the environment keeps every piece eager.
 """
 
@@ -38,15 +40,15 @@ def fusion_enabled() -> bool:
 
 
 class Fused(Generic[P, R]):
-    """``fn`` compiled on first call (symbolic sizes), or ``fn`` itself when fusion is off, inside
-    another compiled graph (which inlines it anyway), or after a failed compile."""
+    """``fn`` compiled on first call (symbolic sizes), or ``fn`` itself when fusion is off, without
+    gradients, inside another compiled graph (which inlines it anyway), or after a failed compile."""
 
     def __init__(self, fn: Callable[P, R]):
         self.fn = fn
         self._compiled: Callable[P, R] | None = None
 
     def __call__(self, *args: P.args, **kwargs: P.kwargs) -> R:
-        if not fusion_enabled() or torch.compiler.is_compiling():
+        if not fusion_enabled() or not torch.is_grad_enabled() or torch.compiler.is_compiling():
             return self.fn(*args, **kwargs)
         if self._compiled is None:
             self._compiled = torch.compile(self.fn, dynamic=True)

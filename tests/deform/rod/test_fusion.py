@@ -110,9 +110,11 @@ def test_a_failed_compile_steps_eagerly_after_one_warning(monkeypatch, caplog):
     assert not fusion.fusion_enabled()
 
 
-def test_deform_compile_0_keeps_every_piece_eager(monkeypatch):
+def test_deform_compile_0_and_steps_without_gradients_stay_eager(monkeypatch):
     _compile_that_fails(monkeypatch)
-    monkeypatch.setenv("DEFORM_COMPILE", "0")
     piece = fusion.Fused(lambda a: a + 1)
+    with torch.no_grad():
+        assert piece(torch.tensor(1.0)) == 2.0
+    monkeypatch.setenv("DEFORM_COMPILE", "0")
     assert piece(torch.tensor(1.0)) == 2.0
     assert fusion._failed == []  # never compiled, so nothing failed
