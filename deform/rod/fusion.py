@@ -6,13 +6,14 @@ Inductor fuses each pure piece (geometry and curvature projections, the closed-f
 length-projection sweep) into a few C++ kernels, forward and backward; the data-dependent loops
 (the twist solve, the sweeps' stopping rule) stay eager between them. Unlike :mod:`deform.compiled`
 (whole inference steps, padded to bucket sizes) the pieces are compiled with symbolic sizes, once
-for every batch of rods and vertex count, and they keep first-order autograd.
+for every batch of rods (once per vertex count: the tridiagonal solve loops over the edges), and
+they keep first-order autograd.
 
 Only steps with gradients are fused (the descents, where the backward gains most): a forward-only
 batch of the same rods gained nothing in a diagnosis, and every traced variant costs a process about
-2.5 s. Compiling costs about a minute the first time (inductor caches it on disk for later
-processes). Anything that fails to compile (no C++ compiler, an unsupported build) runs eagerly after one
-warning; ``DEFORM_COMPILE=0`` in the environment keeps every piece eager.
+2.5 s. Compiling costs a minute or two the first time (inductor caches it on disk for later
+processes). Anything that fails to compile (no C++ compiler, an unsupported build) runs eagerly
+after one warning; ``DEFORM_COMPILE=0`` in the environment keeps every piece eager.
 """
 
 from __future__ import annotations
