@@ -178,6 +178,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="only time `deform diagnose` (full budget) on one elastica case of 8 + 4 x 500 frames",
     )
     p.add_argument(
+        "--cold-compile",
+        action="store_true",
+        help="with --full-size-timing: each run with an empty inductor cache, as the first run on a "
+        "machine (-> diagnose.timing.EFFECT.cold.json)",
+    )
+    p.add_argument(
         "--calibrate-damping",
         action="store_true",
         help="only fit the nominal model on independent-simulator controls and derive its material damping level",

@@ -128,11 +128,19 @@ def full_size_timing(args) -> dict:
         ]
         runs = {}
         # as a user runs it (default workers: the cores), then one process as the same run's baseline
+        cold = getattr(args, "cold_compile", False)
         for label, extra in (("default", []), ("one_worker", ["--workers", "1"])):
+            env = dict(os.environ)
+            if cold:  # the first run on a machine: nothing compiled yet (deform/rod/fusion.py)
+                env["TORCHINDUCTOR_CACHE_DIR"] = str(tmp / f"inductor_{label}")
             load = os.getloadavg()[0]
             t0 = time.perf_counter()
             out = subprocess.run(
-                [*cmd, "--out", str(tmp / f"out_{label}"), *extra], capture_output=True, text=True, cwd=REPO
+                [*cmd, "--out", str(tmp / f"out_{label}"), *extra],
+                capture_output=True,
+                text=True,
+                cwd=REPO,
+                env=env,
             )
             runs[label] = {
                 "seconds_wall": time.perf_counter() - t0,
@@ -143,7 +151,18 @@ def full_size_timing(args) -> dict:
             }
     d, one = runs["default"], runs["one_worker"]
     row = {
-        **provenance(["--full-size-timing", "--rod-kinds", kind, "--effects", effect], script=SCRIPT),
+        **provenance(
+            [
+                "--full-size-timing",
+                "--rod-kinds",
+                kind,
+                "--effects",
+                effect,
+                *(["--cold-compile"] if cold else []),
+            ],
+            script=SCRIPT,
+        ),
+        "inductor_cache": "empty at each run's start" if cold else "as left by earlier runs",
         "case": f"elastica {kind} {effect} seed 0, 8 + 4 recordings x 500 frames",
         "budget": "full (default)",
         "workers_default": default_workers(),
@@ -155,7 +174,9 @@ def full_size_timing(args) -> dict:
         "same_names": d["selected"] == one["selected"],
         "runs": runs,
     }
-    write_atomic(RESULTS / f"diagnose.timing.{effect}.json", json.dumps(row, indent=2))
+    write_atomic(
+        RESULTS / f"diagnose.timing.{effect}{'.cold' if cold else ''}.json", json.dumps(row, indent=2)
+    )
     return row
 
 
