@@ -84,7 +84,8 @@ def full_size_timing(args) -> dict:
     """Wall time of `deform diagnose` with the default (full) budget on one independent-simulator case
     of the issue's size (8 + 4 recordings of 500 frames), run as a user runs it: files on disk and
     the command line, with the default workers (the cores) and, as the same run's baseline, one.
-    -> the row stored in benchmarks/results/diagnose.timing.EFFECT.json."""
+    ``--cold-compile``: each run with an empty inductor cache, as a machine's first run.
+    -> the row stored in benchmarks/results/diagnose.timing.EFFECT[.cold].json."""
     import os
     import subprocess
     import tempfile
@@ -94,6 +95,7 @@ def full_size_timing(args) -> dict:
     from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
+    cold = args.cold_compile
     spec, sources = independent_rod(kind)
     pick = np.random.default_rng(0).choice(len(sources), 12, replace=False)
     recs, _ = generate_elastica(effect, [sources[i] for i in pick], spec, rod_kind=kind, n_frames=500, seed=0)
@@ -128,7 +130,6 @@ def full_size_timing(args) -> dict:
         ]
         runs = {}
         # as a user runs it (default workers: the cores), then one process as the same run's baseline
-        cold = getattr(args, "cold_compile", False)
         for label, extra in (("default", []), ("one_worker", ["--workers", "1"])):
             env = dict(os.environ)
             if cold:  # the first run on a machine: nothing compiled yet (deform/rod/fusion.py)
