@@ -30,7 +30,8 @@ def colour_mask(rgb: np.ndarray, cfg: SegmentationConfig) -> np.ndarray:
     Returns:
         (N,) bool.
     """
-    hsv = cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3), dtype=np.uint8), cv2.COLOR_RGB2HSV)
+    # one row of N pixels: as an (N, 1) column OpenCV converts row by row, 7x slower
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb.reshape(1, -1, 3), dtype=np.uint8), cv2.COLOR_RGB2HSV)
     lo, hi = [int(v) for v in cfg.hsv_low], [int(v) for v in cfg.hsv_high]
     if lo[0] <= hi[0]:
         mask = cv2.inRange(hsv, np.array(lo, np.uint8), np.array(hi, np.uint8))
