@@ -51,6 +51,8 @@ class EstimationConfig:
     # (tracking_peers, ours only, same clouds): 2.38 -> 1.89 mm unoccluded, 4.33 -> 4.04 at 50 %, table
     # contact 1.37x the no-contact error; none: 1.70 and 3.92 mm, but the no-contact error fell more
     # than the contact one (1.63x)
+    repeat_beyond: float = 0.02  # m: a correction that moved a vertex farther than this is made again from
+    # where it ended (one EM pass from a far prediction stops short of the rope; 0: never)
 
 
 @dataclass
@@ -77,6 +79,9 @@ class TrackerConfig:
     # measure of its length against the rest length (perception.length; 0: the model's length is kept)
     length_trigger: float = 0.015  # the rest lengths take the camera's length when the two differ by more
     length_bounds: tuple[float, float] = (0.8, 1.25)  # ... within these factors of the starting rest length
+    coherence: float = 1.0  # share of the shift interpolated from the corrected neighbours that a visible
+    # vertex the correction left alone takes (a vertex beyond the association radius of a rope the model
+    # lost hold of); hidden vertices keep the model's prediction (0: none)
     camera_residual: float = 1.0  # share of the correction across the rope at the observed vertices
     # that the estimate keeps beyond the state's projection onto the rest lengths (0: the model state;
     # 1: the camera across the rope, which beats the model there once bend_centroid takes its bias back)

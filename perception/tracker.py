@@ -28,7 +28,7 @@ from deform import gripped_indices
 from perception.camera import Camera
 from perception.cloud import decimate, depth_image, voxel_downsample
 from perception.config import load_config
-from perception.estimate import correct_vertices
+from perception.estimate import coherent_shift, correct_vertices, occluded_vertices
 from perception.initial import initial_guess
 from perception.length import seen_length
 from perception.recovery import TrackingHealth, disagreement, explained_cost, rope_from_points
@@ -230,14 +230,10 @@ class Tracker:
             depth = depth_image(xyz, camera)
             seen = voxel_downsample(pts, self.config.estimation.voxel)
             x_pred = self._find_if_lost(pts, seen)
-            x_new, observed = correct_vertices(
-                x_pred, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
-            )
+            x_new, observed = self._corrected(x_pred, pts, depth, camera)
             found = self._camera_over_model(pts, seen, x_new)
             if found is not None:
-                x_new, observed = correct_vertices(
-                    found, pts, depth, camera, self.config.estimation, self.movable, self.gmm_backend
-                )
+                x_new, observed = self._corrected(found, pts, depth, camera)
             if not np.all(np.isfinite(x_new)):
                 raise ValueError("non-finite correction")
             self._follow_length(seen, x_new)
@@ -256,6 +252,17 @@ class Tracker:
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
+    def _corrected(self, x_pred: np.ndarray, pts: np.ndarray, depth: np.ndarray, camera: Camera):
+        """The camera's correction of ``x_pred`` (:func:`perception.estimate.correct_vertices`), and
+        at the visible free vertices it left alone, ``coherence`` of their corrected neighbours' shift."""
+        cfg = self.config.estimation
+        x_new, observed = correct_vertices(x_pred, pts, depth, camera, cfg, self.movable, self.gmm_backend)
+        share = self.config.tracker.coherence
+        if share > 0 and observed.any():
+            visible = self.movable & ~occluded_vertices(x_pred, depth, camera, cfg)
+            x_new = x_new + share * coherent_shift(x_new - x_pred, observed, visible)
+        return x_new, observed
+
     def _forget_camera(self) -> None:
         """A new start: nothing the camera told the last track (its length, its residual) carries over."""
         self._length_ratio, self._rest_start = 1.0, None

@@ -6,7 +6,7 @@ from sklearn.cluster import DBSCAN
 from perception import load_config, render_recording
 from perception.cloud import depth_image, voxel_downsample
 from perception.cluster import dbscan
-from perception.estimate import arc_centroid_offset, correct_vertices, curvature_vector
+from perception.estimate import arc_centroid_offset, coherent_shift, correct_vertices, curvature_vector
 from perception.gmm import fit_gmm
 from perception.polyline import segment_distances
 from perception.render.mesh import catmull_rom
@@ -156,3 +156,36 @@ def test_corrections_lose_the_pull_inside_the_bend(recording, clear_frames):
                     errs.append((x[i] - truth[i]) @ k / np.linalg.norm(k))
         inward[share] = float(np.mean(errs))
     assert inward[0.0] > 5e-4 and abs(inward[1.0]) < 0.5 * inward[0.0], inward
+
+
+def test_a_correction_that_moved_far_is_made_again_and_lands_closer(recording, clear_frames):
+    """From a prediction 3 cm off, one EM pass stops short of the rope; ``repeat_beyond`` makes a
+    second one from where the first ended."""
+    from dataclasses import replace
+
+    f = clear_frames[5]
+    truth, pred, pts, depth, cfg = _perturbed(recording, f, 0.03, 6)
+    n = len(truth)
+    err = {}
+    for reach in (0.0, 0.02):
+        x, obs = correct_vertices(
+            pred, pts, depth, f.camera, replace(cfg.estimation, repeat_beyond=reach), _movable(n)
+        )
+        assert obs.sum() >= 3
+        err[reach] = segment_distances(truth[obs], x).mean()
+    assert err[0.02] < 0.8 * err[0.0]
+
+
+def test_coherent_shift_interpolates_between_corrected_neighbours_and_anchors():
+    n = 9
+    shift = np.zeros((n, 3))
+    shift[2] = [0.0, 0.0, 0.02]
+    shift[6] = [0.0, 0.0, 0.04]
+    observed = np.zeros(n, bool)
+    observed[[2, 6]] = True
+    fill = _movable(n)
+    fill[4] = False  # hidden: an anchor of shift 0
+    out = coherent_shift(shift, observed, fill)
+    assert np.allclose(out[3, 2], 0.01) and np.allclose(out[5, 2], 0.02)
+    assert np.allclose(out[[0, 1, 2, 4, 6, 7, 8]], 0.0)  # gripped, hidden and observed ones get none
+    assert np.allclose(coherent_shift(shift, np.zeros(n, bool), _movable(n)), 0.0)  # nothing seen, no shift

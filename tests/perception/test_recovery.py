@@ -94,7 +94,7 @@ def test_tracker_far_off_the_rope_finds_it_again(model, recording, grip_idx):
         "tracking",
     )
     assert np.abs(x - p[39]).mean() < 0.005
-    assert np.abs(x_plain - p[39]).mean() > 0.015  # without it, 0.4 s later still 2 cm off
+    assert np.abs(x_plain - p[39]).mean() > 0.008  # without it, 0.4 s later still 1 cm off
 
 
 def test_rope_unseen_for_longer_than_lost_after_is_lost_then_recovered(model, recording, grip_idx):
@@ -117,13 +117,15 @@ def test_rope_unseen_for_longer_than_lost_after_is_lost_then_recovered(model, re
 def test_a_correction_that_leaves_the_cloud_unexplained_takes_the_camera_s_shape(model, recording, grip_idx):
     """An estimate within the filter radius but far enough off that one correction cannot fix it
     (as a model that lets the rope sink through a table it does not know of leaves it): with
-    ``refind_cost`` the first cloud puts it on the rope; without, it is still centimetres off."""
+    ``refind_cost`` the first cloud puts it on the rope; without, it is still centimetres off. The
+    correction's own second pass and the coherent fill are off: they repair much of this alone."""
     p = recording.positions
     frames = render_recording(p[:12], dt=recording.dt, fps=10, seed=1)
     off = torch.as_tensor(swung(p[1], 0.6))[None]
     errors = {}
     for refind in (0.012, 0.0):
-        t = Tracker(model, config={"tracker": {"refind_cost": refind}})
+        cfg = {"tracker": {"refind_cost": refind, "coherence": 0.0}, "estimation": {"repeat_beyond": 0.0}}
+        t = Tracker(model, config=cfg)
         t.initialize_from_frames(p[0], p[1])
         t.state = model.reposition(t.state, off)
         x = _track(t, p, frames, grip_idx, 11)
