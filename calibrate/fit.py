@@ -3,8 +3,10 @@ r"""Identification and residual training from camera tracks, tracking again with
 Round 0 tracks every clip with a plain discrete elastic rod known by the given length and mass
 (:func:`deform.generic_rod`), then each round trains a copy of the best model so far on the tracks
 of the training clips (:func:`deform.train.train`: coarse identification of the stiffness and
-damping in the first round, then the physical parameters and the residual network jointly), tracks
-every clip again with it, and keeps it while the fit on the held-out clips improves.
+damping in the first round, then the physical parameters and the residual network jointly), sets
+the damping on the training clips' 3 s predictions (:mod:`calibrate.damping`: the 1 s training windows
+barely see a light rope's damping), tracks every clip again with it, and keeps it while the fit on
+the held-out clips improves.
 
 The held-out fit is scored against the clouds, not against tracks: tracks change with the model
 that made them, the camera's points do not. From the track at step :math:`s` (two frames, as the
@@ -30,6 +32,7 @@ import math
 import tempfile
 import time
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
@@ -37,6 +40,7 @@ from tqdm import tqdm
 
 from calibrate.bags import Clip
 from calibrate.checks import check_length, check_rope_seen, motion_problem
+from calibrate.damping import settle_damping
 from calibrate.errors import CalibrationError
 from calibrate.identifiability import parameter_ranges
 from calibrate.points import polyline_distances
@@ -74,6 +78,7 @@ class Budget:
     time_limit_s: float | None = 1200.0  # the whole calibration at most this long (None: no limit)
     score_horizon: int = 50  # steps of the held-out prediction fit (0.5 s)
     score_every: int = 25  # steps between its starts
+    damping_horizon: int = 300  # steps of the training clips' predictions that set the damping (3 s; 0: off)
     held_out_every: int = 5  # every k-th clip (by name) is held out; fewer clips: their last 30 % (split)
     seed: int = 0
 
@@ -328,6 +333,14 @@ def calibrate(
         train_limit = None if left is None else max(left - track_s - RESERVE_S, 1e-3)  # 0: no limit
         usable = [t for t in train_t if t.n_frames >= budget.horizon + 2] or train_t
         candidate, result = _train(copy.deepcopy(best), usable, held_t, budget, r == 1, progress, train_limit)
+        damping = None
+        if budget.damping_horizon > 0:
+            candidate, damping = settle_damping(
+                candidate,
+                partial(
+                    prediction_fit, tracks=usable, horizon=budget.damping_horizon, every=budget.score_every
+                ),
+            )
         new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
         new_train, new_held = split(new_tracks, budget.held_out_every, budget.score_horizon + 2)
         fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)
@@ -336,6 +349,7 @@ def calibrate(
             k: result.get(k) for k in ("best_val_l1_m", "coarse_identification", "seconds_per_iteration_p50")
         }
         summary["iterations"] = result.get("last", {}).get("iteration")
+        summary["damping"] = damping
         wanted = budget.iterations if r == 1 else budget.refine_iterations
         cut_short = (summary["iterations"] or 0) < wanted
         if cut_short:
