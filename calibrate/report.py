@@ -160,13 +160,19 @@ def _markdown(data: dict, plots: list[str]) -> str:
             "from the track (capped at 5 cm; the points lie on the rope's near surface, so a perfect model "
             "scores about its radius), and to the track itself.",
             "",
-            "| round | prediction [mm] | tracking [mm] | kept | seconds |",
-            "|---:|---:|---:|:--|---:|",
+            "Damping: as training left it, and as the training clips' 3 s predictions set it "
+            "(the 1 s training windows barely see a light rope's damping).",
+            "",
+            "| round | prediction [mm] | tracking [mm] | damping [1/s]: trained -> set | kept | seconds |",
+            "|---:|---:|---:|---|:--|---:|",
         ]
         for r in data["rounds"]:
+            damping = ((r.get("train") or {}).get("damping") or {}).get("damping_per_s")
+            cell = "-" if not damping else f"{damping[0]:.3g} -> {damping[1]:.3g}"
             lines.append(
                 f"| {r['round']} | {r['held_out_prediction_fit_m'] * 1000:.2f} | "
-                f"{r['held_out_tracking_fit_m'] * 1000:.2f} | {'yes' if r['kept'] else 'no'} | {r['seconds']:.0f} |"
+                f"{r['held_out_tracking_fit_m'] * 1000:.2f} | {cell} | {'yes' if r['kept'] else 'no'} | "
+                f"{r['seconds']:.0f} |"
             )
         lines += ["", f"Held out: {', '.join(data['held_out_clips'])}.", ""]
         for note in data["time_limit_notes"]:

@@ -91,10 +91,20 @@ def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatc
     monkeypatch.setattr(fit, "MIN_GAIN", -1.0)
     monkeypatch.setattr(fit, "projected_round_s", lambda *a: 1e9)
     budget = Budget(
-        iterations=3, refine_iterations=2, rounds=3, horizon=20, batch=2, curriculum=(), time_limit_s=1e6
+        iterations=3,
+        refine_iterations=2,
+        rounds=3,
+        horizon=20,
+        batch=2,
+        curriculum=(),
+        time_limit_s=1e6,
+        damping_horizon=40,
     )
     cal = _calibrate(clips, budget)
     assert [r.index for r in cal.rounds] == [0, 1] and cal.rounds[1].kept
+    search = cal.rounds[1].train["damping"]  # the damping was set on the training clips' 0.4 s predictions
+    assert len(search["fits"]) >= 9
+    assert float(cal.model.damping.detach()) == pytest.approx(search["damping_per_s"][1], rel=1e-6)
     assert cal.rounds[1].train["iterations"] == 3 and not cal.rounds[1].cut_by_time_limit
     assert (
         cal.time_limit_notes == [cal.time_limit_notes[0]]
