@@ -10,6 +10,8 @@ The pipeline, one module each:
 - :mod:`calibrate.checks`: what the tracks say about the input (rope seen, its length, enough motion);
 - :mod:`calibrate.fit`: identification and residual training on the tracks, tracking again with the
   better model while the fit on held-out clips improves;
+- :mod:`calibrate.damping`: the damping set on the training clips' 3 s predictions after each
+  round's training (the 1 s training windows barely see it);
 - :mod:`calibrate.report`: ``report.md``, ``report.json`` and plots.
 
 Layer: above :mod:`service` (its message codecs and gripper convention), so the model layer runs
