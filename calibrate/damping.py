@@ -46,10 +46,11 @@ def settle_damping(
     fits: dict[float, float] = {}
 
     def score(f: float) -> float:
+        """The fit at factor ``f`` (each factor rolled out once); a diverged rollout (NaN) loses."""
         key = round(f, 6)
         if key not in fits:
             fits[key] = fit(scaled(model, "damping_per_s", f)) if f != 1.0 else fit(model)
-        return fits[key]
+        return fits[key] if math.isfinite(fits[key]) else math.inf
 
     before = float(model.damping.detach().mean())
     base = score(1.0)
@@ -60,10 +61,9 @@ def settle_damping(
             "fits": {},
             "note": "no clip long enough",
         }
-    finite = lambda f: score(f) if math.isfinite(score(f)) else math.inf  # noqa: E731 (a diverged rollout loses)
-    best = min(COARSE, key=finite)
-    best = min((best, *(best * g for g in FINE)), key=finite)
-    factor = best if finite(best) < base * (1.0 - min_gain) else 1.0
+    best = min(COARSE, key=score)
+    best = min((best, *(best * g for g in FINE)), key=score)
+    factor = best if score(best) < base * (1.0 - min_gain) else 1.0
     out = model if factor == 1.0 else scaled(model, "damping_per_s", factor)
     return out, {
         "factor": round(factor, 4),
