@@ -1,5 +1,6 @@
 """The damping set on the training clips' longer predictions (calibrate.damping): a model whose
-damping training left too low gets it back from clips the true damping made; the true one keeps it."""
+damping training left too low gets it back from clips the true damping made; the true one keeps it;
+the report gives the value set and the range that fit tells."""
 
 import math
 
@@ -8,8 +9,9 @@ import pytest
 import torch
 
 from calibrate.damping import settle_damping
-from calibrate.fit import prediction_fit
+from calibrate.fit import Round, prediction_fit
 from calibrate.identifiability import scaled
+from calibrate.report import damping_set
 from calibrate.tracks import Track
 from deform import generate_recording, generic_model
 
@@ -73,3 +75,24 @@ def test_clips_shorter_than_the_horizon_leave_the_damping_as_trained(truth_and_t
     truth, tracks = truth_and_tracks
     found, search = settle_damping(truth, lambda m: prediction_fit(m, tracks, FRAMES, 25))
     assert found is truth and search["factor"] == 1.0 and search["fits"] == {}
+
+
+def test_the_report_gives_the_set_damping_and_the_range_the_training_fit_tells():
+    """The last kept round's search: set 0.1 -> 0.2 /s; the fit leaves 1 % of its best at half and at
+    1.41 times the set value, the nearest such factors either side; a round not kept does not count."""
+    search = {
+        "factor": 2.0,
+        "damping_per_s": [0.1, 0.2],
+        "fits": {"0.5": 0.03, "1": 0.02, "1.41421": 0.0151, "1.68179": 0.01505, "2": 0.015, "2.37841": 0.0150,
+                 "2.82843": 0.016, "4": 0.02},
+    }  # fmt: skip
+    later = {"factor": 1.0, "damping_per_s": [0.2, 0.2], "fits": {"1": 0.01}}
+    rounds = [
+        Round(0, 0.02, 0.01, True, 1.0),
+        Round(1, 0.015, 0.01, True, 1.0, {"damping": search}),
+        Round(2, 0.0149, 0.01, False, 1.0, {"damping": later}),
+    ]
+    out = damping_set(rounds, 0.01)
+    assert out["trained_per_s"] == 0.1 and out["set_per_s"] == 0.2
+    assert out["told_within_per_s"] == pytest.approx([0.1, 0.2 * 2**0.5], rel=1e-4)
+    assert damping_set(rounds[:1], 0.01) is None  # no round searched

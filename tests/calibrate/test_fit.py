@@ -1,10 +1,12 @@
 """Which tracked motion trains and which is held out (calibrate.fit.split); the time limit cuts
 work short and says so (calibrate.fit.calibrate)."""
 
+import json
+
 import numpy as np
 import pytest
 
-from calibrate import fit
+from calibrate import fit, report
 from calibrate.bags import read_clip
 from calibrate.fit import Budget, Round, calibrate, projected_round_s, split
 from calibrate.tracks import Track
@@ -85,7 +87,7 @@ def test_a_later_round_is_projected_from_the_last_ones_time_per_iteration():
     assert projected_round_s(previous, track_s=50.0, iterations=200) == pytest.approx(1.2 * 240 + 50)
 
 
-def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch):
+def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
     """Every round kept (MIN_GAIN below any change) and round 2 projected to take longer than the
     limit leaves: round 1 trains its whole budget, round 2 never starts, and the note says so."""
     monkeypatch.setattr(fit, "MIN_GAIN", -1.0)
@@ -105,6 +107,12 @@ def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatc
     search = cal.rounds[1].train["damping"]  # the damping was set on the training clips' 0.4 s predictions
     assert len(search["fits"]) >= 9
     assert float(cal.model.damping.detach()) == pytest.approx(search["damping_per_s"][1], rel=1e-6)
+    inputs = {"length_m": LENGTH, "mass_kg": MASS, "vertices": N, "out": "rope.pt", "bags": []}
+    out = report.write(cal, [], inputs, tmp_path)  # the report says where the damping came from
+    assert json.loads((out / "report.json").read_text())["identified"]["damping_set"][
+        "set_per_s"
+    ] == pytest.approx(search["damping_per_s"][1])
+    assert "by the training clips' 3 s predictions" in (out / "report.md").read_text()
     assert cal.rounds[1].train["iterations"] == 3 and not cal.rounds[1].cut_by_time_limit
     assert (
         cal.time_limit_notes == [cal.time_limit_notes[0]]
