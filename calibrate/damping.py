@@ -13,7 +13,9 @@ from the *training* tracks over ``horizon`` (3 s) fits their clouds best
 (:func:`calibrate.fit.prediction_fit`): a grid :math:`f = 2^{k/2}`, :math:`k = -4..4`, then the
 quarter octaves either side of the best. The held-out clips are not used; they still judge the
 round. The damping moves only when a factor fits better than the trained value by more than
-``min_gain``: a flat profile keeps what training found.
+``min_gain``: a flat profile keeps what training found. The same fits give the range the clips tell
+the damping within (:func:`calibrate.identifiability.told_range` around the value set), which the
+report states.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from calibrate.identifiability import scaled
+from calibrate.identifiability import scaled, told_range
 from deform import DeformModel
 
 COARSE = tuple(2 ** (k / 2) for k in range(-4, 5))  # 1/4 .. 4, half octaves
@@ -29,7 +31,10 @@ FINE = (2**-0.25, 2**0.25)  # then a quarter octave either side of the best
 
 
 def settle_damping(
-    model: DeformModel, fit: Callable[[DeformModel], float], min_gain: float = 0.005
+    model: DeformModel,
+    fit: Callable[[DeformModel], float],
+    min_gain: float = 0.005,
+    tolerance: float = 0.01,
 ) -> tuple[DeformModel, dict]:
     """The model with its damping scaled by the factor that ``fit`` scores best (module docstring).
 
@@ -38,10 +43,14 @@ def settle_damping(
         fit: a model's open-loop fit against the training clips' clouds [m] (lower is better; NaN
             when no clip is long enough).
         min_gain: the share by which the best factor must beat the trained damping to replace it.
+        tolerance: the share by which a fit must be worse than the set damping's to tell a value
+            apart from it (the calibration's, :data:`calibrate.fit.MIN_GAIN`).
 
     Returns:
         ``(model, search)``: the model (a copy when its damping changed, else ``model``) and what the
-        search found: ``factor``, ``damping_per_s`` before and after, and ``fits`` by factor [m].
+        search found: ``factor``, ``damping_per_s`` before and after, ``fits`` by factor [m] and
+        ``told_within_per_s`` ([low, high]: the nearest searched values either side of the one set
+        that fit worse by more than ``tolerance``; None where none does).
     """
     fits: dict[float, float] = {}
 
@@ -59,14 +68,19 @@ def settle_damping(
             "factor": 1.0,
             "damping_per_s": [before, before],
             "fits": {},
+            "told_within_per_s": [None, None],
             "note": "no clip long enough",
         }
     best = min(COARSE, key=score)
     best = min((best, *(best * g for g in FINE)), key=score)
     factor = best if score(best) < base * (1.0 - min_gain) else 1.0
     out = model if factor == 1.0 else scaled(model, "damping_per_s", factor)
+    after = float(out.damping.detach().mean())
+    chosen = round(factor, 6)
+    span = told_range({f / chosen: v for f, v in fits.items()}, fits[chosen], tolerance)
     return out, {
         "factor": round(factor, 4),
-        "damping_per_s": [before, float(out.damping.detach().mean())],
+        "damping_per_s": [before, after],
         "fits": {f"{f:g}": v for f, v in sorted(fits.items())},
+        "told_within_per_s": [None if f is None else after * f for f in span],
     }

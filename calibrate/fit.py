@@ -340,7 +340,9 @@ def calibrate(
                 partial(
                     prediction_fit, tracks=usable, horizon=budget.damping_horizon, every=budget.score_every
                 ),
+                tolerance=MIN_GAIN,
             )
+            damping["horizon_s"] = budget.damping_horizon * candidate.dt
         new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
         new_train, new_held = split(new_tracks, budget.held_out_every, budget.score_horizon + 2)
         fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)

@@ -7,14 +7,12 @@ why, and no model.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
 from calibrate.bags import Clip
 from calibrate.fit import Calibration, Round, identified
-from calibrate.identifiability import told_range
 
 
 def build(cal: Calibration, clips: list[Clip], inputs: dict) -> dict:
@@ -85,26 +83,23 @@ def _identified(cal: Calibration) -> dict | None:
                 f"{k}: the held-out fit stays within {100 * ranges['tolerance']:g} % of the best "
                 f"{_span(v['told_within'], v['unit'])}"
             )
-    out["damping_set"] = damping_set(cal.rounds, ranges.get("tolerance", 0.01))
+    out["damping_set"] = damping_set(cal.rounds)
     return out
 
 
-def damping_set(rounds: list[Round], tolerance: float) -> dict | None:
-    """Where the last kept round's damping search (:mod:`calibrate.damping`) put the damping, and
-    the range its training clips' 3 s fit tells it within (the nearest factors on either side that
-    fit more than ``tolerance`` worse; None: open), in 1/s. None when no kept round searched."""
+def damping_set(rounds: list[Round]) -> dict | None:
+    """Where the last kept round's damping search (:func:`calibrate.damping.settle_damping`) put the
+    damping and the range its training clips' 3 s fit tells it within, in 1/s (None: open on that
+    side). None when no kept round searched."""
     searched = [r for r in rounds if r.kept and r.train and (r.train.get("damping") or {}).get("fits")]
     if not searched:
         return None
     search = searched[-1].train["damping"]
-    fits = {float(k): v for k, v in search["fits"].items()}
-    chosen = min(fits, key=lambda f: abs(math.log(f / search["factor"])))
-    value = search["damping_per_s"][1]
-    span = told_range({f / chosen: v for f, v in fits.items()}, fits[chosen], tolerance)
     return {
         "trained_per_s": search["damping_per_s"][0],
-        "set_per_s": value,
-        "told_within_per_s": [None if f is None else value * f for f in span],
+        "set_per_s": search["damping_per_s"][1],
+        "told_within_per_s": search["told_within_per_s"],
+        "horizon_s": search.get("horizon_s"),
     }
 
 
@@ -239,7 +234,7 @@ def _markdown(data: dict, plots: list[str]) -> str:
             span = " .. ".join("open" if v is None else f"{v:.3g}" for v in damping["told_within_per_s"])
             lines += [
                 f"Damping after training {damping['trained_per_s']:.3g} /s, set to {damping['set_per_s']:.3g} /s "
-                f"by the training clips' 3 s predictions (the 1 s training windows barely see it), which "
+                f"by the training clips' {damping['horizon_s']:g} s predictions (the training windows barely see it), which "
                 f"tell it within {span} /s.",
                 "",
             ]

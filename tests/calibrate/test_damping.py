@@ -77,22 +77,34 @@ def test_clips_shorter_than_the_horizon_leave_the_damping_as_trained(truth_and_t
     assert found is truth and search["factor"] == 1.0 and search["fits"] == {}
 
 
-def test_the_report_gives_the_set_damping_and_the_range_the_training_fit_tells():
-    """The last kept round's search: set 0.1 -> 0.2 /s; the fit leaves 1 % of its best at half and at
-    1.41 times the set value, the nearest such factors either side; a round not kept does not count."""
-    search = {
-        "factor": 2.0,
-        "damping_per_s": [0.1, 0.2],
-        "fits": {"0.5": 0.03, "1": 0.02, "1.41421": 0.0151, "1.68179": 0.01505, "2": 0.015, "2.37841": 0.0150,
-                 "2.82843": 0.016, "4": 0.02},
-    }  # fmt: skip
-    later = {"factor": 1.0, "damping_per_s": [0.2, 0.2], "fits": {"1": 0.01}}
+def test_the_search_tells_the_range_its_fits_cannot_tell_apart():
+    """A fit 1 % worse per half octave squared away from 0.2 /s: from 0.1 /s the search sets 0.2, and
+    the nearest searched values that fit more than 1 % worse are one octave either side."""
+
+    def fit(m):
+        octaves = math.log2(float(m.damping.detach()) / 0.2)
+        return 0.015 * (1.0 + 0.02 * octaves**2)
+
+    model = generic_model(LENGTH, MASS, N)
+    with torch.no_grad():
+        model.log_damping.fill_(math.log(0.1))
+    found, search = settle_damping(model, fit, tolerance=0.01)
+    assert search["factor"] == pytest.approx(2.0) and float(found.damping.detach()) == pytest.approx(0.2)
+    assert search["told_within_per_s"] == pytest.approx([0.1, 0.4])  # 0.5 octaves: 0.5 % worse, told apart at 1
+    _, strict = settle_damping(model, fit, tolerance=0.004)
+    assert strict["told_within_per_s"] == pytest.approx([0.2 * 2**-0.5, 0.2 * 2**0.5])
+
+
+def test_the_report_gives_the_last_kept_rounds_search():
+    search = {"factor": 2.0, "damping_per_s": [0.1, 0.2], "fits": {"1": 0.02, "2": 0.015},
+              "told_within_per_s": [0.1, None], "horizon_s": 3.0}  # fmt: skip
+    later = {"factor": 1.0, "damping_per_s": [0.2, 0.3], "fits": {"1": 0.01}, "told_within_per_s": [None, None]}
     rounds = [
         Round(0, 0.02, 0.01, True, 1.0),
         Round(1, 0.015, 0.01, True, 1.0, {"damping": search}),
-        Round(2, 0.0149, 0.01, False, 1.0, {"damping": later}),
+        Round(2, 0.0149, 0.01, False, 1.0, {"damping": later}),  # not kept: does not count
     ]
-    out = damping_set(rounds, 0.01)
-    assert out["trained_per_s"] == 0.1 and out["set_per_s"] == 0.2
-    assert out["told_within_per_s"] == pytest.approx([0.1, 0.2 * 2**0.5], rel=1e-4)
-    assert damping_set(rounds[:1], 0.01) is None  # no round searched
+    assert damping_set(rounds) == {
+        "trained_per_s": 0.1, "set_per_s": 0.2, "told_within_per_s": [0.1, None], "horizon_s": 3.0
+    }  # fmt: skip
+    assert damping_set(rounds[:1]) is None  # no round searched

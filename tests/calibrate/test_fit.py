@@ -112,7 +112,7 @@ def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatc
     assert json.loads((out / "report.json").read_text())["identified"]["damping_set"][
         "set_per_s"
     ] == pytest.approx(search["damping_per_s"][1])
-    assert "by the training clips' 3 s predictions" in (out / "report.md").read_text()
+    assert "by the training clips' 0.4 s predictions" in (out / "report.md").read_text()
     assert cal.rounds[1].train["iterations"] == 3 and not cal.rounds[1].cut_by_time_limit
     assert (
         cal.time_limit_notes == [cal.time_limit_notes[0]]
