@@ -90,7 +90,9 @@ def test_the_search_tells_the_range_its_fits_cannot_tell_apart():
         model.log_damping.fill_(math.log(0.1))
     found, search = settle_damping(model, fit, tolerance=0.01)
     assert search["factor"] == pytest.approx(2.0) and float(found.damping.detach()) == pytest.approx(0.2)
-    assert search["told_within_per_s"] == pytest.approx([0.1, 0.4])  # 0.5 octaves: 0.5 % worse, told apart at 1
+    assert search["told_within_per_s"] == pytest.approx(
+        [0.1, 0.4]
+    )  # 0.5 octaves: 0.5 % worse, told apart at 1
     _, strict = settle_damping(model, fit, tolerance=0.004)
     assert strict["told_within_per_s"] == pytest.approx([0.2 * 2**-0.5, 0.2 * 2**0.5])
 
@@ -98,7 +100,12 @@ def test_the_search_tells_the_range_its_fits_cannot_tell_apart():
 def test_the_report_gives_the_last_kept_rounds_search():
     search = {"factor": 2.0, "damping_per_s": [0.1, 0.2], "fits": {"1": 0.02, "2": 0.015},
               "told_within_per_s": [0.1, None], "horizon_s": 3.0}  # fmt: skip
-    later = {"factor": 1.0, "damping_per_s": [0.2, 0.3], "fits": {"1": 0.01}, "told_within_per_s": [None, None]}
+    later = {
+        "factor": 1.0,
+        "damping_per_s": [0.2, 0.3],
+        "fits": {"1": 0.01},
+        "told_within_per_s": [None, None],
+    }
     rounds = [
         Round(0, 0.02, 0.01, True, 1.0),
         Round(1, 0.015, 0.01, True, 1.0, {"damping": search}),
