@@ -53,6 +53,8 @@ class EstimationConfig:
     # than the contact one (1.63x)
     repeat_beyond: float = 0.02  # m: a correction that moved a vertex farther than this is made again from
     # where it ended (one EM pass from a far prediction stops short of the rope; 0: never)
+    unhide: bool = True  # a vertex hidden by a surface no closer than its observed neighbours (the model put
+    # it inside a table or post it does not know, not behind an occluder) is looked for in that second pass
 
 
 @dataclass

@@ -32,6 +32,17 @@ from perception.polyline import segment_distances
 MAX_SHIFT = 0.1
 
 
+def _seen_depth(x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig):
+    """``(seen, z, inside)``: the nearest depth the image shows around each vertex's pixel, the
+    vertex's own depth [m] and whether its pixel lies in the image."""
+    uv, z = camera.project(camera.to_camera(x_world))
+    seen = window_min(depth, uv, cfg.occlusion_window)
+    inside = (
+        (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
+    return seen, z, inside
+
+
 def occluded_vertices(
     x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig
 ) -> np.ndarray:
@@ -47,13 +58,38 @@ def occluded_vertices(
     Returns:
         (n,) bool.
     """
-    uv, z = camera.project(camera.to_camera(x_world))
-    seen = window_min(depth, uv, cfg.occlusion_window)
-    inside = (
-        (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-    )
+    seen, z, inside = _seen_depth(x_world, depth, camera, cfg)
     closer = np.isfinite(seen) & (seen < z - cfg.occlusion_margin)
     return closer | ~inside
+
+
+def hidden_by_the_rope_s_own_ground(
+    x_pred: np.ndarray,
+    x_new: np.ndarray,
+    observed: np.ndarray,
+    depth: np.ndarray,
+    camera: Camera,
+    cfg: EstimationConfig,
+) -> np.ndarray:
+    """(n,) True at an unobserved vertex that the occlusion check hid at ``x_pred`` although what
+    hides it is no closer to the camera than its observed neighbours as corrected (``x_new``), less
+    ``occlusion_margin``.
+
+    An occluder lies between the camera and the rope, so it is closer than the rope's seen
+    neighbours too. A surface at the neighbours' depth or beyond is one the rope lies on or beside
+    (a table, a post the model does not know) with the vertex predicted inside it: the camera can see
+    that vertex, and the correction should look for it."""
+    n = len(x_pred)
+    out = np.zeros(n, dtype=bool)
+    seen, z, inside = _seen_depth(x_pred, depth, camera, cfg)
+    hidden = inside & np.isfinite(seen) & (seen < z - cfg.occlusion_margin) & ~observed
+    if not hidden.any():
+        return out
+    _, z_new = camera.project(camera.to_camera(x_new))
+    for i in np.flatnonzero(hidden):
+        near = [j for j in (i - 1, i + 1) if 0 <= j < n and observed[j]]
+        out[i] = bool(near) and seen[i] >= min(z_new[j] for j in near) - cfg.occlusion_margin
+    return out
 
 
 def _tangent(x: np.ndarray, i: int) -> tuple[np.ndarray, float]:
@@ -160,15 +196,23 @@ def correct_vertices(
         ``(x, observed)``: x (n, 3), observed (n,) bool.
     """
     x_new, observed = _correct_once(x_pred, rope_world, depth, camera, cfg, movable, backend)
-    if cfg.repeat_beyond > 0 and observed.any():
-        if np.linalg.norm(x_new - x_pred, axis=1)[observed].max() > cfg.repeat_beyond:
-            x_new, again = _correct_once(x_new, rope_world, depth, camera, cfg, movable, backend)
-            observed = observed | again
+    if not observed.any():
+        return x_new, observed
+    far = cfg.repeat_beyond > 0 and np.linalg.norm(x_new - x_pred, axis=1)[observed].max() > cfg.repeat_beyond
+    unhide = movable & (
+        hidden_by_the_rope_s_own_ground(x_pred, x_new, observed, depth, camera, cfg)
+        if cfg.unhide
+        else np.zeros(len(x_pred), dtype=bool)
+    )
+    if far or unhide.any():
+        x_new, again = _correct_once(x_new, rope_world, depth, camera, cfg, movable, backend, unhide)
+        observed = observed | again
     return x_new, observed
 
 
-def _correct_once(x_pred, rope_world, depth, camera, cfg, movable, backend):
-    """One pass of :func:`correct_vertices` from ``x_pred``."""
+def _correct_once(x_pred, rope_world, depth, camera, cfg, movable, backend, unhide=None):
+    """One pass of :func:`correct_vertices` from ``x_pred``; ``unhide``: vertices to look for even
+    where the occlusion check hides them."""
     n = len(x_pred)
     x_new = x_pred.copy()
     observed = np.zeros(n, dtype=bool)
@@ -179,6 +223,8 @@ def _correct_once(x_pred, rope_world, depth, camera, cfg, movable, backend):
     if len(pts) < cfg.dbscan_min_samples:
         return x_new, observed
     candidate = movable & ~occluded_vertices(x_pred, depth, camera, cfg)
+    if unhide is not None:
+        candidate |= movable & unhide
     labels = dbscan(pts, cfg.dbscan_eps, cfg.dbscan_min_samples)
     d = np.linalg.norm(pts[None] - x_pred[:, None], axis=-1)  # (n, N)
     nearest = d.argmin(1)

@@ -6,7 +6,14 @@ from sklearn.cluster import DBSCAN
 from perception import load_config, render_recording
 from perception.cloud import depth_image, voxel_downsample
 from perception.cluster import dbscan
-from perception.estimate import arc_centroid_offset, coherent_shift, correct_vertices, curvature_vector
+from perception.camera import Camera
+from perception.estimate import (
+    arc_centroid_offset,
+    coherent_shift,
+    correct_vertices,
+    curvature_vector,
+    hidden_by_the_rope_s_own_ground,
+)
 from perception.gmm import fit_gmm
 from perception.polyline import segment_distances
 from perception.render.mesh import catmull_rom
@@ -189,3 +196,48 @@ def test_coherent_shift_interpolates_between_corrected_neighbours_and_anchors():
     assert np.allclose(out[3, 2], 0.01) and np.allclose(out[5, 2], 0.02)
     assert np.allclose(out[[0, 1, 2, 4, 6, 7, 8]], 0.0)  # gripped, hidden and observed ones get none
     assert np.allclose(coherent_shift(shift, np.zeros(n, bool), _movable(n)), 0.0)  # nothing seen, no shift
+
+
+def test_a_vertex_hidden_by_what_its_neighbours_lie_on_is_told_from_one_behind_an_occluder():
+    """The camera at the origin looking along +z; the rope lies at depth 1 m. Vertex 3 predicted
+    6 cm deeper is hidden by a surface at the rope's own depth (a table under it): looked for. Behind
+    an occluder 15 cm in front of the rope it stays hidden, and so does one whose neighbours were
+    not seen."""
+    cam = Camera.kinect()  # world = camera frame
+    cfg = load_config().estimation
+    n = 7
+    x = np.stack([np.linspace(-0.15, 0.15, n), np.zeros(n), np.ones(n)], axis=1)
+    pred = x.copy()
+    pred[3, 2] += 0.06
+    observed = np.ones(n, dtype=bool)
+    observed[3] = False
+    table = np.full((cam.height, cam.width), 1.0 + cfg.occlusion_margin / 2)  # a surface under the rope
+    found = hidden_by_the_rope_s_own_ground(pred, x, observed, table, cam, cfg)
+    assert found.tolist() == [False, False, False, True, False, False, False]
+    occluder = np.full_like(table, 0.85)  # 15 cm in front of the rope
+    assert not hidden_by_the_rope_s_own_ground(pred, x, observed, occluder, cam, cfg).any()
+    alone = observed.copy()
+    alone[[2, 4]] = False  # no seen neighbour to compare with
+    assert not hidden_by_the_rope_s_own_ground(pred, x, alone, table, cam, cfg).any()
+    assert not hidden_by_the_rope_s_own_ground(x, x, observed, table, cam, cfg).any()  # not hidden at all
+
+
+def test_a_vertex_predicted_behind_the_rope_it_belongs_to_is_corrected(recording, clear_frames):
+    """A vertex pushed 4 cm along its line of sight away from the camera is hidden by the rope's own
+    near surface; ``unhide`` looks for it in the second pass and brings it back, without it the
+    prediction stays."""
+    from dataclasses import replace
+
+    f = clear_frames[4]
+    truth, pred, pts, depth, cfg = _perturbed(recording, f, 0.0, 0)
+    i = len(truth) // 2
+    ray = truth[i] - f.camera.position
+    pred[i] = truth[i] + 0.04 * ray / np.linalg.norm(ray)
+    out = {}
+    for unhide in (False, True):
+        x, obs = correct_vertices(
+            pred, pts, depth, f.camera, replace(cfg.estimation, unhide=unhide), _movable(len(truth))
+        )
+        out[unhide] = (np.linalg.norm(x[i] - truth[i]), obs[i])
+    assert abs(out[False][0] - 0.04) < 1e-9 and not out[False][1]
+    assert out[True][1] and out[True][0] < 0.01, out
