@@ -4,9 +4,9 @@ import numpy as np
 from sklearn.cluster import DBSCAN
 
 from perception import load_config, render_recording
+from perception.camera import Camera
 from perception.cloud import depth_image, voxel_downsample
 from perception.cluster import dbscan
-from perception.camera import Camera
 from perception.estimate import (
     arc_centroid_offset,
     coherent_shift,
