@@ -7,7 +7,10 @@
    predictions (neighbours not associated are fixed components, so they take their share of points);
 5. observed vertices move to their component means, pushed back by the rope radius (the camera sees
    the near surface); occluded ones keep the prediction;
-6. when that moved a vertex farther than ``repeat_beyond``, steps 2-5 again from where it ended.
+6. when that moved a vertex farther than ``repeat_beyond``, or left hidden a vertex that only the
+   model's error hid (:func:`hidden_only_by_the_model`: the surface in front of it is no closer than
+   its seen neighbours, as when a model that knows no table puts it below one), steps 2-5 again from
+   where it ended, looking for that vertex too.
 
 A refinement of our own: a component's mean is the centroid of the rope around its vertex, which on
 a bent rope lies inside the bend (1-2 mm for 10 cm edges on a 30 cm radius); it is taken back to the
@@ -63,7 +66,7 @@ def occluded_vertices(
     return closer | ~inside
 
 
-def hidden_by_the_rope_s_own_ground(
+def hidden_only_by_the_model(
     x_pred: np.ndarray,
     x_new: np.ndarray,
     observed: np.ndarray,
@@ -200,7 +203,7 @@ def correct_vertices(
         return x_new, observed
     far = cfg.repeat_beyond > 0 and np.linalg.norm(x_new - x_pred, axis=1)[observed].max() > cfg.repeat_beyond
     unhide = movable & (
-        hidden_by_the_rope_s_own_ground(x_pred, x_new, observed, depth, camera, cfg)
+        hidden_only_by_the_model(x_pred, x_new, observed, depth, camera, cfg)
         if cfg.unhide
         else np.zeros(len(x_pred), dtype=bool)
     )

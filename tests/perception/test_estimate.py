@@ -12,7 +12,7 @@ from perception.estimate import (
     coherent_shift,
     correct_vertices,
     curvature_vector,
-    hidden_by_the_rope_s_own_ground,
+    hidden_only_by_the_model,
 )
 from perception.gmm import fit_gmm
 from perception.polyline import segment_distances
@@ -212,14 +212,14 @@ def test_a_vertex_hidden_by_what_its_neighbours_lie_on_is_told_from_one_behind_a
     observed = np.ones(n, dtype=bool)
     observed[3] = False
     table = np.full((cam.height, cam.width), 1.0 + cfg.occlusion_margin / 2)  # a surface under the rope
-    found = hidden_by_the_rope_s_own_ground(pred, x, observed, table, cam, cfg)
+    found = hidden_only_by_the_model(pred, x, observed, table, cam, cfg)
     assert found.tolist() == [False, False, False, True, False, False, False]
     occluder = np.full_like(table, 0.85)  # 15 cm in front of the rope
-    assert not hidden_by_the_rope_s_own_ground(pred, x, observed, occluder, cam, cfg).any()
+    assert not hidden_only_by_the_model(pred, x, observed, occluder, cam, cfg).any()
     alone = observed.copy()
     alone[[2, 4]] = False  # no seen neighbour to compare with
-    assert not hidden_by_the_rope_s_own_ground(pred, x, alone, table, cam, cfg).any()
-    assert not hidden_by_the_rope_s_own_ground(x, x, observed, table, cam, cfg).any()  # not hidden at all
+    assert not hidden_only_by_the_model(pred, x, alone, table, cam, cfg).any()
+    assert not hidden_only_by_the_model(x, x, observed, table, cam, cfg).any()  # not hidden at all
 
 
 def test_a_vertex_predicted_behind_the_rope_it_belongs_to_is_corrected(recording, clear_frames):
