@@ -283,13 +283,11 @@ def _gather(futures: list, pool: FitPool, desc: str) -> list:
     return [f.result() for f in futures]
 
 
-def fit_cost(tb: FitBudget, candidate: bool = False) -> float:
+def fit_cost(tb: FitBudget) -> float:
     """A fit's relative cost, to send the longest first: model steps per frame (a shorter step
-    takes more), window growth (longer rollouts through the same number of rod-steps), and a
-    candidate's descents from its grid's best points."""
+    takes more) and window growth (longer rollouts through the same number of rod-steps)."""
     cost = MAX_STEP_S / (tb.max_step_s or MAX_STEP_S)
-    cost *= 1.5 if tb.final_horizon else 1.0
-    return cost * (max(1, tb.starts) + 0.5 if candidate else 1.0)
+    return cost * (1.5 if tb.final_horizon else 1.0)
 
 
 def diagnose(
