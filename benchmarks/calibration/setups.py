@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from benchmarks.tracking.scenarios import SENSOR
+
 
 @dataclass(frozen=True)
 class Setup:
@@ -106,7 +108,7 @@ SETUPS = {
     # the benchmark's lab with a camera whose colour is registered 2 px off its depth and whose depth
     # edges give mixed pixels (half the far pixels of an edge at a depth between the two surfaces):
     # the rope's colour spills onto the table and the air behind it
-    "sensor": Setup("sensor", color_shift_px=2, flying_pixels=0.5),
+    "sensor": Setup("sensor", **SENSOR),  # the tracking benchmark's sensor clouds
 }
 
 
