@@ -10,7 +10,8 @@
 6. when that moved a vertex farther than ``repeat_beyond``, or left hidden a vertex that only the
    model's error hid (:func:`hidden_only_by_the_model`: the surface in front of it is no closer than
    its seen neighbours, as when a model that knows no table puts it below one), steps 2-5 again from
-   where it ended, looking for that vertex too.
+   where it ended, looking for that vertex too; up to ``MORE_UNHIDE_PASSES`` more while a pass finds
+   such vertices and their hidden neighbours now have seen ones (a stretch inside the table).
 
 A refinement of our own: a component's mean is the centroid of the rope around its vertex, which on
 a bent rope lies inside the bend (1-2 mm for 10 cm edges on a 30 cm radius); it is taken back to the
@@ -33,6 +34,7 @@ from perception.gmm import fit_gmm
 from perception.polyline import segment_distances
 
 MAX_SHIFT = 0.1
+MORE_UNHIDE_PASSES = 2  # passes beyond the second while they find vertices hidden only by the model
 
 
 def _seen_depth(x_world: np.ndarray, depth: np.ndarray, camera: Camera, cfg: EstimationConfig):
@@ -210,6 +212,13 @@ def correct_vertices(
     if far or unhide.any():
         x_new, again = _correct_once(x_new, rope_world, depth, camera, cfg, movable, backend, unhide)
         observed = observed | again
+        for _ in range(MORE_UNHIDE_PASSES):  # a stretch comes back a vertex a pass from its seen ends
+            more = movable & ~observed & hidden_only_by_the_model(x_pred, x_new, observed, depth, camera, cfg)
+            if not (again & unhide).any() or not more.any():
+                break
+            unhide = unhide | more
+            x_new, again = _correct_once(x_new, rope_world, depth, camera, cfg, movable, backend, unhide)
+            observed = observed | again
     return x_new, observed
 
 

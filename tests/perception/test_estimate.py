@@ -241,3 +241,25 @@ def test_a_vertex_predicted_behind_the_rope_it_belongs_to_is_corrected(recording
         out[unhide] = (np.linalg.norm(x[i] - truth[i]), obs[i])
     assert abs(out[False][0] - 0.04) < 1e-9 and not out[False][1]
     assert out[True][1] and out[True][0] < 0.01, out
+
+
+def test_a_stretch_predicted_behind_the_rope_comes_back_from_its_seen_ends(
+    recording, clear_frames, monkeypatch
+):
+    """Three neighbouring vertices pushed 4 cm along their lines of sight: the second pass finds the
+    two beside seen ones, the next the middle one, whose neighbours it has just seen (without that
+    further pass it stays hidden)."""
+    import perception.estimate as estimate
+
+    f = clear_frames[4]
+    truth, pred, pts, depth, cfg = _perturbed(recording, f, 0.0, 0)
+    mid = len(truth) // 2
+    for i in (mid - 1, mid, mid + 1):
+        ray = truth[i] - f.camera.position
+        pred[i] = truth[i] + 0.04 * ray / np.linalg.norm(ray)
+    x, obs = correct_vertices(pred, pts, depth, f.camera, cfg.estimation, _movable(len(truth)))
+    assert obs[mid - 1 : mid + 2].all()
+    assert np.linalg.norm(x[mid - 1 : mid + 2] - truth[mid - 1 : mid + 2], axis=1).max() < 0.6 * 0.04
+    monkeypatch.setattr(estimate, "MORE_UNHIDE_PASSES", 0)
+    x, obs = correct_vertices(pred, pts, depth, f.camera, cfg.estimation, _movable(len(truth)))
+    assert obs[[mid - 1, mid + 1]].all() and not obs[mid]
