@@ -89,8 +89,8 @@ def _identified(cal: Calibration) -> dict | None:
 
 def damping_set(rounds: list[Round]) -> dict | None:
     """Where the last kept round's damping search (:func:`calibrate.damping.settle_damping`) put the
-    damping and the range its training clips' 3 s fit tells it within, in 1/s (None: open on that
-    side). None when no kept round searched."""
+    damping and the range its fit on the training clips' longer predictions tells it within, in 1/s
+    (None: open on that side), and those predictions' horizon. None when no kept round searched."""
     searched = [r for r in rounds if r.kept and r.train and (r.train.get("damping") or {}).get("fits")]
     if not searched:
         return None
@@ -99,7 +99,7 @@ def damping_set(rounds: list[Round]) -> dict | None:
         "trained_per_s": search["damping_per_s"][0],
         "set_per_s": search["damping_per_s"][1],
         "told_within_per_s": search["told_within_per_s"],
-        "horizon_s": search.get("horizon_s"),
+        "horizon_s": search["horizon_s"],
     }
 
 
@@ -177,8 +177,8 @@ def _markdown(data: dict, plots: list[str]) -> str:
             "from the track (capped at 5 cm; the points lie on the rope's near surface, so a perfect model "
             "scores about its radius), and to the track itself.",
             "",
-            "Damping: as training left it, and as the training clips' 3 s predictions set it "
-            "(the 1 s training windows barely see a light rope's damping).",
+            "Damping: as training left it, and as the training clips' longer predictions set it "
+            "(the training windows barely see a light rope's damping).",
             "",
             "| round | prediction [mm] | tracking [mm] | damping [1/s]: trained -> set | kept | seconds |",
             "|---:|---:|---:|---|:--|---:|",

@@ -55,6 +55,7 @@ class EstimationConfig:
     # where it ended (one EM pass from a far prediction stops short of the rope; 0: never)
     unhide: bool = True  # a vertex hidden by a surface no closer than its observed neighbours (the model put
     # it inside a table or post it does not know, not behind an occluder) is looked for in that second pass
+    # (and in up to two more while they find such vertices: perception.estimate.MORE_UNHIDE_PASSES)
 
 
 @dataclass

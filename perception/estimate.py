@@ -204,17 +204,17 @@ def correct_vertices(
     if not observed.any():
         return x_new, observed
     far = cfg.repeat_beyond > 0 and np.linalg.norm(x_new - x_pred, axis=1)[observed].max() > cfg.repeat_beyond
-    unhide = movable & (
-        hidden_only_by_the_model(x_pred, x_new, observed, depth, camera, cfg)
-        if cfg.unhide
-        else np.zeros(len(x_pred), dtype=bool)
-    )
+    unhide = np.zeros(len(x_pred), dtype=bool)
+    if cfg.unhide:
+        unhide = movable & hidden_only_by_the_model(x_pred, x_new, observed, depth, camera, cfg)
     if far or unhide.any():
         x_new, again = _correct_once(x_new, rope_world, depth, camera, cfg, movable, backend, unhide)
         observed = observed | again
         for _ in range(MORE_UNHIDE_PASSES):  # a stretch comes back a vertex a pass from its seen ends
-            more = movable & ~observed & hidden_only_by_the_model(x_pred, x_new, observed, depth, camera, cfg)
-            if not (again & unhide).any() or not more.any():
+            if not (again & unhide).any():  # the last pass found none of those it looked for
+                break
+            more = movable & hidden_only_by_the_model(x_pred, x_new, observed, depth, camera, cfg)
+            if not more.any():
                 break
             unhide = unhide | more
             x_new, again = _correct_once(x_new, rope_world, depth, camera, cfg, movable, backend, unhide)
