@@ -35,7 +35,8 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def decimate(xyz: np.ndarray, rgb: np.ndarray | None, max_points: int):
     """Keep every s-th row and column of an organized cloud (every s^2-th point of a flat one) so that
-    at most about ``max_points`` remain: colour conversion of a full 640x576 frame alone costs ~7 ms.
+    at most about ``max_points`` remain (a guard for clouds far beyond an RGB-D camera's depth
+    resolution: a stride drops most of a rope that is a line one or two pixels wide).
 
     Args:
         xyz: (H, W, 3) organized or (N, 3) points.
