@@ -35,6 +35,10 @@ class EstimationConfig:
     filter_radius: float = 0.08  # m, keep points this close to a predicted vertex
     occlusion_margin: float = 0.03  # m, a vertex is occluded if the scene is this much closer than it
     occlusion_window: int = 1  # half size of the pixel window for the observed depth
+    occlusion_noise: float = 5.0  # the occlusion margin is at least this many times the depth noise the
+    # cloud shows around the rope's depth (perception.cloud.depth_noise): the nearest of a window of
+    # noisy depths lies ~2 sigma in front of the rope's surface, which lies a radius in front of the
+    # vertex (0: the fixed margin alone)
     dbscan_eps: float = 0.025  # m
     dbscan_min_samples: int = 3
     assoc_radius: float = 0.05  # m, a vertex joins the group of its nearest point within this

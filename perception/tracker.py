@@ -26,7 +26,7 @@ import torch
 
 from deform import gripped_indices
 from perception.camera import Camera
-from perception.cloud import decimate, depth_image, voxel_downsample
+from perception.cloud import decimate, depth_image, depth_noise, voxel_downsample
 from perception.config import load_config
 from perception.estimate import coherent_shift, correct_vertices, occluded_vertices
 from perception.initial import initial_guess
@@ -35,6 +35,8 @@ from perception.recovery import TrackingHealth, disagreement, explained_cost, ro
 from perception.segment import segment_rope
 
 log = logging.getLogger(__name__)
+
+NOISE_DEPTH_BAND = 0.1  # m: the depth noise is measured this far in front of and behind the rope
 
 
 class Tracker:
@@ -230,10 +232,11 @@ class Tracker:
             depth = depth_image(xyz, camera)
             seen = voxel_downsample(pts, self.config.estimation.voxel)
             x_pred = self._find_if_lost(pts, seen)
-            x_new, observed = self._corrected(x_pred, pts, depth, camera)
+            est = self._estimation(depth, x_pred, camera)
+            x_new, observed = self._corrected(x_pred, pts, depth, camera, est)
             found = self._camera_over_model(pts, seen, x_new)
             if found is not None:
-                x_new, observed = self._corrected(found, pts, depth, camera)
+                x_new, observed = self._corrected(found, pts, depth, camera, est)
             if not np.all(np.isfinite(x_new)):
                 raise ValueError("non-finite correction")
             self._follow_length(seen, x_new)
@@ -252,10 +255,23 @@ class Tracker:
         return self.x, self.observed
 
     # ----- internals --------------------------------------------------------------------------
-    def _corrected(self, x_pred: np.ndarray, pts: np.ndarray, depth: np.ndarray, camera: Camera):
-        """The camera's correction of ``x_pred`` (:func:`perception.estimate.correct_vertices`), and
-        at the visible free vertices it left alone, ``coherence`` of their corrected neighbours' shift."""
+    def _estimation(self, depth: np.ndarray, x_pred: np.ndarray, camera: Camera):
+        """The estimation settings for this cloud: the occlusion margin at least ``occlusion_noise``
+        times the depth noise the cloud shows within ``NOISE_DEPTH_BAND`` of the rope's depths. A
+        noisy camera (8 mm at 1.6 m) otherwise hides visible vertices behind their own rope's
+        noisiest pixels."""
         cfg = self.config.estimation
+        if cfg.occlusion_noise <= 0:
+            return cfg
+        _, z = camera.project(camera.to_camera(x_pred))
+        sigma = depth_noise(depth, float(z.min()) - NOISE_DEPTH_BAND, float(z.max()) + NOISE_DEPTH_BAND)
+        margin = cfg.occlusion_noise * sigma
+        return replace(cfg, occlusion_margin=margin) if margin > cfg.occlusion_margin else cfg
+
+    def _corrected(self, x_pred: np.ndarray, pts: np.ndarray, depth: np.ndarray, camera: Camera, cfg):
+        """The camera's correction of ``x_pred`` (:func:`perception.estimate.correct_vertices`), and
+        at the visible free vertices it left alone, ``coherence`` of their corrected neighbours' shift
+        (``cfg``: the estimation settings for this cloud, :meth:`_estimation`)."""
         x_new, observed = correct_vertices(x_pred, pts, depth, camera, cfg, self.movable, self.gmm_backend)
         share = self.config.tracker.coherence
         if share > 0 and observed.any():

@@ -278,7 +278,12 @@ def test_a_rope_a_pixel_or_two_wide_keeps_its_pixels(model, recording, grip_idx)
     than when the cloud is first decimated by a pixel stride of 2, which leaves a quarter of the
     rope's pixels or fewer."""
     cfg = load_config()
-    cfg = replace(cfg, render=replace(cfg.render, scale=1.0, camera_distance=1.6, camera_elevation_deg=50.0, camera_azimuth_deg=35.0))
+    cfg = replace(
+        cfg,
+        render=replace(
+            cfg.render, scale=1.0, camera_distance=1.6, camera_elevation_deg=50.0, camera_azimuth_deg=35.0
+        ),
+    )
     frames = {
         f.step: f for f in render_recording(recording.positions, dt=recording.dt, fps=15, config=cfg, seed=4)
     }
@@ -299,3 +304,44 @@ def test_a_rope_a_pixel_or_two_wide_keeps_its_pixels(model, recording, grip_idx)
     whole, strided = cfg.estimation.max_points, 576 * 640 // 4
     assert seen[whole] >= seen[strided]
     assert error[whole] < 0.8 * error[strided]  # 0.84 against 1.29 mm
+
+
+def test_a_noisy_camera_does_not_hide_the_rope_behind_itself(data_root):
+    """A camera 1.6 m from DLO1's recorded motion, 50 degrees down and 35 off square, with 8 mm of
+    depth noise there: the nearest depth around a vertex's pixel (the rope's own noisy surface, the
+    gripper's box beside it) often lies more than the fixed occlusion margin in front of the vertex,
+    and a vertex in sight counts as hidden. With the margin at least ``occlusion_noise`` times the
+    noise the cloud shows, the shipped model is corrected at more vertices and tracks nearer the truth."""
+    path = data_root / "DLO1" / "eval" / "112.pkl"
+    p = load_recording(path).positions
+    model = load_model("DLO1")
+    gi = gripped_indices(model.n)
+    cfg = load_config()
+    render = replace(
+        cfg.render,
+        scale=0.75,
+        camera_distance=1.6,
+        camera_elevation_deg=50.0,
+        camera_azimuth_deg=35.0,
+        noise_base=0.002,
+        noise_quad=0.0025,
+    )
+    cfg = replace(cfg, render=render)
+    frames = {f.step: f for f in render_recording(p, fps=15, config=cfg, seed=6)}
+    seen, error = {}, {}
+    for k_noise in (cfg.estimation.occlusion_noise, 0.0):
+        t = Tracker(model, config=replace(cfg, estimation=replace(cfg.estimation, occlusion_noise=k_noise)))
+        t.initialize_from_frames(p[0], p[1])
+        counts, errs = [], []
+        for k in range(2, len(p)):
+            t.step(p[k, gi])
+            if k in frames:
+                x, observed = t.correct(frames[k].xyz, frames[k].rgb, frames[k].camera)
+                counts.append(observed.sum())
+                errs.append(np.linalg.norm(x - p[k], axis=1).mean())
+        seen[k_noise], error[k_noise] = np.mean(counts), np.mean(errs)
+    assert cfg.estimation.occlusion_noise > 0
+    assert seen[cfg.estimation.occlusion_noise] > seen[0.0]
+    assert (
+        error[cfg.estimation.occlusion_noise] < 0.95 * error[0.0]
+    )  # 3.9 against 4.2 mm (seeds 1-3: 0.83-0.92x)

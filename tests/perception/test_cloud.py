@@ -1,0 +1,43 @@
+"""Cloud utilities: the depth noise a cloud shows."""
+
+import numpy as np
+
+from perception.cloud import depth_noise
+
+
+def _tilted_plane(h=200, w=240, z0=1.5, slope=0.002):
+    """(h, w) depth of a plane tilted along rows and columns [m]."""
+    rows, cols = np.mgrid[0:h, 0:w]
+    return z0 + slope * cols + 0.5 * slope * rows
+
+
+def test_the_noise_of_a_tilted_plane_is_measured():
+    rng = np.random.default_rng(0)
+    for sigma in (0.001, 0.004, 0.012):
+        depth = _tilted_plane() + rng.normal(0.0, sigma, (200, 240))
+        assert abs(depth_noise(depth, 1.0, 3.0) - sigma) < 0.1 * sigma
+
+
+def test_edges_and_missing_pixels_are_not_noise():
+    """A noiseless scene of steps (a rope in front of a table every 12 columns) and dropouts."""
+    depth = _tilted_plane()
+    depth[:, ::12] -= 0.3
+    depth[::7, ::5] = np.nan
+    assert depth_noise(depth, 1.0, 3.0) < 1e-6
+
+
+def test_only_the_depths_asked_for_count():
+    """Near pixels quiet, far ones noisy: measured at the near depths, the noise is the near one's."""
+    rng = np.random.default_rng(1)
+    depth = _tilted_plane(z0=1.0, slope=0.0)
+    depth[:, 120:] = 2.5
+    depth[:, :120] += rng.normal(0.0, 0.002, (200, 120))
+    depth[:, 120:] += rng.normal(0.0, 0.02, (200, 120))
+    assert abs(depth_noise(depth, 0.9, 1.1) - 0.002) < 0.0003
+    assert depth_noise(depth, 2.4, 2.6) > 0.015
+
+
+def test_too_few_pixels_give_no_estimate():
+    depth = np.full((4, 4), 1.0)
+    assert depth_noise(depth, 0.0, 5.0) == 0.0
+    assert depth_noise(_tilted_plane(), 5.0, 6.0) == 0.0  # nothing at those depths
