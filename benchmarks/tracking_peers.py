@@ -6,7 +6,8 @@ started from the same true nodes; TrackDLO's metric (mean two-way distance to th
 Scenarios (``--scenarios``): ``occlusion`` (0, 25, 50 %), ``blackout`` (the whole rope hidden 1 s, and
 the recovery after it), ``fastest`` (the recordings with the fastest grippers), ``fps10`` (clouds at
 10 Hz), ``sensor`` (a camera whose colour is 2 px off its depth, mixed edge pixels; reference: the
-clean clouds), ``contact`` (a table or a post the model does not know; reference: the same motion without),
+clean clouds), ``far_camera`` (another lab's camera: 1.6 m away, 35 degrees off square, noisier, at 15 Hz;
+reference: the clean clouds), ``contact`` (a table or a post the model does not know; reference: the same motion without),
 ``wrong_model`` (DLO3 tracked with DLO1's model; reference: DLO3's). See :mod:`benchmarks.tracking`.
 
     python benchmarks/tracking_peers.py                 # 2 recordings per rod, DLO1..DLO5

@@ -134,7 +134,9 @@ class TrackingHealth:
     rope's rest length over the model's own, after the camera's length replaced it
     (:mod:`perception.length`; 1 while the two agree); ``camera_over_model_mm`` how far across the
     rope the last cloud put its observed vertices from where the model's rest lengths let the state
-    lie (mean, mm: the camera's depth noise alone, or a model that cannot take the shape seen)."""
+    lie (mean, mm: the camera's depth noise alone, or a model that cannot take the shape seen);
+    ``depth_noise_mm`` the depth noise the last cloud showed at the rope's depths, which sets the
+    occlusion margin when it is the larger (:func:`perception.cloud.depth_noise`)."""
 
     state: str = "tracking"
     lost: int = 0
@@ -144,6 +146,7 @@ class TrackingHealth:
     disagreement: float | None = None
     length_scale: float = 1.0
     camera_over_model_mm: float | None = None
+    depth_noise_mm: float | None = None
 
     def lose(self) -> None:
         if self.state != "lost":
@@ -170,4 +173,5 @@ class TrackingHealth:
             "camera_over_model_mm": None
             if self.camera_over_model_mm is None
             else round(float(self.camera_over_model_mm), 3),
+            "depth_noise_mm": None if self.depth_noise_mm is None else round(float(self.depth_noise_mm), 2),
         }

@@ -265,6 +265,7 @@ class Tracker:
             return cfg
         _, z = camera.project(camera.to_camera(x_pred))
         sigma = depth_noise(depth, float(z.min()) - NOISE_DEPTH_BAND, float(z.max()) + NOISE_DEPTH_BAND)
+        self.health.depth_noise_mm = 1e3 * sigma if sigma > 0 else None
         margin = cfg.occlusion_noise * sigma
         return replace(cfg, occlusion_margin=margin) if margin > cfg.occlusion_margin else cfg
 

@@ -17,6 +17,7 @@ LABEL = {
     "fastest": "fastest motions",
     "fps10": "clouds at 10 Hz",
     "sensor": "colour 2 px off the depth, mixed edge pixels",
+    "far": "camera 1.6 m away, 35 degrees off square, noisier, 15 Hz",
     "table": "on a table (unmodelled)",
     "post": "caught on a post (unmodelled)",
     "nocontact": "same motion, no contact",

@@ -15,6 +15,9 @@ Scenarios and their variants:
 - ``sensor``: the unoccluded motion filmed by a sensor with two artefacts of real RGB-D cameras that
   the other scenarios leave out (``SENSOR``: colour registered 2 px off the depth, half the far
   pixels of depth edges at a mixed depth); reference ``occ0``;
+- ``far_camera``: the unoccluded motion filmed as another lab might (``FAR``: 1.6 m away, 50 degrees
+  down and 35 off square, three quarters of the resolution, 2.6 times the depth noise, 1 % dropouts)
+  at 15 Hz, where the rope is a line two pixels wide; reference ``occ0``;
 - ``contact``: truth simulated with a table (``table``) or a post (``post``) the tracker's model does
   not know, and ``nocontact``, the same gripper motion simulated without contact (the reference);
 - ``wrong_model``: DLO3 tracked with DLO1's model; ``right_model`` the same clouds with DLO3's.
@@ -51,6 +54,7 @@ SCENARIOS = (
     "fastest",
     "fps10",
     "sensor",
+    "far_camera",
     "contact",
     "wrong_model",
     "wrong_length",
@@ -62,6 +66,7 @@ VARIANTS = {
     "fastest": ("fastest",),
     "fps10": ("fps10",),
     "sensor": ("sensor",),
+    "far_camera": ("far",),
     "contact": ("table", "post", "nocontact"),
     "wrong_model": ("wrong_model", "right_model"),
     "wrong_length": ("long_model", "short_model", "right_model"),
@@ -70,6 +75,7 @@ VARIANTS = {
 # what the ratio columns compare: variant -> its reference (same recordings)
 REFERENCE = {
     "sensor": "occ0",
+    "far": "occ0",
     "table": "nocontact",
     "post": "nocontact",
     "wrong_model": "right_model",
@@ -85,6 +91,7 @@ QUICK_VARIANTS = (
     "fastest",
     "fps10",
     "sensor",
+    "far",
     "table",
     "post",
     "nocontact",
@@ -99,6 +106,16 @@ ONLY_WRONG_ROD = ("wrong_model", "right_model", "long_model", "short_model")  # 
 LENGTH_ERROR = 0.06  # of the free rest length, in ``long_model`` / ``short_model``
 RESCALED = "@"  # a model key "DLO3@1.06": the rod's model, its free rest lengths times 1.06
 SENSOR = {"color_shift_px": 2, "flying_pixels": 0.5}  # RenderConfig fields of the ``sensor`` clouds
+FAR = {  # RenderConfig fields of the ``far`` clouds: the calibration benchmark's other lab's camera
+    "scale": 0.75,
+    "camera_distance": 1.6,
+    "camera_elevation_deg": 50.0,
+    "camera_azimuth_deg": 35.0,
+    "noise_base": 0.002,
+    "noise_quad": 0.0025,
+    "dropout": 0.01,
+}
+FAR_FPS = 15.0
 BLACKOUT_START_S = 1.5
 BLACKOUT_S = 1.0
 FPS = 30.0
@@ -260,6 +277,8 @@ def clouds_of(unit: Unit) -> list[Clouds]:
             out.append(Clouds(c, unit.positions, {"occlusion": occ}, cases=[(c, FPS, unit.rod)]))
     if "sensor" in v:
         out.append(Clouds("sensor", unit.positions, dict(SENSOR), cases=[("sensor", FPS, unit.rod)]))
+    if "far" in v:
+        out.append(Clouds("far", unit.positions, dict(FAR), cases=[("far", FAR_FPS, unit.rod)]))
     if "blackout" in v:
         out.append(
             Clouds(
