@@ -272,6 +272,18 @@ def test_a_visible_vertex_beyond_the_association_radius_follows_its_corrected_ne
     assert errors[1.0] < 0.6 * errors[0.0]
 
 
+def _at_clouds(tracker, positions, frames, grip_idx) -> tuple[float, float]:
+    """Mean count of observed vertices and mean vertex error [m] at the clouds of ``frames``, the
+    tracker run through the recording as the service runs it (:func:`estimates`)."""
+    at = [
+        (tracker.observed.sum(), np.linalg.norm(x - positions[k], axis=1).mean())
+        for k, x, corrected in estimates(tracker, positions, frames, grip_idx)
+        if corrected
+    ]
+    counts, errors = zip(*at)
+    return float(np.mean(counts)), float(np.mean(errors))
+
+
 def test_a_rope_a_pixel_or_two_wide_keeps_its_pixels(model, recording, grip_idx):
     """A full-resolution cloud from a camera 1.6 m away, where the rope is a line two or three pixels
     wide: with the default settings the tracker segments it whole and tracks it nearer the truth
@@ -284,23 +296,14 @@ def test_a_rope_a_pixel_or_two_wide_keeps_its_pixels(model, recording, grip_idx)
             cfg.render, scale=1.0, camera_distance=1.6, camera_elevation_deg=50.0, camera_azimuth_deg=35.0
         ),
     )
-    frames = {
-        f.step: f for f in render_recording(recording.positions, dt=recording.dt, fps=15, config=cfg, seed=4)
-    }
-    assert next(iter(frames.values())).xyz.shape[:2] == (576, 640)
+    frames = render_recording(recording.positions, dt=recording.dt, fps=15, config=cfg, seed=4)
+    assert frames[0].xyz.shape[:2] == (576, 640)
     p = recording.positions
     seen, error = {}, {}
     for budget in (cfg.estimation.max_points, 576 * 640 // 4):
         t = Tracker(model, config=replace(cfg, estimation=replace(cfg.estimation, max_points=budget)))
         t.initialize_from_frames(p[0], p[1])
-        counts, errs = [], []
-        for k in range(2, len(p)):
-            t.step(p[k, grip_idx])
-            if k in frames:
-                x, observed = t.correct(frames[k].xyz, frames[k].rgb, frames[k].camera)
-                counts.append(observed.sum())
-                errs.append(np.linalg.norm(x - p[k], axis=1).mean())
-        seen[budget], error[budget] = np.mean(counts), np.mean(errs)
+        seen[budget], error[budget] = _at_clouds(t, p, frames, grip_idx)
         assert 3.0 < t.status()["depth_noise_mm"] < 7.0  # the renderer's 1 mm + 1.5 mm/m^2 at 1.6-2 m
     whole, strided = cfg.estimation.max_points, 576 * 640 // 4
     assert seen[whole] >= seen[strided]
@@ -328,19 +331,12 @@ def test_a_noisy_camera_does_not_hide_the_rope_behind_itself(data_root):
         noise_quad=0.0025,
     )
     cfg = replace(cfg, render=render)
-    frames = {f.step: f for f in render_recording(p, fps=15, config=cfg, seed=6)}
+    frames = render_recording(p, fps=15, config=cfg, seed=6)
     seen, error = {}, {}
     for k_noise in (cfg.estimation.occlusion_noise, 0.0):
         t = Tracker(model, config=replace(cfg, estimation=replace(cfg.estimation, occlusion_noise=k_noise)))
         t.initialize_from_frames(p[0], p[1])
-        counts, errs = [], []
-        for k in range(2, len(p)):
-            t.step(p[k, gi])
-            if k in frames:
-                x, observed = t.correct(frames[k].xyz, frames[k].rgb, frames[k].camera)
-                counts.append(observed.sum())
-                errs.append(np.linalg.norm(x - p[k], axis=1).mean())
-        seen[k_noise], error[k_noise] = np.mean(counts), np.mean(errs)
+        seen[k_noise], error[k_noise] = _at_clouds(t, p, frames, gi)
     assert cfg.estimation.occlusion_noise > 0
     assert seen[cfg.estimation.occlusion_noise] > seen[0.0]
     assert (
