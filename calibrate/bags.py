@@ -4,7 +4,7 @@ it means to the running service.
 
 Topics are found by message type when that is unambiguous (one ``PoseArray``, one organized
 ``PointCloud2``, one ``CameraInfo``), chosen with :class:`Topics` otherwise. The camera's pose (its
-optical frame in the world frame of the service config) comes, in this order, from a chosen topic,
+optical frame in the world frame) comes, in this order, from a chosen topic,
 from ``/tf_static`` (the chain from the world frame to the clouds' frame, or CameraInfo's), from a lone
 ``PoseStamped`` topic, or from the config. Times are the messages' header stamps, never the bag's
 receive times: clouds and poses arrive over different paths with different delays.
@@ -25,10 +25,10 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from calibrate.errors import CalibrationError
-from perception import Camera
+from perception import Camera, intrinsics_from_cloud
 from service import messages as M
 from service.config import ServiceConfig
-from service.geometry import pose_matrix
+from service.geometry import matrix_to_pose, pose_matrix
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
@@ -49,7 +49,8 @@ class Clip:
 
     ``poses`` (P, 2, 7): x y z qx qy qz qw of the first and last gripper, world frame, at
     ``pose_stamps_ns`` (P,) increasing. ``camera``: intrinsics and ``world_from_camera`` (optical
-    frame). ``camera_source``: where the pose came from (``tf_static``, a topic, ``config``)."""
+    frame). ``camera_source``: where the pose came from (``tf_static``, a topic, ``config``).
+    ``world_frame``: the frame of both (:func:`read_clip`), ``poses_from``: how the poses got there."""
 
     name: str
     path: Path
@@ -60,6 +61,8 @@ class Clip:
     camera: Camera
     camera_source: str
     world_frame: str
+    poses_from: str = ""  # the poses' frame and how it became the world frame
+    intrinsics_from: str = ""  # the CameraInfo topic, or the clouds themselves and why
 
     @property
     def duration_s(self) -> float:
@@ -115,7 +118,7 @@ def _pick(path: Path, reader, msgtype: str, chosen: str | None, option: str, wha
             topics = ", ".join(sorted({c.topic for c in reader.connections}))
             raise CalibrationError(f"{path}: no topic {chosen} ({option}); the bag has {topics}")
         return conns[0]
-    conns = [c for c in reader.connections if c.msgtype == msgtype]
+    conns = [c for c in reader.connections if c.msgtype == msgtype and c.msgcount > 0]  # recorded, never sent
     if keep is not None and len(conns) > 1:
         conns = [c for c in conns if keep(c)]
     if len({c.topic for c in conns}) > 1:
@@ -156,7 +159,7 @@ def _pick_camera_info(path: Path, reader, chosen: str | None, cloud):
     (a driver publishes its colour, depth and aligned-depth intrinsics side by side) those of the
     organized ``cloud``'s size (its topic's first message), when they all say the same (one camera's
     intrinsics published twice)."""
-    conns = [c for c in reader.connections if c.msgtype == M.CAMERA_INFO]
+    conns = [c for c in reader.connections if c.msgtype == M.CAMERA_INFO and c.msgcount > 0]
     if chosen is not None or len({c.topic for c in conns}) <= 1:
         return _pick(path, reader, M.CAMERA_INFO, chosen, "--topic-camera-info", "camera info")
     values = {c.topic: _camera_info_values(reader, c) for c in conns}
@@ -174,6 +177,32 @@ def _pick_camera_info(path: Path, reader, chosen: str | None, cloud):
     raise CalibrationError(
         f"{path}: several camera info topics ({names}){why}: choose one with --topic-camera-info"
     )
+
+
+def _intrinsics_of_cloud(path, reader, conn, world_from_camera, world: str, why_not: str):
+    """``(K, (width, height), source)`` fitted to the clouds themselves (:func:`intrinsics_from_cloud`)
+    when no camera info is of their image: a driver's colour intrinsics beside clouds registered to
+    the depth image, a cloud filter that halved the image, no CameraInfo recorded."""
+    for _, _, raw in reader.messages(connections=[conn]):
+        try:
+            _, xyz, _, frame = M.parse_point_cloud(bytes(raw))
+        except M.InputError:
+            continue
+        if frame.strip("/") == world:  # published in the world frame: back into the camera's
+            T = world_from_camera
+            xyz = (xyz - T[:3, 3]) @ T[:3, :3]
+        fit = intrinsics_from_cloud(xyz)
+        H, W = xyz.shape[:2]
+        if fit is None:
+            raise CalibrationError(
+                f"{path}: no camera intrinsics for the clouds' {W}x{H} image ({why_not}), and the clouds "
+                "are not one pinhole camera's: record the camera's CameraInfo or choose it with "
+                "--topic-camera-info"
+            )
+        fx, fy, cx, cy = fit
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return K, (W, H), f"the {W}x{H} clouds themselves ({why_not})"
+    raise CalibrationError(f"{path}: no readable clouds on {conn.topic}")
 
 
 def _organized(reader, conn) -> bool:
@@ -199,6 +228,39 @@ def _tf_graph(reader, conns) -> dict[str, list[tuple[str, np.ndarray]]]:
     return graph
 
 
+def _tf_static(reader) -> list:
+    return [c for c in reader.connections if c.msgtype == TF_MESSAGE and c.topic == "/tf_static"]
+
+
+def _world_of_poses(reader, poses_c, tf, world: str) -> tuple[str, str, np.ndarray | None, str]:
+    """The world frame, the poses' frame, ``world_from_poses`` (None: the poses are in the world
+    frame) and a line saying how.
+
+    The poses are meant in the config's world frame (``world``). A robot may publish them in its
+    own (``base_link``): when ``/tf_static`` links the two, the poses are moved into ``world``;
+    when nothing links them, the poses' frame is the world (the camera is then looked up from it,
+    and gravity taken along its -z, as for any world frame)."""
+    raw = _first(reader, poses_c)
+    try:
+        frame = M.decode(raw, M.POSE_ARRAY).header.frame_id.strip("/") if raw is not None else ""
+    except M.InputError:
+        frame = ""
+    if frame in ("", world):
+        return world, world, None, world or "(no frame)"
+    T = _world_from(_tf_graph(reader, tf), world, frame) if tf else None
+    if T is not None:
+        return world, frame, T, f"{frame}, moved into {world} by /tf_static"
+    return (
+        frame,
+        frame,
+        None,
+        (
+            f"{frame} (the config's world frame {world!r} is not linked to it: {frame} is the world; "
+            f"serve this rope with frame_id: {frame})"
+        ),
+    )
+
+
 def _world_from(graph, world: str, frame: str) -> np.ndarray | None:
     """``world_from_frame`` through the transform graph (breadth first), None if unconnected."""
     seen = {world: np.eye(4)}
@@ -213,19 +275,14 @@ def _world_from(graph, world: str, frame: str) -> np.ndarray | None:
 
 
 def _camera_pose(
-    path, reader, topics: Topics, frames: list[str], cfg: ServiceConfig
+    path, reader, topics: Topics, frames: list[str], cfg: ServiceConfig, world: str
 ) -> tuple[np.ndarray, str]:
     """(4, 4) world_from_camera and where it came from. ``frames``: the frames to look the camera up
     by in a transform tree, in order (the clouds' own frame, then CameraInfo's)."""
-    world = cfg.frame_id
     chosen = None
     if topics.camera_pose is not None:
         chosen = _pick(path, reader, "", topics.camera_pose, "--topic-camera-pose", "camera pose")
-    tf = (
-        [chosen]
-        if chosen is not None and chosen.msgtype == TF_MESSAGE
-        else [c for c in reader.connections if c.msgtype == TF_MESSAGE and c.topic == "/tf_static"]
-    )
+    tf = [chosen] if chosen is not None and chosen.msgtype == TF_MESSAGE else _tf_static(reader)
     if chosen is None or chosen.msgtype == TF_MESSAGE:
         if tf:
             graph = _tf_graph(reader, tf)
@@ -266,7 +323,7 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
 
     Raises:
         CalibrationError: not a bag, no gripper poses, no organized clouds, no camera info, an
-            ambiguous or missing topic.
+            ambiguous or missing topic; every pose refused (the reasons counted).
     """
     path = Path(path)
     topics = topics or Topics()
@@ -288,30 +345,54 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         if points_c is None or points_c.msgcount == 0:
             raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
         cloud = _first_cloud(reader, points_c)  # read once: 1-5 MB
-        info_c = _pick_camera_info(path, reader, topics.camera_info, cloud)
-        if info_c is None:
-            raise CalibrationError(f"{path}: no camera intrinsics (no {M.CAMERA_INFO} topic)")
-        raw_info = _first(reader, info_c)
+        size = (cloud.width, cloud.height) if cloud is not None else None
+        why_not = f"no {M.CAMERA_INFO} topic"
         try:
-            _, K, width, height = M.parse_camera_info(raw_info)
-            info_frame = M.decode(raw_info, M.CAMERA_INFO).header.frame_id
-        except M.InputError as exc:
-            raise CalibrationError(f"{path}: camera info on {info_c.topic}: {exc}") from None
+            info_c = _pick_camera_info(path, reader, topics.camera_info, cloud)
+        except CalibrationError as exc:
+            if topics.camera_info is not None:
+                raise
+            info_c, why_not = None, str(exc).split(": ", 1)[-1]
+        K, info_frame, intrinsics_from = None, "", ""
+        if info_c is not None:
+            raw_info = _first(reader, info_c)
+            try:
+                _, K, width, height = M.parse_camera_info(raw_info)
+                info_frame = M.decode(raw_info, M.CAMERA_INFO).header.frame_id
+            except M.InputError as exc:
+                raise CalibrationError(f"{path}: camera info on {info_c.topic}: {exc}") from None
+            intrinsics_from, why_not = info_c.topic, f"{info_c.topic} is of a {width}x{height} image"
+            if size is not None and (width, height) != size:
+                K = None
         # the points are in their cloud's frame: that one first (a driver may stamp its intrinsics
         # with another frame of the same camera), CameraInfo's when the tree does not have it
         cloud_frame = cloud.header.frame_id.strip("/") if cloud is not None else ""
         frames = [f for f in dict.fromkeys((cloud_frame, info_frame)) if f]
-        world_from_camera, source = _camera_pose(path, reader, topics, frames, cfg)
-        stamps, poses = [], []
+        world, pose_frame, world_from_poses, poses_from = _world_of_poses(
+            reader, poses_c, _tf_static(reader), cfg.frame_id
+        )
+        world_from_camera, source = _camera_pose(path, reader, topics, frames, cfg, world)
+        if K is None:
+            K, (width, height), intrinsics_from = _intrinsics_of_cloud(
+                path, reader, points_c, world_from_camera, world, why_not
+            )
+        stamps, poses, refused = [], [], {}
         for _, _, raw in reader.messages(connections=[poses_c]):
             try:
-                stamp, p = M.parse_pose_array(bytes(raw), frame_id=cfg.frame_id)
-            except M.InputError:
+                stamp, p = M.parse_pose_array(bytes(raw), frame_id=pose_frame)
+            except M.InputError as exc:
+                refused[exc.reason] = refused.get(exc.reason, 0) + 1
                 continue  # the service refuses it too
+            if world_from_poses is not None:
+                p = np.array([matrix_to_pose(world_from_poses @ pose_matrix(q)) for q in p])
             stamps.append(stamp)
             poses.append(p)
     if len(stamps) < 2:
-        raise CalibrationError(f"{path}: no gripper poses ({poses_c.topic} has {len(stamps)} usable)")
+        why = ", ".join(f"{n} {r}" for r, n in sorted(refused.items()))
+        raise CalibrationError(
+            f"{path}: no gripper poses ({poses_c.topic} has {len(stamps)} usable"
+            + (f"; refused: {why})" if why else ")")
+        )
     order = np.argsort(stamps, kind="stable")
     stamps_a = np.asarray(stamps, dtype=np.int64)[order]
     keep = np.concatenate([[True], np.diff(stamps_a) > 0])  # one pose per stamp
@@ -327,5 +408,7 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         n_clouds=int(points_c.msgcount),
         camera=camera,
         camera_source=source,
-        world_frame=cfg.frame_id,
+        world_frame=world,
+        poses_from=poses_from,
+        intrinsics_from=intrinsics_from,
     )

@@ -33,6 +33,8 @@ def build(cal: Calibration, clips: list[Clip], inputs: dict) -> dict:
             "seconds": round(t.duration_s, 3),
             "clouds": len(t.cloud_steps),
             "camera_pose_from": by_name[t.name].camera_source if t.name in by_name else None,
+            "gripper_poses_frame": by_name[t.name].poses_from if t.name in by_name else None,
+            "intrinsics_from": by_name[t.name].intrinsics_from if t.name in by_name else None,
             "coverage_per_vertex": [round(float(c), 3) for c in t.coverage],
             "tracker": t.status,
             "held_out": t.name in cal.held_out_names,
@@ -251,6 +253,14 @@ def _markdown(data: dict, plots: list[str]) -> str:
         lines.append(
             f"| {t['clip']}{' (held out)' if t['held_out'] else ''} | {t['seconds']:.1f} | {t['clouds']} | {cov} |"
         )
+    for key, what in (
+        ("gripper_poses_frame", "Gripper poses in"),
+        ("camera_pose_from", "Camera pose from"),
+        ("intrinsics_from", "Camera intrinsics from"),
+    ):
+        seen = sorted({str(t.get(key)) for t in data["tracks"] if t.get(key)})
+        if seen:
+            lines += ["", f"{what}: {'; '.join(seen)}."]
     length = data["checks"].get("length")
     if length:
         lines += [

@@ -14,7 +14,7 @@ API used by the service (keep it stable)::
   :meth:`Tracker.correct` and :meth:`Tracker.initialize` when they get none.
 - ``config``: path, dict or :class:`PerceptionConfig`; None: the defaults (listed in ``config/perception.yaml``).
 - ``cloud`` for ``initialize``: ``xyz`` or ``(xyz, rgb)``. ``points_xyz``: camera-frame (H, W, 3) organized
-  or (N, 3) float32, NaN for missing points; ``rgb``: uint8 of the same leading shape, or None
+  or (N, 3) float32, missing points NaN (or (0, 0, 0), or inf); ``rgb``: uint8 of the same leading shape, or None
   (then depth-only segmentation).
 - Returns: ``x`` (n, 3) float64 world-frame vertices, never NaN; ``observed`` (n,) bool: the vertex was
   corrected from the camera in an update at most ``tracker.stale_after_s`` old. Gripped vertices are
@@ -28,10 +28,11 @@ API used by the service (keep it stable)::
 
 Also public for tools built on perception (calibration, benchmarks): ``segment_rope(xyz, rgb, cfg)``
 (the rope's points of a cloud, camera frame) and ``segment_distances(points, x)`` (each point's
-distance to the polyline through ``x``).
+distance to the polyline through ``x``), ``intrinsics_from_cloud(xyz)`` (the pinhole intrinsics an
+organized cloud was made with).
 """
 
-from perception.camera import Camera, look_at
+from perception.camera import Camera, intrinsics_from_cloud, look_at
 from perception.config import PerceptionConfig, load_config
 from perception.polyline import segment_distances
 from perception.segment import segment_rope
@@ -57,6 +58,7 @@ __all__ = [
     "Tracker",
     "camera_steps",
     "default_camera",
+    "intrinsics_from_cloud",
     "load_config",
     "look_at",
     "render_recording",

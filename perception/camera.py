@@ -72,6 +72,49 @@ class Camera:
         return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1)
 
 
+MIN_FIT_PIXELS = 100  # measured pixels an intrinsics fit needs
+
+
+def intrinsics_from_cloud(
+    xyz: np.ndarray, max_error_px: float = 1.0
+) -> tuple[float, float, float, float] | None:
+    r"""The pinhole intrinsics an organized cloud was made with: pixel (row :math:`i`, column :math:`j`)
+    holds the point its ray met, so :math:`j + \tfrac12 = f_x x / z + c_x` and
+    :math:`i + \tfrac12 = f_y y / z + c_y` (the pixel-centre convention of :meth:`Camera.project`).
+    Least squares over the measured pixels: the cloud is its own calibration when its camera info is
+    missing or of another image size.
+
+    Args:
+        xyz: (H, W, 3) camera-frame organized cloud [m]; missing points NaN, zero or inf.
+        max_error_px: the largest median reprojection error accepted [pixels].
+
+    Returns:
+        ``(fx, fy, cx, cy)``, or None with fewer than ``MIN_FIT_PIXELS`` measured pixels or a median
+        error above ``max_error_px`` (not one pinhole camera's cloud).
+    """
+    p = np.asarray(xyz, dtype=np.float64)
+    if p.ndim != 3 or p.shape[-1] != 3:
+        return None
+    rows, cols = np.indices(p.shape[:2])
+    z = p[..., 2]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(p).all(-1) & (z > 0)
+    if ok.sum() < MIN_FIT_PIXELS:
+        return None
+    out, errors = [], []
+    for k, pixel in ((0, cols), (1, rows)):
+        ratio, centre = p[..., k][ok] / z[ok], pixel[ok] + 0.5
+        if np.ptp(ratio) <= 0:
+            return None
+        A = np.stack([ratio, np.ones_like(ratio)], axis=1)
+        (f, c), *_ = np.linalg.lstsq(A, centre, rcond=None)
+        out += [f, c]
+        errors.append(np.abs(A @ (f, c) - centre))
+    if out[0] <= 0 or out[2] <= 0 or np.median(np.concatenate(errors)) > max_error_px:
+        return None
+    return float(out[0]), float(out[2]), float(out[1]), float(out[3])
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """world_from_camera of a camera at ``eye`` looking at ``target`` (image up close to ``up``).
 

@@ -2,6 +2,11 @@
 
 A depth image is what the occlusion test compares predicted vertex depths against; flat clouds (or
 organized clouds of the wrong size) are projected into one with a z-buffer.
+
+Cameras and drivers mark a pixel without a measurement differently: NaN (the Azure Kinect driver,
+``depth_image_proc``), ``(0, 0, 0)`` (RealSense's ordered clouds, a renderer that leaves the empty
+background at zero depth), +-inf (out of range). :func:`measured_depth` reads them all as missing:
+a zero read as depth would be a wall at the lens, hiding the whole rope behind it.
 """
 
 from __future__ import annotations
@@ -31,6 +36,21 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     out = np.zeros((len(counts), 3))
     np.add.at(out, inverse, points)
     return out / counts[:, None]
+
+
+def measured_depth(xyz: np.ndarray) -> np.ndarray:
+    """Depth along the optical axis of camera-frame points, NaN where nothing was measured (a
+    measurement lies in front of the camera: z finite and > 0; NaN, zero and +-inf are missing).
+
+    Args:
+        xyz: (..., 3) camera-frame points [m].
+
+    Returns:
+        (...) depth [m], float of the input's precision.
+    """
+    z = np.asarray(xyz)[..., 2]
+    with np.errstate(invalid="ignore"):
+        return np.where((z > 0) & (z < np.inf), z, np.nan)
 
 
 MIN_NOISE_PIXELS = 100  # second differences a noise estimate needs
@@ -101,7 +121,7 @@ def depth_image(xyz: np.ndarray, camera: Camera) -> np.ndarray:
     """
     arr = np.asarray(xyz)
     if arr.shape == (camera.height, camera.width, 3):
-        return arr[..., 2]  # missing points are NaN
+        return measured_depth(arr)
     pts = arr.reshape(-1, 3).astype(np.float64)
     pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
     depth = np.full((camera.height, camera.width), np.inf)

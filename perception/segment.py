@@ -47,7 +47,8 @@ def front_surface(z: np.ndarray, mask: np.ndarray, window: int, margin: float) -
     spilled onto what lies behind it.
 
     Args:
-        z: (H, W) depth along the optical axis [m], NaN where unknown.
+        z: (H, W) depth along the optical axis [m]; unknown as NaN, zero or inf (a zero taken for
+            depth would be rope at the lens, in front of every rope pixel around it).
         mask: (H, W) bool, the rope-coloured pixels.
         window: half size of the window [pixels].
         margin: how far behind the nearest rope pixel a rope pixel may lie [m].
@@ -55,7 +56,8 @@ def front_surface(z: np.ndarray, mask: np.ndarray, window: int, margin: float) -
     Returns:
         (H, W) bool, a subset of ``mask``.
     """
-    ok = mask & np.isfinite(z)
+    with np.errstate(invalid="ignore"):
+        ok = mask & (z > 0) & (z < np.inf)
     rows, cols = np.flatnonzero(ok.any(1)), np.flatnonzero(ok.any(0))
     if not len(rows):
         return ok
@@ -75,7 +77,8 @@ def segment_rope(xyz: np.ndarray, rgb: np.ndarray | None, cfg: SegmentationConfi
     ``rgb`` of another shape than ``xyz`` is ignored (depth-only segmentation).
 
     Args:
-        xyz: camera-frame points, (H, W, 3) or (N, 3), NaN where missing.
+        xyz: camera-frame points, (H, W, 3) or (N, 3); missing as NaN, zero or inf
+            (:func:`perception.cloud.measured_depth`).
         rgb: uint8 colours of the same leading shape, or None.
         cfg: the segmentation settings (HSV thresholds, depth range, front-surface filter).
 

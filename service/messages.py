@@ -15,11 +15,13 @@ POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-FLOAT32, UINT8, UINT32 = (
+FLOAT32, FLOAT64, UINT8, UINT32 = (
     T["sensor_msgs/msg/PointField"].FLOAT32,
+    T["sensor_msgs/msg/PointField"].FLOAT64,
     T["sensor_msgs/msg/PointField"].UINT8,
     T["sensor_msgs/msg/PointField"].UINT32,
 )
+_FORMAT = {FLOAT32: "<f4", FLOAT64: "<f8", UINT8: "u1", UINT32: "<u4"}  # PointField type -> numpy
 
 
 class InputError(ValueError):
@@ -197,12 +199,12 @@ def _structured(msg, wanted: dict[str, tuple[int, ...]]) -> np.ndarray:
         if f is None or f.datatype not in types or f.count != 1:
             raise InputError("wrong_point_fields", f"field {name!r} missing or not {types}")
         names.append(name)
-        formats.append({FLOAT32: "<f4", UINT8: "u1", UINT32: "<u4"}[f.datatype])
+        formats.append(_FORMAT[f.datatype])
         offsets.append(f.offset)
     step, H, W = int(msg.point_step), int(msg.height), int(msg.width)
     if (
         step <= 0
-        or any(o + 4 > step for o in offsets)
+        or any(o + np.dtype(f).itemsize > step for o, f in zip(offsets, formats))
         or msg.row_step < step * W
         or len(msg.data) != msg.row_step * H
     ):
@@ -214,7 +216,11 @@ def _structured(msg, wanted: dict[str, tuple[int, ...]]) -> np.ndarray:
 
 def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     """-> stamp, xyz (H, W, 3) float32 (NaN where nothing was seen), rgb (H, W, 3) uint8, frame_id.
-    The cloud stays organized: the tracker reasons about occlusion on the image grid."""
+    The cloud stays organized: the tracker reasons about occlusion on the image grid.
+
+    x, y, z may be float32 or float64. Drivers mark a pixel without depth as NaN, as ``(0, 0, 0)``
+    (RealSense's ordered clouds) or as +-inf; all become NaN here, before a cloud published in the
+    world frame is moved into the camera's, where its zeros would turn into a wall of points."""
     msg = decode(raw, POINT_CLOUD2)
     if msg.height <= 1:
         raise InputError("unorganized_cloud", f"height {msg.height}")
@@ -222,9 +228,13 @@ def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     # both pack red, green, blue in the low three bytes
     names = {f.name for f in msg.fields}
     colour = "rgba" if "rgba" in names and "rgb" not in names else "rgb"
-    rec = _structured(msg, {"x": (FLOAT32,), "y": (FLOAT32,), "z": (FLOAT32,), colour: (FLOAT32, UINT32)})
+    xyz_types = (FLOAT32, FLOAT64)
+    rec = _structured(msg, {"x": xyz_types, "y": xyz_types, "z": xyz_types, colour: (FLOAT32, UINT32)})
     H, W = int(msg.height), int(msg.width)
-    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).reshape(H, W, 3)
+    with np.errstate(invalid="ignore", over="ignore"):
+        x, y, z = (rec[c].astype(np.float32) for c in "xyz")
+        missing = ~np.isfinite(x + y + z) | ((z == 0) & (x == 0) & (y == 0))
+    xyz = np.stack([np.where(missing, np.float32(np.nan), c) for c in (x, y, z)], axis=1).reshape(H, W, 3)
     packed = rec[colour].view(np.uint32) if rec[colour].dtype == np.float32 else rec[colour]
     rgb = (
         np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)

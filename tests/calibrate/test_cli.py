@@ -72,7 +72,9 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     found = report["identified"]["found"]["bend_stiffness_Nm2"]
     assert all(v is None or v > 0 for span in told.values() for v in span)
     assert told["bend_stiffness_Nm2"][0] is None or told["bend_stiffness_Nm2"][0] < found
-    assert "| told within |" in (out_dir / "rope_report" / "report.md").read_text()
+    md = (out_dir / "rope_report" / "report.md").read_text()
+    assert "| told within |" in md and "Gripper poses in: world." in md
+    assert {t["gripper_poses_frame"] for t in report["tracks"]} == {"world"}
     assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (out_dir / "rope_report").iterdir()}
 
 

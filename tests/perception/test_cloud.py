@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from perception.cloud import depth_noise
+from perception.camera import Camera
+from perception.cloud import depth_image, depth_noise, measured_depth
 
 
 def _tilted_plane(h=200, w=240, z0=1.5, slope=0.002):
@@ -41,3 +42,13 @@ def test_too_few_pixels_give_no_estimate():
     depth = np.full((4, 4), 1.0)
     assert depth_noise(depth, 0.0, 5.0) == 0.0
     assert depth_noise(_tilted_plane(), 5.0, 6.0) == 0.0  # nothing at those depths
+
+
+def test_every_drivers_missing_point_is_missing_depth():
+    """NaN, (0, 0, 0) and +-inf all mean "no measurement"; a point on the optical axis is one."""
+    xyz = np.array([[0.1, 0.2, 1.5], [np.nan] * 3, [0.0, 0.0, 0.0], [0.0, 0.0, np.inf], [0, 0, -np.inf],
+                    [0.0, 0.0, 0.8], [0.0, 0.0, -0.5]])  # fmt: skip
+    np.testing.assert_array_equal(measured_depth(xyz), [1.5, np.nan, np.nan, np.nan, np.nan, 0.8, np.nan])
+    cam = Camera(100.0, 100.0, 1.5, 1.0, 3, 2, np.eye(4))
+    depth = depth_image(xyz[1:].reshape(2, 3, 3), cam)
+    assert depth.shape == (2, 3) and np.isfinite(depth).sum() == 1 and depth[1, 1] == 0.8

@@ -8,7 +8,7 @@ import pytest
 
 from perception import load_config, render_recording
 from perception.polyline import segment_distances
-from perception.segment import front_surface, segment_rope
+from perception.segment import colour_mask, front_surface, segment_rope
 
 
 def test_front_surface_drops_pixels_behind_the_rope_beside_them():
@@ -58,3 +58,21 @@ def test_clean_clouds_keep_their_rope(clear_frames):
         on = segment_rope(f.xyz, f.rgb, seg)
         off = segment_rope(f.xyz, f.rgb, replace(seg, spill_window=0))
         assert len(on) >= 0.98 * len(off)
+
+
+def test_a_background_of_zeros_keeps_the_rope(clear_frames):
+    """A camera (RealSense's ordered clouds) or renderer that writes a pixel without depth as (0, 0, 0):
+    the rope beside those pixels is the same rope as beside NaN ones. Where the depth of a rope pixel
+    dropped out, its colour stays; a zero read as its depth would be rope at the lens, in front of
+    every rope pixel around it."""
+    seg = load_config().segmentation
+    rng = np.random.default_rng(0)
+    for f in clear_frames[::10]:
+        rope = colour_mask(f.rgb.reshape(-1, 3), seg).reshape(f.rgb.shape[:2])
+        dropped = rope & (rng.random(rope.shape) < 0.2)  # a fifth of the rope's depth lost
+        nan = np.where(dropped[..., None], np.nan, f.xyz).astype(np.float32)
+        zeros = np.where(np.isfinite(nan).all(-1, keepdims=True), nan, 0.0).astype(np.float32)
+        assert dropped.sum() > 5 and (zeros == 0).all(-1).mean() > 0.1
+        kept = segment_rope(nan, f.rgb, seg)
+        assert len(kept) > 0.6 * rope.sum()
+        np.testing.assert_array_equal(segment_rope(zeros, f.rgb, seg), kept)

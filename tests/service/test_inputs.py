@@ -48,7 +48,7 @@ def test_bad_poses_counted_and_loop_continues(est):
 
 def test_stale_stamp_rejected(est):
     assert est.on_poses(M.pose_array(T0 + 5 * 10**9, GOOD))
-    cloud = M.point_cloud(T0, np.zeros((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8))
+    cloud = M.point_cloud(T0, np.ones((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8))
     est.on_camera_info(M.camera_info(T0, np.diag([100.0, 100, 1]), 4, 4))
     with pytest.raises(M.InputError, match="stale"):
         est.decode_cloud(cloud)
@@ -65,7 +65,7 @@ def test_bad_clouds_rejected(est):
             M.point_cloud(T0, np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.uint8)),
             "empty_cloud",
         ),
-        (M.point_cloud(T0, np.zeros((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8)), "no_camera_info"),
+        (M.point_cloud(T0, np.ones((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8)), "no_camera_info"),
     ]:
         with pytest.raises(M.InputError) as err:
             est.decode_cloud(raw)

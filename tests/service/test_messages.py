@@ -64,6 +64,36 @@ def test_a_drivers_cloud_layout_is_read():
     np.testing.assert_array_equal(rgb2, rgb)
 
 
+def test_missing_points_of_every_driver_become_nan_and_float64_is_read():
+    """A pixel without depth is NaN (Azure Kinect), (0, 0, 0) (RealSense's ordered clouds) or inf (out
+    of range): all read as NaN, so that no zero becomes a surface at the lens (nor, in a cloud
+    published in the world frame, a wall at the world's origin). x, y, z as float64 read as float32;
+    a cloud with nothing measured is refused."""
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(1.0, 0.2, size=(4, 5, 3))
+    xyz[0, 0], xyz[1, 1], xyz[2, 2] = 0.0, np.inf, np.nan
+    xyz[3, 3] = (0.0, 0.0, 1.2)  # a point on the optical axis is a measurement
+    rgb = rng.integers(0, 256, (4, 5, 3)).astype(np.uint8)
+    msg = M.decode(M.point_cloud(1, xyz.astype(np.float32), rgb), M.POINT_CLOUD2)
+    _, got, _, _ = M.parse_point_cloud(M.encode(msg, M.POINT_CLOUD2))
+    missing = ~np.isfinite(got).all(-1)
+    assert missing.sum() == 3 and missing[0, 0] and missing[1, 1] and missing[2, 2]
+    assert np.isnan(got[missing]).all() and np.array_equal(got[3, 3], np.float32([0.0, 0.0, 1.2]))
+    # the same cloud with float64 coordinates (24 bytes, then the colour)
+    PF = M.T["sensor_msgs/msg/PointField"]
+    rec = np.zeros((4, 5), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("rgb", "<u4"), ("pad", "<u4")])
+    rec["x"], rec["y"], rec["z"] = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    rec["rgb"] = (rgb[..., 0].astype(np.uint32) << 16) | (rgb[..., 1].astype(np.uint32) << 8) | rgb[..., 2]
+    msg.fields = [PF(name=n, offset=8 * i, datatype=M.FLOAT64, count=1) for i, n in enumerate("xyz")]
+    msg.fields.append(PF(name="rgb", offset=24, datatype=M.UINT32, count=1))
+    msg.point_step, msg.row_step, msg.data = 32, 32 * 5, rec.view(np.uint8).reshape(-1)
+    _, got64, rgb64, _ = M.parse_point_cloud(M.encode(msg, M.POINT_CLOUD2))
+    assert got64.dtype == np.float32 and np.array_equal(rgb64, rgb)
+    np.testing.assert_array_equal(got64, got)
+    with pytest.raises(M.InputError, match="empty_cloud"):
+        M.parse_point_cloud(M.point_cloud(1, np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.uint8)))
+
+
 def test_vertices_camera_info_pose_stamped_round_trip():
     x = np.random.default_rng(1).normal(size=(13, 3))
     obs = np.arange(13) % 3 == 0
