@@ -73,6 +73,7 @@ class Camera:
 
 
 MIN_FIT_PIXELS = 100  # measured pixels an intrinsics fit needs
+FIT_PIXELS = 20_000  # pixels an intrinsics fit reads at most (every k-th row and column)
 
 
 def intrinsics_from_cloud(
@@ -92,10 +93,12 @@ def intrinsics_from_cloud(
         ``(fx, fy, cx, cy)``, or None with fewer than ``MIN_FIT_PIXELS`` measured pixels or a median
         error above ``max_error_px`` (not one pinhole camera's cloud).
     """
-    p = np.asarray(xyz, dtype=np.float64)
+    p = np.asarray(xyz)
     if p.ndim != 3 or p.shape[-1] != 3:
         return None
-    rows, cols = np.indices(p.shape[:2])
+    step = max(1, int(np.sqrt(p.shape[0] * p.shape[1] / FIT_PIXELS)))  # a grid of pixels suffices
+    rows, cols = (step * i for i in np.indices(p[::step, ::step].shape[:2]))
+    p = p[::step, ::step].astype(np.float64)
     z = p[..., 2]
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(p).all(-1) & (z > 0)

@@ -20,7 +20,7 @@ from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
 from service.stats import Stats
-from service.tracking import make_camera, make_tracker
+from service.tracking import cloud_intrinsics, make_camera, make_tracker
 
 NS = 1_000_000_000
 
@@ -65,6 +65,7 @@ class Estimator:
         self.poses: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, (2,7) poses, (4,3) grip
         self.newest_ns: int | None = None
         self.camera_info: tuple[np.ndarray, int, int] | None = None
+        self.fitted_intrinsics: dict[tuple[int, int], np.ndarray] = {}  # (w, h) -> K of the clouds' own
         self.camera_pose = np.asarray(cfg.camera.pose, dtype=float)
         self.last_cloud_ns: int | None = None
         self.last_cloud_arrival = self.clock()
@@ -175,21 +176,38 @@ class Estimator:
         stamp, xyz, rgb, frame = M.parse_point_cloud(raw)
         with self.lock:
             self._check_stamp("points", stamp, self.last_cloud_ns)
-            if self.camera_info is None:
-                raise M.InputError("no_camera_info")
-            self.last_cloud_ns = stamp
-            self._see(stamp)
-            self._arrive("points", stamp)
-            K, w, h = self.camera_info
-            pose = self.camera_pose.copy()
-        if xyz.shape[:2] != (h, w):
-            raise M.InputError(
-                "cloud_size_mismatch", f"cloud {xyz.shape[1]}x{xyz.shape[0]}, camera_info {w}x{h}"
-            )
+            info, pose = self.camera_info, self.camera_pose.copy()
         if frame == self.cfg.frame_id:  # a cloud already in the world: back into the optical frame
             T = pose_matrix(pose)
             xyz = ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+        K = self._intrinsics(xyz, info)
+        h, w = xyz.shape[:2]
+        with self.lock:
+            self.last_cloud_ns = stamp
+            self._see(stamp)
+            self._arrive("points", stamp)
         return Cloud(stamp, xyz, rgb, make_camera(K, w, h, pose))
+
+    def _intrinsics(self, xyz: np.ndarray, info) -> np.ndarray:
+        """K for a camera-frame cloud: CameraInfo's when it is of the cloud's image size; otherwise
+        the cloud's own (:func:`service.tracking.cloud_intrinsics`, kept per image size once fitted, as
+        ``deform calibrate`` does), so that a lab that records no CameraInfo, or only its depth
+        sensor's, is served. Raises ``no_camera_info`` / ``cloud_size_mismatch`` when the cloud fits
+        no pinhole camera."""
+        h, w = xyz.shape[:2]
+        if info is not None and (info[1], info[2]) == (w, h):
+            return info[0]
+        K = self.fitted_intrinsics.get((w, h))
+        if K is None:
+            K = cloud_intrinsics(xyz)  # ~10 ms at any size; a failed fit is tried again on the next cloud
+            if K is not None:
+                self.fitted_intrinsics[(w, h)] = K
+                self.stats.count("intrinsics_from_cloud")
+        if K is not None:
+            return K
+        if info is None:
+            raise M.InputError("no_camera_info")
+        raise M.InputError("cloud_size_mismatch", f"cloud {w}x{h}, camera_info {info[1]}x{info[2]}")
 
     def on_cloud_sync(self, raw: bytes) -> bool:
         """Message clock: decode now and fuse at the first tick at or after the cloud's stamp."""

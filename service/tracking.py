@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from perception import Camera, Tracker
+from perception import Camera, Tracker, intrinsics_from_cloud
 from service.geometry import pose_matrix
 
 
@@ -24,6 +24,16 @@ def make_camera(K: np.ndarray, width: int, height: int, pose: np.ndarray):
         int(height),
         pose_matrix(np.asarray(pose, dtype=float)),
     )
+
+
+def cloud_intrinsics(xyz: np.ndarray) -> np.ndarray | None:
+    """(3, 3) K of the pinhole camera an organized camera-frame cloud was made with, None if it fits
+    none (``perception.intrinsics_from_cloud``)."""
+    fit = intrinsics_from_cloud(xyz)
+    if fit is None:
+        return None
+    fx, fy, cx, cy = fit
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
 def make_tracker(model, **kwargs):

@@ -6,6 +6,7 @@ import threading
 import numpy as np
 import pytest
 
+from perception import Camera
 from service import messages as M
 from service.estimator import Estimator
 from service.fusion import FusionWorker
@@ -71,6 +72,29 @@ def test_bad_clouds_rejected(est):
             est.decode_cloud(raw)
         assert err.value.reason == reason
     assert est.status()["rejected"] == {"points:too_large": 1}
+
+
+def test_a_cloud_without_its_camera_info_is_read_with_its_own_intrinsics(est):
+    """No CameraInfo yet, or one of another image size (a driver's depth intrinsics beside clouds
+    registered to colour): the organized cloud gives its intrinsics, kept per image size; a cloud
+    that fits no pinhole camera is still refused by the reason it was before."""
+    cam = Camera(250.0, 251.0, 161.0, 143.0, 320, 288)
+    depth = np.random.default_rng(0).uniform(0.8, 2.0, (cam.height, cam.width, 1))
+    xyz = (cam.ray_directions() * depth).astype(np.float32)
+    rgb = np.zeros(xyz.shape, np.uint8)
+    assert est.on_poses(M.pose_array(T0, GOOD))
+    cloud = est.decode_cloud(M.point_cloud(T0 + 1, xyz, rgb))
+    got = [cloud.camera.fx, cloud.camera.fy, cloud.camera.cx, cloud.camera.cy]
+    np.testing.assert_allclose(got, [250.0, 251.0, 161.0, 143.0], atol=1e-3)
+    est.on_camera_info(M.camera_info(T0, np.diag([420.0, 420, 1]), 848, 480))
+    assert est.decode_cloud(M.point_cloud(T0 + 2, xyz, rgb)).camera.fx == cloud.camera.fx
+    assert est.status()["counts"]["intrinsics_from_cloud"] == 1  # fitted once for 320x288
+    shuffled = xyz.reshape(-1, 3)[np.random.default_rng(1).permutation(xyz.size // 3)].reshape(xyz.shape)
+    small = M.point_cloud(T0 + 3, shuffled[:100, :120], rgb[:100, :120])
+    with pytest.raises(M.InputError, match="cloud_size_mismatch"):
+        est.decode_cloud(small)
+    est.on_camera_info(M.camera_info(T0, np.diag([300.0, 300, 1]), 320, 288))  # now of the clouds' size
+    assert est.decode_cloud(M.point_cloud(T0 + 4, xyz, rgb)).camera.fx == 300.0
 
 
 def test_cloud_flood_rejected(est):
