@@ -214,6 +214,15 @@ def _structured(msg, wanted: dict[str, tuple[int, ...]]) -> np.ndarray:
     return np.ascontiguousarray(data).view(dtype).reshape(H * W)
 
 
+def _channel(values: np.ndarray) -> np.ndarray:
+    """One colour channel as uint8: uint8 as it is, float in 0..1 scaled (0..255 when it passes 1)."""
+    if values.dtype == np.uint8:
+        return values
+    v = np.nan_to_num(values.astype(np.float64))
+    scale = 255.0 if v.max(initial=0.0) <= 1.0 else 1.0
+    return np.clip(np.rint(v * scale), 0, 255).astype(np.uint8)
+
+
 def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     """-> stamp, xyz (H, W, 3) float32 (NaN where nothing was seen), rgb (H, W, 3) uint8, frame_id.
     The cloud stays organized: the tracker reasons about occlusion on the image grid.
@@ -224,23 +233,33 @@ def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     msg = decode(raw, POINT_CLOUD2)
     if msg.height <= 1:
         raise InputError("unorganized_cloud", f"height {msg.height}")
-    # colour as "rgb" (most drivers) or "rgba" (PCL's PointXYZRGBA, some structured-light cameras):
-    # both pack red, green, blue in the low three bytes
+    # colour as "rgb" (most drivers) or "rgba" (PCL's PointXYZRGBA, some structured-light cameras),
+    # both packing red, green, blue in the low three bytes, or as three fields "r", "g", "b" (uint8,
+    # or float in 0..1 as Open3D's colours), as clouds made in Python often are
     names = {f.name for f in msg.fields}
     colour = "rgba" if "rgba" in names and "rgb" not in names else "rgb"
+    separate = colour not in names and {"r", "g", "b"} <= names
     xyz_types = (FLOAT32, FLOAT64)
-    rec = _structured(msg, {"x": xyz_types, "y": xyz_types, "z": xyz_types, colour: (FLOAT32, UINT32)})
+    wanted = {"x": xyz_types, "y": xyz_types, "z": xyz_types}
+    if separate:
+        wanted.update({c: (UINT8, FLOAT32, FLOAT64) for c in "rgb"})
+    else:
+        wanted[colour] = (FLOAT32, UINT32)
+    rec = _structured(msg, wanted)
     H, W = int(msg.height), int(msg.width)
     with np.errstate(invalid="ignore", over="ignore"):
         x, y, z = (rec[c].astype(np.float32) for c in "xyz")
         missing = ~np.isfinite(x + y + z) | ((z == 0) & (x == 0) & (y == 0))
     xyz = np.stack([np.where(missing, np.float32(np.nan), c) for c in (x, y, z)], axis=1).reshape(H, W, 3)
-    packed = rec[colour].view(np.uint32) if rec[colour].dtype == np.float32 else rec[colour]
-    rgb = (
-        np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)
-        .astype(np.uint8)
-        .reshape(H, W, 3)
-    )
+    if separate:
+        rgb = np.stack([_channel(rec[c]) for c in "rgb"], axis=1).reshape(H, W, 3)
+    else:
+        packed = rec[colour].view(np.uint32) if rec[colour].dtype == np.float32 else rec[colour]
+        rgb = (
+            np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1)
+            .astype(np.uint8)
+            .reshape(H, W, 3)
+        )
     if not np.isfinite(xyz).any():
         raise InputError("empty_cloud")
     return stamp_ns(msg.header), xyz, rgb, msg.header.frame_id

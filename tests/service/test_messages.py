@@ -94,6 +94,31 @@ def test_missing_points_of_every_driver_become_nan_and_float64_is_read():
         M.parse_point_cloud(M.point_cloud(1, np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.uint8)))
 
 
+def test_colour_as_three_fields_is_read():
+    """Clouds made in Python often carry colour as fields r, g, b: uint8, or float in 0..1 (Open3D)."""
+    rng = np.random.default_rng(5)
+    H, W = 3, 4
+    xyz = rng.normal(1.0, 0.2, size=(H, W, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (H, W, 3)).astype(np.uint8)
+    PF = M.T["sensor_msgs/msg/PointField"]
+    for fmt, datatype, values in (("u1", M.UINT8, rgb), ("<f4", M.FLOAT32, rgb / 255.0)):
+        rec = np.zeros(
+            (H, W), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", fmt), ("g", fmt), ("b", fmt)]
+        )
+        rec["x"], rec["y"], rec["z"] = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+        rec["r"], rec["g"], rec["b"] = values[..., 0], values[..., 1], values[..., 2]
+        size = np.dtype(fmt).itemsize
+        fields = [PF(name=n, offset=4 * i, datatype=M.FLOAT32, count=1) for i, n in enumerate("xyz")]
+        fields += [PF(name=n, offset=12 + size * i, datatype=datatype, count=1) for i, n in enumerate("rgb")]
+        msg = M.T[M.POINT_CLOUD2](
+            header=M.header(3, "cam"), height=H, width=W, fields=fields, is_bigendian=False,
+            point_step=rec.itemsize, row_step=rec.itemsize * W, data=rec.view(np.uint8).reshape(-1), is_dense=True,
+        )  # fmt: skip
+        _, xyz2, rgb2, _ = M.parse_point_cloud(M.encode(msg, M.POINT_CLOUD2))
+        np.testing.assert_array_equal(xyz2, xyz)
+        np.testing.assert_array_equal(rgb2, rgb)
+
+
 def test_vertices_camera_info_pose_stamped_round_trip():
     x = np.random.default_rng(1).normal(size=(13, 3))
     obs = np.arange(13) % 3 == 0
