@@ -50,6 +50,20 @@ def test_coarse_identification_finds_the_stiffness_decade():
     assert abs(float(model.log_beta.exp().mean()) - found["bend_stiffness"]) < 1e-6 * found["bend_stiffness"]
 
 
+@pytest.mark.slow
+def test_coarse_identification_goes_past_the_grid_for_a_softer_rope():
+    """A string ten times softer than the grid's softest point (1e-4 N m^2): the grid goes on below
+    its edge while the edge wins, and lands on the truth's half decade (it stopped at 1e-4 before)."""
+    cfg = load_rod_config("DLO2")
+    truth = DeformModel(
+        cfg.model_copy(update={"bend_stiffness": 1.2e-5, "twist_stiffness": 8e-6, "damping": 1.0})
+    )
+    recs = [generate_recording(truth, n_frames=80, seed=s) for s in range(2)]
+    model = DeformModel(cfg.model_copy(update={"bend_stiffness": 1e-3, "twist_stiffness": 7e-4}))
+    found = coarse_identification(model, recs, steps=60, progress=False)
+    assert 5e-6 <= found["bend_stiffness"] <= 3e-5
+
+
 def test_training_windows_start_in_the_frames_evaluation_carries():
     """A window cut at frame s starts with the reference directors a rollout from the recording's
     first frame carries there: at s = 0 exactly evaluation's start, later perpendicular to the edges
