@@ -345,6 +345,12 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         if points_c is None or points_c.msgcount == 0:
             raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
         cloud = _first_cloud(reader, points_c)  # read once: 1-5 MB
+        if cloud is not None and cloud.height <= 1:
+            raise CalibrationError(
+                f"{path}: the clouds on {points_c.topic} are not organized (height {cloud.height}): "
+                "calibration needs the camera's organized cloud, one point per pixel (as camera drivers "
+                "and depth_image_proc publish it)"
+            )
         size = (cloud.width, cloud.height) if cloud is not None else None
         why_not = f"no {M.CAMERA_INFO} topic"
         try:

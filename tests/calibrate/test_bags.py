@@ -52,3 +52,23 @@ def test_not_a_bag(tmp_path):
     path.write_bytes(b"not a bag at all")
     with pytest.raises(CalibrationError, match="not a readable"):
         read_clip(path, ServiceConfig())
+
+
+def test_an_unorganized_cloud_is_refused_by_name(clips, tmp_path):
+    """A cloud without its image grid (height 1, as ``create_cloud`` makes from a list of points) is
+    named as such, not read as a rope the colour range cannot find."""
+    from service import messages as M
+    from service.bag import Message
+
+    flat = []
+    for m in clips.messages:
+        if m.name == "points":
+            stamp, xyz, rgb, frame = M.parse_point_cloud(m.data)
+            m = Message(
+                m.name, m.log_time, M.point_cloud(stamp, xyz.reshape(1, -1, 3), rgb.reshape(1, -1, 3), frame)
+            )
+        flat.append(m)
+    path = tmp_path / "flat.mcap"
+    write_messages(path, "deform/rod1", flat)
+    with pytest.raises(CalibrationError, match="not organized"):
+        read_clip(path, ServiceConfig())
