@@ -199,7 +199,7 @@ class Estimator:
             return info[0]
         K = self.fitted_intrinsics.get((w, h))
         if K is None:
-            K = cloud_intrinsics(xyz)  # ~10 ms at any size; a failed fit is tried again on the next cloud
+            K = cloud_intrinsics(xyz)  # ~2 ms at any size; a failed fit is tried again on the next cloud
             if K is not None:
                 self.fitted_intrinsics[(w, h)] = K
                 self.stats.count("intrinsics_from_cloud")
