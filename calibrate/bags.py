@@ -25,10 +25,11 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from calibrate.errors import CalibrationError
-from perception import Camera, intrinsics_from_cloud
+from perception import Camera
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import matrix_to_pose, pose_matrix
+from service.tracking import cloud_intrinsics
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
@@ -180,7 +181,8 @@ def _pick_camera_info(path: Path, reader, chosen: str | None, cloud):
 
 
 def _intrinsics_of_cloud(path, reader, conn, world_from_camera, world: str, why_not: str):
-    """``(K, (width, height), source)`` fitted to the clouds themselves (:func:`intrinsics_from_cloud`)
+    """``(K, (width, height), source)`` fitted to the clouds themselves (the service's
+    :func:`service.tracking.cloud_intrinsics`, so that both read a cloud alike)
     when no camera info is of their image: a driver's colour intrinsics beside clouds registered to
     the depth image, a cloud filter that halved the image, no CameraInfo recorded."""
     for _, _, raw in reader.messages(connections=[conn]):
@@ -191,16 +193,14 @@ def _intrinsics_of_cloud(path, reader, conn, world_from_camera, world: str, why_
         if frame.strip("/") == world:  # published in the world frame: back into the camera's
             T = world_from_camera
             xyz = (xyz - T[:3, 3]) @ T[:3, :3]
-        fit = intrinsics_from_cloud(xyz)
+        K = cloud_intrinsics(xyz)
         H, W = xyz.shape[:2]
-        if fit is None:
+        if K is None:
             raise CalibrationError(
                 f"{path}: no camera intrinsics for the clouds' {W}x{H} image ({why_not}), and the clouds "
                 "are not one pinhole camera's: record the camera's CameraInfo or choose it with "
                 "--topic-camera-info"
             )
-        fx, fy, cx, cy = fit
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         return K, (W, H), f"the {W}x{H} clouds themselves ({why_not})"
     raise CalibrationError(f"{path}: no readable clouds on {conn.topic}")
 
