@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -24,10 +25,23 @@ class _Strict(BaseModel):
 
 
 class GripOffsets(_Strict):
-    """Distances along the gripper's +x axis of the end vertex (d0) and of its neighbour (d1)."""
+    """Distances along the gripper's ``axis`` of the end vertex (d0) and of its neighbour (d1).
+
+    ``axis``: the direction in the gripper's own frame along which the rod leaves it (default +x).
+    A parallel gripper holds a rope across its fingers, and which of its frame's axes that is
+    depends on the robot (a hand whose rope runs along its y axis gives ``[0, 1, 0]``)."""
 
     d0: float = 0.0
     d1: float = Field(default=0.03)
+    axis: list[float] = Field(default=[1.0, 0.0, 0.0], min_length=3, max_length=3)
+
+    @field_validator("axis")
+    @classmethod
+    def _unit(cls, v):
+        n = float(np.linalg.norm(v))
+        if not np.isfinite(n) or n < 1e-6:
+            raise ValueError("axis must be a non-zero direction [x, y, z] in the gripper's frame")
+        return [float(c) / n for c in v]
 
     @field_validator("d1")
     @classmethod

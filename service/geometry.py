@@ -1,5 +1,6 @@
 """Poses (x y z qx qy qz qw) to rotations and gripped vertices: the only place that knows how a
-gripper holds the rod (the rod leaves along the gripper's +x axis)."""
+gripper holds the rod (the rod leaves along an axis of the gripper's frame, +x unless the config
+names another)."""
 
 from __future__ import annotations
 
@@ -34,6 +35,30 @@ def quat_x_axis(q) -> np.ndarray:
     return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + z * w), 2 * (x * z - y * w)], axis=-1)
 
 
+def quat_rotate(q, a) -> np.ndarray:
+    """(..., 4) unit quaternions x y z w and a (3,) vector -> (..., 3) the rotated vector ``R(q) a``."""
+    a = np.asarray(a, dtype=float)
+    if a[1] == 0.0 and a[2] == 0.0:  # the default +x: the cheap column
+        return a[0] * quat_x_axis(q)
+    return quat_to_matrix(q) @ a
+
+
+def quat_multiply(p, q) -> np.ndarray:
+    """(..., 4) x (..., 4) quaternions x y z w -> their product ``p q`` (rotate by q, then by p)."""
+    p, q = np.broadcast_arrays(np.asarray(p, dtype=float), np.asarray(q, dtype=float))
+    px, py, pz, pw = np.moveaxis(p, -1, 0)
+    qx, qy, qz, qw = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+            pw * qw - px * qx - py * qy - pz * qz,
+        ],
+        axis=-1,
+    )
+
+
 def quat_from_x_axis(u) -> np.ndarray:
     """(..., 3) directions -> (..., 4) the shortest rotation taking +x onto each direction."""
     u = np.asarray(u, dtype=float)
@@ -59,9 +84,9 @@ def pose_matrix(pose) -> np.ndarray:
 def grips_from_poses(poses: np.ndarray, offsets: Grippers) -> np.ndarray:
     """(..., 2, 7) gripper poses -> (..., 4, 3) positions of vertices 0, 1, n-2, n-1."""
     poses = np.asarray(poses, dtype=float)
-    ex = quat_x_axis(poses[..., 3:7])  # (..., 2, 3) the +x axes
-    p = poses[..., :3]
     a, b = offsets.first, offsets.last
+    ex = np.stack([quat_rotate(poses[..., 0, 3:7], a.axis), quat_rotate(poses[..., 1, 3:7], b.axis)], axis=-2)
+    p = poses[..., :3]
     return np.stack(
         [
             p[..., 0, :] + a.d0 * ex[..., 0, :],
@@ -81,7 +106,10 @@ def poses_from_vertices(x: np.ndarray, offsets: Grippers) -> np.ndarray:
     for (i0, i1), off in (((0, 1), offsets.first), ((-1, -2), offsets.last)):
         u = x[..., i1, :] - x[..., i0, :]
         u = u / np.linalg.norm(u, axis=-1, keepdims=True)
-        out.append(np.concatenate([x[..., i0, :] - off.d0 * u, quat_from_x_axis(u)], axis=-1))
+        q = quat_from_x_axis(u)
+        if off.axis != [1.0, 0.0, 0.0]:  # turn the gripper's axis onto +x first
+            q = quat_multiply(q, quat_from_x_axis(off.axis) * [-1.0, -1.0, -1.0, 1.0])
+        out.append(np.concatenate([x[..., i0, :] - off.d0 * u, q], axis=-1))
     return np.stack(out, axis=-2)
 
 

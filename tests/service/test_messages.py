@@ -182,6 +182,33 @@ def test_gripper_geometry_round_trip():
     np.testing.assert_allclose(pose_matrix(matrix_to_pose(pose_matrix(pose))), pose_matrix(pose), atol=1e-12)
 
 
+def test_gripper_axis_other_than_x_round_trip():
+    """A hand that holds the rope along its y axis (first) or its -z axis (last): poses made for that
+    convention give the vertices back, and their rotation turns the named axis onto the rope."""
+    g = Grippers(
+        first={"d0": 0.01, "d1": 0.03, "axis": [0, 2, 0]}, last={"d0": 0.0, "d1": 0.025, "axis": [0, 0, -1]}
+    )
+    assert g.first.axis == [0.0, 1.0, 0.0]
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(8, 10, 3))
+    for i0, i1, d in ((0, 1, 0.02), (9, 8, 0.025)):
+        u = x[:, i1] - x[:, i0]
+        x[:, i1] = x[:, i0] + d * u / np.linalg.norm(u, axis=-1, keepdims=True)
+    poses = poses_from_vertices(x, g)
+    np.testing.assert_allclose(grips_from_poses(poses, g), x[:, [0, 1, 8, 9]], atol=1e-12)
+    u = (x[:, 1] - x[:, 0]) / 0.02
+    np.testing.assert_allclose(quat_to_matrix(poses[:, 0, 3:7])[..., :, 1], u, atol=1e-12)
+    # the same poses read with the default +x put the rope elsewhere
+    assert np.abs(grips_from_poses(poses, Grippers()) - x[:, [0, 1, 8, 9]]).max() > 0.01
+
+
+def test_gripper_axis_must_be_a_direction():
+    with pytest.raises(ValueError, match="axis"):
+        Grippers(first={"d0": 0.0, "d1": 0.03, "axis": [0, 0, 0]})
+    with pytest.raises(ValueError):
+        Grippers(first={"d0": 0.0, "d1": 0.03, "axis": [1, 0]})
+
+
 def test_gripper_axis_is_the_rotations_first_column():
     """grips_from_poses reads only the +x axis of each pose: the same as the full rotation's first
     column, for any roll about it (poses_from_vertices above only makes zero-roll quaternions)."""
