@@ -127,8 +127,16 @@ def parse_pose_stamped(raw: bytes, frame_id: str | None = None) -> tuple[int, np
 
 
 # ----- camera info ----------------------------------------------------------------------------
+# ROS (and OpenCV) put pixel (u, v)'s centre at the integers u, v; perception's Camera puts pixel j's
+# centre at j + 1/2 (its rays and projections). The principal point moves by half a pixel between the two.
+PIXEL_CENTRE = 0.5
+
+
 def camera_info(stamp: int, K, width: int, height: int, frame_id: str = "camera") -> bytes:
-    K = np.asarray(K, dtype=float).reshape(9)
+    """CameraInfo of perception's intrinsics ``K`` (pixel centres at j + 1/2), written in ROS's
+    convention (pixel centres at the integers: cx and cy half a pixel smaller)."""
+    K = np.asarray(K, dtype=float).reshape(9).copy()
+    K[[2, 5]] -= PIXEL_CENTRE
     P = np.zeros(12)
     P[[0, 1, 2, 4, 5, 6, 10]] = K[[0, 1, 2, 3, 4, 5, 8]]
     msg = T[CAMERA_INFO](
@@ -150,10 +158,14 @@ def camera_info(stamp: int, K, width: int, height: int, frame_id: str = "camera"
 
 
 def parse_camera_info(raw: bytes) -> tuple[int, np.ndarray, int, int]:
+    """``(stamp, K, width, height)`` with ``K`` in perception's convention (pixel centres at j + 1/2:
+    ROS's cx and cy plus half a pixel)."""
     msg = decode(raw, CAMERA_INFO)
-    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3).copy()
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or msg.width == 0 or msg.height == 0:
         raise InputError("bad_camera_info")
+    K[0, 2] += PIXEL_CENTRE
+    K[1, 2] += PIXEL_CENTRE
     return stamp_ns(msg.header), K, int(msg.width), int(msg.height)
 
 

@@ -135,6 +135,43 @@ def test_vertices_camera_info_pose_stamped_round_trip():
     np.testing.assert_allclose(p2, pose)
 
 
+def test_camera_info_is_read_in_ros_pixel_convention():
+    """A driver's K puts pixel (u, v)'s centre at the integers (ROS, OpenCV); perception's Camera at
+    j + 1/2. A point on the ray through ROS pixel (10, 7) must land in column 10, row 7 of ours, at its
+    centre, and what we write is in ROS's convention."""
+    from perception import Camera
+
+    K_ros = np.array([[300.0, 0, 211.7], [0, 300.0, 118.4], [0, 0, 1]])
+    raw = M.encode(
+        M.T[M.CAMERA_INFO](
+            header=M.header(3, "camera_color_optical_frame"),
+            height=240,
+            width=424,
+            distortion_model="plumb_bob",
+            d=np.zeros(5),
+            k=K_ros.reshape(9),
+            r=np.eye(3).reshape(9),
+            p=np.zeros(12),
+            binning_x=0,
+            binning_y=0,
+            roi=M.T["sensor_msgs/msg/RegionOfInterest"](
+                x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+            ),
+        ),
+        M.CAMERA_INFO,
+    )
+    _, K, w, h = M.parse_camera_info(raw)
+    cam = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h)
+    z = 1.3
+    point = np.array([(10 - K_ros[0, 2]) / 300.0 * z, (7 - K_ros[1, 2]) / 300.0 * z, z])
+    (u, v), _ = cam.project(point)
+    np.testing.assert_allclose((u, v), (10.5, 7.5), atol=1e-9)
+    np.testing.assert_allclose(cam.ray_directions()[7, 10] * z, point, atol=1e-9)
+    written = M.decode(M.camera_info(3, K, w, h), M.CAMERA_INFO)
+    np.testing.assert_allclose(np.asarray(written.k).reshape(3, 3), K_ros, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(written.p)[[2, 6]], K_ros[[0, 1], 2], atol=1e-12)
+
+
 def test_schema_text_is_ros2():
     text = M.definition(M.POSE_ARRAY)
     assert "builtin_interfaces/Time stamp" in text and "MSG: geometry_msgs/Pose" in text
