@@ -31,11 +31,21 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 
 if not __package__:  # run as `python benchmarks/calibrate_rods.py`: import the repository's packages
     sys.path[0] = str(Path(__file__).resolve().parents[1])
 
+from benchmarks.calibration.foreign_session import (
+    FOREIGN,
+    ForeignLab,
+    film_foreign,
+    foreign_camera,
+    foreign_perception,
+    write_foreign_session,
+)
 from benchmarks.calibration.report import markdown, summarize
 from benchmarks.calibration.setups import SETUPS
 from benchmarks.cluster import Workers, add_arguments, call, repo_path
@@ -79,7 +89,7 @@ def calibrate_rod(
     from deform import DeformModel
 
     clips, held, lab, camera = _session(rod, seconds, quick, setup)
-    perception = lab.perception()
+    perception = foreign_perception(lab) if setup == FOREIGN else lab.perception()
     name = (
         f"{rod}-{int(seconds)}s"
         + (f"-{vertices}v" if vertices else "")
@@ -90,7 +100,11 @@ def calibrate_rod(
     work = Path(tempfile.mkdtemp(prefix=f"calibrate_{rod}_"))
     try:
         t0 = time.perf_counter()
-        session = write_session(rod, clips, work, lab, camera)
+        if setup == FOREIGN:
+            session = write_foreign_session(rod, clips, work, lab, camera)
+        else:
+            session = write_session(rod, clips, work, lab, camera)
+        shutil.copy(session.config, out / "service.yaml")  # the gripper convention, to score with
         render_s = time.perf_counter() - t0
         model_path = out / "calibrated.pt"
         cmd = [
@@ -114,14 +128,16 @@ def calibrate_rod(
     torch.set_num_threads(1)
     calibrated = DeformModel.load(model_path)
     cfg = calibrated.cfg
-    scores = score(
-        _three_models(calibrated, rod, session.length_m, session.mass_kg),
-        held,
-        tracked,
-        camera,
-        perception,
-        fps=lab.fps,
-    )
+    with _film(setup, lab, camera, out / "service.yaml") as film:
+        scores = score(
+            _three_models(calibrated, rod, session.length_m, session.mass_kg),
+            held,
+            tracked,
+            camera,
+            perception,
+            fps=lab.fps,
+            film=film,
+        )
     return dict(
         rod=rod,
         seconds=session.seconds,
@@ -155,8 +171,26 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
     if quick:
         clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
         held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
+    positions = [r.positions for r in clips + held]
+    if setup == FOREIGN:
+        lab = ForeignLab()
+        return clips, held, lab, foreign_camera(lab, positions)
     lab = SETUPS[setup]
-    return clips, held, lab, session_camera(lab, [r.positions for r in clips + held])
+    return clips, held, lab, session_camera(lab, positions)
+
+
+@contextmanager
+def _film(setup: str, lab, camera, config: Path):
+    """How the held-out motions are filmed: None (perception's renderer with the setup's camera) or,
+    for the foreign lab, its bags read back by `deform calibrate`'s reader (in a scratch directory)."""
+    if setup != FOREIGN:
+        yield None
+        return
+    work = Path(tempfile.mkdtemp(prefix="calibrate_held_"))
+    try:
+        yield partial(film_foreign, lab=lab, world_from_optical=camera, work=work, config=config)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def _three_models(calibrated, rod: str, length_m: float, mass_kg: float) -> dict:
@@ -188,7 +222,9 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     torch.set_num_threads(1)
     calibrated = DeformModel.load(repo_path(old["model"]))
     models = _three_models(calibrated, rod, length_m, mass_kg)
-    scores = score(models, held, tracked, camera, lab.perception(), fps=lab.fps)
+    perception = foreign_perception(lab) if setup == FOREIGN else lab.perception()
+    with _film(setup, lab, camera, repo_path(old["model"]).parent / "service.yaml") as film:
+        scores = score(models, held, tracked, camera, perception, fps=lab.fps, film=film)
     kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
     return {**kept, "scores": scores, "rescored_from": old.get("rescored_from") or old["config"]["code"]}
 
@@ -218,8 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--setup",
         default="session",
-        choices=sorted(SETUPS),
-        help="how the lab films: camera, rate, rope colour, noise (benchmarks/calibration/setups.py)",
+        choices=[*sorted(SETUPS), FOREIGN],
+        help="how the lab films: camera, rate, rope colour, noise (benchmarks/calibration/setups.py); "
+        "'foreign': a lab whose renderer and bag writer share no code with ours "
+        "(benchmarks/calibration/foreign_lab.py)",
     )
     ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -232,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         "service",
         "benchmarks/calibration/clips.py",
         "benchmarks/calibration/score.py",
+        *(["benchmarks/calibration/foreign_lab.py"] if args.setup == FOREIGN else []),
     )
     config = dict(tracked=args.tracked, quick=args.quick, code=code)
     if args.vertices:

@@ -17,6 +17,7 @@ r"""A model scored on held-out motions the three ways issue 49 asks, against the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -83,17 +84,28 @@ def render_held_out(recording: Recording, camera, render_cfg, seed: int, fps: fl
 
 
 def score(
-    models: dict, held_out: list[Recording], tracked: int, camera, perception, fps: float = 30.0
+    models: dict,
+    held_out: list[Recording],
+    tracked: int,
+    camera,
+    perception,
+    fps: float = 30.0,
+    film: Callable[[Recording, int], list] | None = None,
 ) -> dict:
     """Every model on the held-out motions: open loop on all of them, tracking and 1 s prediction on
-    the first ``tracked`` (the same clouds for every model, ``fps`` clouds a second).
+    the first ``tracked`` (the same clouds for every model, ``fps`` clouds a second). ``film(recording,
+    i)``: the clouds of held-out motion ``i`` as frames (``step``, ``xyz``, ``rgb``, ``camera``) when
+    another lab films them (default: perception's renderer with ``camera``).
 
     Returns:
         ``{name: {open_loop: {...}, tracking_mm, tracking_rope_mm, prediction_1s_mm, per_recording: {...}}}``.
     """
     out = {name: dict(open_loop=open_loop(m, held_out), per_recording={}) for name, m in models.items()}
     for i, rec in enumerate(held_out[:tracked]):
-        frames = render_held_out(rec, camera, perception.render, seed=2000 + i, fps=fps)
+        if film is None:
+            frames = render_held_out(rec, camera, perception.render, seed=2000 + i, fps=fps)
+        else:
+            frames = film(rec, i)
         for name, m in models.items():
             r = track_and_predict(m, rec.positions, frames, perception)
             out[name]["per_recording"][rec.name] = dict(
