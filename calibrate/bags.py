@@ -29,7 +29,7 @@ from perception import Camera
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import matrix_to_pose, pose_matrix
-from service.tracking import cloud_intrinsics
+from service.tracking import camera_frame_cloud, cloud_intrinsics
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
@@ -84,8 +84,7 @@ class Clip:
                     continue
                 if xyz.shape[:2] != (self.camera.height, self.camera.width):
                     continue
-                if frame == self.world_frame:
-                    xyz = ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+                xyz = camera_frame_cloud(xyz, frame, self.world_frame, T)
                 out.append((stamp, xyz, rgb))
                 if len(out) > 8:  # a little look-ahead sorts clouds recorded slightly out of order
                     out.sort(key=lambda c: c[0])
@@ -190,10 +189,7 @@ def _intrinsics_of_cloud(path, reader, conn, world_from_camera, world: str, why_
             _, xyz, _, frame = M.parse_point_cloud(bytes(raw))
         except M.InputError:
             continue
-        if frame.strip("/") == world:  # published in the world frame: back into the camera's
-            T = world_from_camera
-            xyz = (xyz - T[:3, 3]) @ T[:3, :3]
-        K = cloud_intrinsics(xyz)
+        K = cloud_intrinsics(camera_frame_cloud(xyz, frame, world, world_from_camera))
         H, W = xyz.shape[:2]
         if K is None:
             raise CalibrationError(

@@ -20,7 +20,7 @@ from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
 from service.stats import Stats
-from service.tracking import cloud_intrinsics, make_camera, make_tracker
+from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker
 
 NS = 1_000_000_000
 
@@ -177,9 +177,7 @@ class Estimator:
         with self.lock:
             self._check_stamp("points", stamp, self.last_cloud_ns)
             info, pose = self.camera_info, self.camera_pose.copy()
-        if frame == self.cfg.frame_id:  # a cloud already in the world: back into the optical frame
-            T = pose_matrix(pose)
-            xyz = ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+        xyz = camera_frame_cloud(xyz, frame, self.cfg.frame_id, pose_matrix(pose))
         K = self._intrinsics(xyz, info)
         h, w = xyz.shape[:2]
         with self.lock:

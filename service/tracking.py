@@ -26,6 +26,16 @@ def make_camera(K: np.ndarray, width: int, height: int, pose: np.ndarray):
     )
 
 
+def camera_frame_cloud(xyz: np.ndarray, frame: str, world: str, world_from_camera: np.ndarray) -> np.ndarray:
+    """An organized cloud in the camera's optical frame, where the tracker reads it: one published in
+    the world frame ``world`` (a driver's or a filter's choice; a tf name may carry a leading "/") is
+    moved back with ``world_from_camera`` (4x4); one in any other frame is taken as the camera's."""
+    if frame.strip("/") != world.strip("/"):
+        return xyz
+    T = np.asarray(world_from_camera, dtype=np.float64)
+    return ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+
+
 def cloud_intrinsics(xyz: np.ndarray) -> np.ndarray | None:
     """(3, 3) K of the pinhole camera an organized camera-frame cloud was made with, None if it fits
     none (``perception.intrinsics_from_cloud``)."""

@@ -204,6 +204,8 @@ def test_frames_poses_in_another_frame_refused_a_world_cloud_moved_into_the_came
     as_camera = est.decode_cloud(M.point_cloud(T0 + 1, cam, rgb, frame_id="camera"))
     as_world = est.decode_cloud(M.point_cloud(T0 + 2, world, rgb, frame_id="world"))
     assert np.allclose(as_camera.xyz, cam) and np.allclose(as_world.xyz, cam, atol=1e-6)
+    slashed = est.decode_cloud(M.point_cloud(T0 + 3, world, rgb, frame_id="/world"))  # a tf-style name
+    assert np.allclose(slashed.xyz, cam, atol=1e-6)
 
 
 def test_status_reports_the_rope_lost_and_found_counts_through_a_worker_copy(model):
