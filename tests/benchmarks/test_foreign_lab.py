@@ -288,3 +288,28 @@ def test_calibrate_reads_the_clip(session):
             assert rope_mask(rgb, lab).sum() > 300
         n += 1
     assert n == clip.n_clouds
+
+
+def test_calibrate_tracks_the_foreign_clip(session):
+    """`deform calibrate`'s tracker (the plain DER of the rope's length and mass, the lab's colour
+    range) follows the foreign lab's rope through its arm: the track stays on the true rope."""
+    from benchmarks.calibration.foreign_session import foreign_perception
+    from benchmarks.tracking.metric import two_way_error
+    from calibrate.bags import read_clip
+    from calibrate.tracks import track_clip
+    from deform import generic_model
+    from deform.io.arc_length import edge_lengths
+    from service.config import load_config
+
+    positions, _, lab, bag, service_yaml, _ = session
+    cfg = load_config(service_yaml)
+    clip = read_clip(bag, cfg)
+    length = float(edge_lengths(positions[0]).sum())
+    track = track_clip(clip, generic_model(length, 0.05), cfg.grippers, foreign_perception(lab))
+    assert track is not None and len(track.cloud_steps) > 30
+    free = track.coverage[2:-2]
+    assert free.mean() > 0.6  # the arm hides part of the rope for half of the clip
+    t0 = (clip.pose_stamps_ns[0] - fl.START_NS) / 1e9
+    truth = fl.markers_at(positions, DT, t0 + track.cloud_steps * DT)
+    errors = [two_way_error(track.positions[k], truth[i]) for i, k in enumerate(track.cloud_steps)]
+    assert np.mean(errors) < 0.006, np.mean(errors)  # 3.3 mm at 0a6d79d
