@@ -73,6 +73,7 @@ class ForeignLab:
     drop_share: float = 0.02  # clouds the driver drops
     pose_hz: float = 125.0  # the robot publishes its poses at 125 Hz, not 100
     tcp_offset_m: float = 0.015  # the TCP sits this far outward of the end marker (d0)
+    rope_axis: str = "x"  # the gripper frame's axis the rope runs along ("x", "y" or "z")
     rope_radius_m: float = 0.006
     rope_rgb: tuple = (40, 170, 70)  # a green rope
     # OpenCV HSV (H in 0..180) a user would give for this rope under this lighting
@@ -281,9 +282,9 @@ def roll_references(positions: np.ndarray) -> np.ndarray:
 
 def gripper_poses(x: np.ndarray, t, lab: ForeignLab, refs: np.ndarray | None = None) -> np.ndarray:
     """(..., n, 3) marker positions at times ``t`` (...) [s] -> (..., 2, 7) world-frame TCP poses
-    (x y z qx qy qz qw) of the first and last gripper: +x along the end edge into the rope (from
+    (x y z qx qy qz qw) of the first and last gripper: the ``rope_axis`` (+x) along the end edge into the rope (from
     marker 0 to 1, from n-1 to n-2), the TCP ``tcp_offset_m`` outward of the end marker, a slowly
-    varying roll about +x from ``refs`` (..., 2, 3) (:func:`roll_references`; default: a world axis)."""
+    varying roll about that axis from ``refs`` (..., 2, 3) (:func:`roll_references`; default: a world axis)."""
     x = np.asarray(x, dtype=float)
     t = np.broadcast_to(np.asarray(t, dtype=float), x.shape[:-2])
     out = np.empty(x.shape[:-2] + (2, 7))
@@ -298,7 +299,8 @@ def gripper_poses(x: np.ndarray, t, lab: ForeignLab, refs: np.ndarray | None = N
         r = _roll(t, phase)[..., None]
         ey = np.cos(r) * e1 + np.sin(r) * e2
         ez = np.cross(ex, ey)
-        R = np.stack([ex, ey, ez], axis=-1).reshape(-1, 3, 3)
+        columns = {"x": (ex, ey, ez), "y": (ez, ex, ey), "z": (ey, ez, ex)}[lab.rope_axis]
+        R = np.stack(columns, axis=-1).reshape(-1, 3, 3)  # right-handed: cyclic permutations
         q = np.array([_quat_of_matrix(Ri) for Ri in R])
         for j in range(1, len(q)):  # one sign along the motion: a smooth quaternion stream
             if np.dot(q[j], q[j - 1]) < 0:
@@ -918,6 +920,12 @@ def grippers_of(clips: list[np.ndarray], lab: ForeignLab) -> Grippers:
     )
 
 
+def _offsets(o: GripOffsets, lab: ForeignLab) -> dict:
+    """One gripper's entry of service.yaml; the axis only when it is not the default +x."""
+    axis = {"x": None, "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}[lab.rope_axis]
+    return {"d0": o.d0, "d1": o.d1, **({"axis": axis} if axis else {})}
+
+
 def write_session(
     out: Path, clips: list[np.ndarray], dt: float, lab: ForeignLab, world_from_optical
 ) -> tuple[list[Path], Path, Path]:
@@ -945,7 +953,7 @@ def write_session(
     service_yaml = out / "service.yaml"
     service_yaml.write_text(
         yaml.safe_dump(
-            {"grippers": {k: {"d0": o.d0, "d1": o.d1} for k, o in (("first", g.first), ("last", g.last))}},
+            {"grippers": {k: _offsets(o, lab) for k, o in (("first", g.first), ("last", g.last))}},
             sort_keys=False,
         )
     )

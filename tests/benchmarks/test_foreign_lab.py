@@ -313,3 +313,26 @@ def test_calibrate_tracks_the_foreign_clip(session):
     truth = fl.markers_at(positions, DT, t0 + track.cloud_steps * DT)
     errors = [two_way_error(track.positions[k], truth[i]) for i, k in enumerate(track.cloud_steps)]
     assert np.mean(errors) < 0.006, np.mean(errors)  # 3.3 mm at 0a6d79d
+
+
+def test_a_hand_holding_the_rope_along_its_y_axis(tmp_path):
+    """The lab's hand holds the rope along its y axis and says so in service.yaml (``axis``): the
+    reader puts the gripped vertices on the markers; read with the default +x it would not."""
+    from calibrate.bags import read_clip
+    from service.config import Grippers, load_config
+    from service.geometry import grips_from_poses
+
+    positions = swinging_rope(60)
+    lab = replace(LAB, rope_axis="y", occluded_every=0)
+    T = fl.place_camera(positions, lab)
+    bags, service_yaml, _ = fl.write_session(tmp_path, [positions], DT, lab, T)
+    cfg = load_config(service_yaml)
+    assert cfg.grippers.first.axis == [0.0, 1.0, 0.0] and cfg.grippers.last.axis == [0.0, 1.0, 0.0]
+    clip = read_clip(bags[0], cfg)
+    t = (clip.pose_stamps_ns - fl.START_NS) / 1e9
+    markers = fl.markers_at(positions, DT, t)[:, [0, 1, N - 2, N - 1]]
+    assert np.abs(grips_from_poses(clip.poses, cfg.grippers) - markers).max() < 0.002
+    as_x = Grippers(
+        first=cfg.grippers.first.model_copy(update={"axis": [1.0, 0.0, 0.0]}), last=cfg.grippers.last
+    )
+    assert np.abs(grips_from_poses(clip.poses, as_x) - markers).max() > 0.01
