@@ -39,8 +39,7 @@ if not __package__:  # run as `python benchmarks/calibrate_rods.py`: import the 
     sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from benchmarks.calibration.foreign_session import (
-    FOREIGN,
-    ForeignLab,
+    FOREIGN_LABS,
     film_foreign,
     foreign_camera,
     foreign_perception,
@@ -89,7 +88,7 @@ def calibrate_rod(
     from deform import DeformModel
 
     clips, held, lab, camera = _session(rod, seconds, quick, setup)
-    perception = foreign_perception(lab) if setup == FOREIGN else lab.perception()
+    perception = foreign_perception(lab) if setup in FOREIGN_LABS else lab.perception()
     name = (
         f"{rod}-{int(seconds)}s"
         + (f"-{vertices}v" if vertices else "")
@@ -100,7 +99,7 @@ def calibrate_rod(
     work = Path(tempfile.mkdtemp(prefix=f"calibrate_{rod}_"))
     try:
         t0 = time.perf_counter()
-        if setup == FOREIGN:
+        if setup in FOREIGN_LABS:
             session = write_foreign_session(rod, clips, work, lab, camera)
         else:
             session = write_session(rod, clips, work, lab, camera)
@@ -172,8 +171,8 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
         clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
         held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
     positions = [r.positions for r in clips + held]
-    if setup == FOREIGN:
-        lab = ForeignLab()
+    if setup in FOREIGN_LABS:
+        lab = FOREIGN_LABS[setup]
         return clips, held, lab, foreign_camera(lab, positions)
     lab = SETUPS[setup]
     return clips, held, lab, session_camera(lab, positions)
@@ -183,7 +182,7 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
 def _film(setup: str, lab, camera, config: Path):
     """How the held-out motions are filmed: None (perception's renderer with the setup's camera) or,
     for the foreign lab, its bags read back by `deform calibrate`'s reader (in a scratch directory)."""
-    if setup != FOREIGN:
+    if setup not in FOREIGN_LABS:
         yield None
         return
     work = Path(tempfile.mkdtemp(prefix="calibrate_held_"))
@@ -222,7 +221,7 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     torch.set_num_threads(1)
     calibrated = DeformModel.load(repo_path(old["model"]))
     models = _three_models(calibrated, rod, length_m, mass_kg)
-    perception = foreign_perception(lab) if setup == FOREIGN else lab.perception()
+    perception = foreign_perception(lab) if setup in FOREIGN_LABS else lab.perception()
     with _film(setup, lab, camera, repo_path(old["model"]).parent / "service.yaml") as film:
         scores = score(models, held, tracked, camera, perception, fps=lab.fps, film=film)
     kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
@@ -254,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--setup",
         default="session",
-        choices=[*sorted(SETUPS), FOREIGN],
+        choices=[*sorted(SETUPS), *FOREIGN_LABS],
         help="how the lab films: camera, rate, rope colour, noise (benchmarks/calibration/setups.py); "
         "'foreign': a lab whose renderer and bag writer share no code with ours "
         "(benchmarks/calibration/foreign_lab.py)",
@@ -270,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
         "service",
         "benchmarks/calibration/clips.py",
         "benchmarks/calibration/score.py",
-        *(["benchmarks/calibration/foreign_lab.py"] if args.setup == FOREIGN else []),
+        *(["benchmarks/calibration/foreign_lab.py"] if args.setup in FOREIGN_LABS else []),
     )
     config = dict(tracked=args.tracked, quick=args.quick, code=code)
     if args.vertices:

@@ -70,6 +70,7 @@ class ForeignLab:
     azimuth_deg: float = -20.0
     fps: float = 30.0
     stamp_jitter_s: float = 0.002
+    stamp_delay_s: float = 0.0  # clouds stamped this long after capture (a driver stamping on arrival)
     drop_share: float = 0.02  # clouds the driver drops
     pose_hz: float = 125.0  # the robot publishes its poses at 125 Hz, not 100
     tcp_offset_m: float = 0.015  # the TCP sits this far outward of the end marker (d0)
@@ -874,7 +875,7 @@ def write_clip(
         )
         k = 0
         for tc in kept:
-            ns = START_NS + round(float(tc) * 1e9)
+            ns = START_NS + round(float(tc + lab.stamp_delay_s) * 1e9)
             while k < len(pose_ns) and pose_ns[k] <= ns:
                 w.write(
                     c_pose,

@@ -18,6 +18,8 @@ from benchmarks.calibration.foreign_lab import ForeignLab, place_camera, write_c
 from deform import Recording
 
 FOREIGN = "foreign"
+# the foreign lab as it films, and with a driver that stamps its clouds on arrival, 50 ms late
+FOREIGN_LABS = {FOREIGN: ForeignLab(), "foreign_late": ForeignLab(stamp_delay_s=0.05)}
 
 
 def foreign_camera(lab: ForeignLab, positions: list[np.ndarray]) -> np.ndarray:
