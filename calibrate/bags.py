@@ -64,6 +64,7 @@ class Clip:
     world_frame: str
     poses_from: str = ""  # the poses' frame and how it became the world frame
     intrinsics_from: str = ""  # the CameraInfo topic, or the clouds themselves and why
+    cloud_delay_ns: int = 0  # how late the clouds are stamped against the poses (calibrate.latency)
 
     @property
     def duration_s(self) -> float:
@@ -71,7 +72,8 @@ class Clip:
 
     def clouds(self) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
         """Decoded clouds in stamp order: ``(stamp_ns, xyz (H, W, 3) float32 camera frame, rgb (H, W,
-        3) uint8)``. Clouds the service would refuse (malformed, empty, wrong size) are skipped; a
+        3) uint8)``, the stamp less ``cloud_delay_ns`` (the time the cloud was taken, on the poses'
+        clock). Clouds the service would refuse (malformed, empty, wrong size) are skipped; a
         cloud published in the world frame is moved back into the optical frame, as the service does."""
         T = self.camera.world_from_camera
         out = []
@@ -85,7 +87,7 @@ class Clip:
                 if xyz.shape[:2] != (self.camera.height, self.camera.width):
                     continue
                 xyz = camera_frame_cloud(xyz, frame, self.world_frame, T)
-                out.append((stamp, xyz, rgb))
+                out.append((stamp - self.cloud_delay_ns, xyz, rgb))
                 if len(out) > 8:  # a little look-ahead sorts clouds recorded slightly out of order
                     out.sort(key=lambda c: c[0])
                     yield out.pop(0)

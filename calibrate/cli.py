@@ -162,6 +162,7 @@ def run(args) -> int:
     from calibrate import report
     from calibrate.bags import Topics, read_clip
     from calibrate.fit import Budget, calibrate
+    from calibrate.latency import cloud_delay
 
     started = time.perf_counter()
     torch.set_num_threads(args.threads)
@@ -178,6 +179,9 @@ def run(args) -> int:
     names = [c.name for c in clips]
     if len(set(names)) < len(names):
         raise CalibrationError(f"two bags have the same name ({', '.join(names)}): rename one")
+    delay = cloud_delay(clips, cfg.grippers, perception.segmentation)
+    if delay.told:  # clouds stamped late (or early): tracked at the time they were taken
+        clips = [replace(c, cloud_delay_ns=round(delay.delay_s * 1e9)) for c in clips]
     given = {
         k: v
         for k, v in {
@@ -215,6 +219,7 @@ def run(args) -> int:
         "config": args.config,
         "out": str(out),
         "budget": {k: v for k, v in vars(budget).items()},
+        "cloud_delay": delay.as_dict(),
     }
     if cal.model is None:
         report.write(cal, clips, inputs, report_dir)

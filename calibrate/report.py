@@ -261,6 +261,22 @@ def _markdown(data: dict, plots: list[str]) -> str:
         seen = sorted({str(t.get(key)) for t in data["tracks"] if t.get(key)})
         if seen:
             lines += ["", f"{what}: {'; '.join(seen)}."]
+    delay = data["inputs"].get("cloud_delay")
+    if delay and delay["clouds"]:
+        if delay["delay_s"]:
+            lines += [
+                "",
+                f"Cloud stamps: {1e3 * delay['delay_s']:+.0f} ms against the gripper poses (where the rope "
+                f"leaves the grippers: {1e3 * delay['cost_at_best_m']:.1f} mm from the rope there against "
+                f"{1e3 * delay['cost_at_zero_m']:.1f} at the stamps, {delay['clouds']} clouds); the clouds were "
+                f"tracked at their stamps less that. Serve the rope with `camera.stamp_delay_s: "
+                f"{delay['delay_s']:g}` in the service config.",
+            ]
+        else:
+            lines += [
+                "",
+                f"Cloud stamps: on the gripper poses' clock ({delay['clouds']} clouds tell no delay).",
+            ]
     length = data["checks"].get("length")
     if length:
         lines += [

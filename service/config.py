@@ -61,6 +61,9 @@ class Camera(_Strict):
         default=[0.0, -1.2, 0.5, -0.7071068, 0.0, 0.0, 0.7071068], min_length=7, max_length=7
     )
     use_pose_topic: bool = True
+    # how late the camera driver stamps its clouds against the gripper poses' clock [s] (a driver that
+    # stamps on arrival; `deform calibrate` estimates it): a cloud counts as taken at its stamp less this
+    stamp_delay_s: float = Field(default=0.0, ge=-1.0, le=1.0)
 
 
 class Timeouts(_Strict):

@@ -61,6 +61,7 @@ class Estimator:
         self.lock = threading.RLock()
         self.message_clock = cfg.clock == "message"
         self.stale_ns = int(cfg.timeouts.stale_s * NS)
+        self.cloud_delay_ns = round(cfg.camera.stamp_delay_s * NS)
         # latest inputs
         self.poses: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, (2,7) poses, (4,3) grip
         self.newest_ns: int | None = None
@@ -174,6 +175,7 @@ class Estimator:
     def decode_cloud(self, raw: bytes) -> Cloud:
         """Decode and validate a PointCloud2; raises InputError (the caller counts it)."""
         stamp, xyz, rgb, frame = M.parse_point_cloud(raw)
+        stamp -= self.cloud_delay_ns  # when it was taken, on the poses' clock
         with self.lock:
             self._check_stamp("points", stamp, self.last_cloud_ns)
             info, pose = self.camera_info, self.camera_pose.copy()

@@ -336,3 +336,41 @@ def test_a_hand_holding_the_rope_along_its_y_axis(tmp_path):
         first=cfg.grippers.first.model_copy(update={"axis": [1.0, 0.0, 0.0]}), last=cfg.grippers.last
     )
     assert np.abs(grips_from_poses(clip.poses, as_x) - markers).max() > 0.01
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.05])
+def test_the_clouds_stamp_delay_is_found_and_taken_out(tmp_path, delay_s):
+    """A driver that stamps its clouds 50 ms after capture: calibrate finds the delay from where the
+    rope leaves the grippers (none when there is none), and the clip tracked with it taken out
+    follows the rope as the punctual one does."""
+    from benchmarks.calibration.foreign_session import foreign_perception
+    from benchmarks.tracking.metric import two_way_error
+    from calibrate.bags import read_clip
+    from calibrate.latency import cloud_delay
+    from calibrate.tracks import track_clip
+    from deform import generic_model
+    from deform.io.arc_length import edge_lengths
+    from service.config import load_config
+
+    positions = swinging_rope(201)  # carried by grippers that move as a robot moves them
+    t = np.arange(len(positions)) * DT
+    positions[..., 0] += 0.12 * np.sin(2 * np.pi * 0.5 * t)[:, None]
+    positions[..., 2] += 0.05 * np.sin(2 * np.pi * 0.8 * t)[:, None]
+    lab = replace(LAB, occluded_every=0, stamp_delay_s=delay_s)
+    T = fl.place_camera(positions, lab)
+    bags, service_yaml, _ = fl.write_session(tmp_path, [positions], DT, lab, T)
+    cfg = load_config(service_yaml)
+    clip = read_clip(bags[0], cfg)
+    perception = foreign_perception(lab)
+    found = cloud_delay([clip], cfg.grippers, perception.segmentation)
+    assert found.clouds > 20
+    assert found.delay_s == pytest.approx(delay_s, abs=0.0051)
+    assert found.told == (delay_s > 0)
+    clip = replace(clip, cloud_delay_ns=round(found.delay_s * 1e9))
+    track = track_clip(
+        clip, generic_model(float(edge_lengths(positions[0]).sum()), 0.05), cfg.grippers, perception
+    )
+    t0 = (clip.pose_stamps_ns[0] - fl.START_NS) / 1e9
+    truth = fl.markers_at(positions, DT, t0 + track.cloud_steps * DT)
+    errors = [two_way_error(track.positions[k], truth[i]) for i, k in enumerate(track.cloud_steps)]
+    assert np.mean(errors) < 0.0025, np.mean(errors)  # 50 ms late and left in: 9.2 mm (punctual 1.7)

@@ -97,6 +97,19 @@ def test_a_cloud_without_its_camera_info_is_read_with_its_own_intrinsics(est):
     assert est.decode_cloud(M.point_cloud(T0 + 4, xyz, rgb)).camera.fx == 300.0
 
 
+def test_a_late_stamped_cloud_counts_as_taken_its_delay_earlier(model):
+    """``camera.stamp_delay_s``: a driver stamping its clouds 50 ms late; the cloud is dated when it
+    was taken, on the poses' clock (what a message-clock service fuses it at); 0 leaves it as stamped."""
+    for delay, want in ((0.05, T0 - 50_000_000), (0.0, T0)):
+        est = Estimator(
+            make_config(camera={"stamp_delay_s": delay}), model, OpenLoopTracker(model), clock=FakeClock()
+        )
+        est.on_camera_info(M.camera_info(T0, np.diag([100.0, 100, 1]), 4, 4))
+        xyz = np.ones((4, 4, 3), np.float32)
+        cloud = est.decode_cloud(M.point_cloud(T0, xyz, np.zeros((4, 4, 3), np.uint8)))
+        assert cloud.stamp_ns == want
+
+
 def test_cloud_flood_rejected(est):
     """Token bucket at ``max_cloud_rate_hz`` (60), burst of 3: exact counts on a fake clock."""
     worker = FusionWorker(est)  # not started: nothing consumes the slot
