@@ -127,7 +127,7 @@ def calibrate_rod(
     torch.set_num_threads(1)
     calibrated = DeformModel.load(model_path)
     cfg = calibrated.cfg
-    with _film(setup, lab, camera, out / "service.yaml") as film:
+    with _film(setup, lab, camera, out / "service.yaml", _stamp_delay_s(out)) as film:
         scores = score(
             _three_models(calibrated, rod, session.length_m, session.mass_kg),
             held,
@@ -146,6 +146,7 @@ def calibrate_rod(
         calibrate_s=round(calibrate_s, 1),
         calibrate_printed=printed,
         identified=report.get("identified"),
+        cloud_delay=report.get("inputs", {}).get("cloud_delay"),
         rounds=report.get("rounds"),
         vertices=cfg.n_vertices,
         scores=scores,
@@ -179,15 +180,30 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
 
 
 @contextmanager
-def _film(setup: str, lab, camera, config: Path):
+def _stamp_delay_s(run_dir: Path) -> float:
+    """The clouds' stamp delay the calibration's report tells the service to take out
+    (``camera.stamp_delay_s``; 0 for a report from before it estimated one)."""
+    report = json.loads((run_dir / "report" / "report.json").read_text())
+    return float(report["inputs"].get("cloud_delay", {}).get("delay_s", 0.0))
+
+
+def _film(setup: str, lab, camera, config: Path, stamp_delay_s: float = 0.0):
     """How the held-out motions are filmed: None (perception's renderer with the setup's camera) or,
-    for the foreign lab, its bags read back by `deform calibrate`'s reader (in a scratch directory)."""
+    for the foreign lab, its bags read back by `deform calibrate`'s reader (in a scratch directory),
+    their clouds dated as a service configured with the report's ``stamp_delay_s`` dates them."""
     if setup not in FOREIGN_LABS:
         yield None
         return
     work = Path(tempfile.mkdtemp(prefix="calibrate_held_"))
     try:
-        yield partial(film_foreign, lab=lab, world_from_optical=camera, work=work, config=config)
+        yield partial(
+            film_foreign,
+            lab=lab,
+            world_from_optical=camera,
+            work=work,
+            config=config,
+            stamp_delay_s=stamp_delay_s,
+        )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -222,7 +238,8 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     calibrated = DeformModel.load(repo_path(old["model"]))
     models = _three_models(calibrated, rod, length_m, mass_kg)
     perception = foreign_perception(lab) if setup in FOREIGN_LABS else lab.perception()
-    with _film(setup, lab, camera, repo_path(old["model"]).parent / "service.yaml") as film:
+    run_dir = repo_path(old["model"]).parent
+    with _film(setup, lab, camera, run_dir / "service.yaml", _stamp_delay_s(run_dir)) as film:
         scores = score(models, held, tracked, camera, perception, fps=lab.fps, film=film)
     kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
     return {**kept, "scores": scores, "rescored_from": old.get("rescored_from") or old["config"]["code"]}

@@ -46,17 +46,24 @@ def write_foreign_session(
 
 
 def film_foreign(
-    recording: Recording, i: int, lab: ForeignLab, world_from_optical: np.ndarray, work: Path, config: Path
+    recording: Recording,
+    i: int,
+    lab: ForeignLab,
+    world_from_optical: np.ndarray,
+    work: Path,
+    config: Path,
+    stamp_delay_s: float = 0.0,
 ) -> list:
     """The clouds of held-out motion ``i`` as the foreign lab records them (an occluder throughout
     its middle half), read back with :func:`calibrate.bags.read_clip`: frames at the first model step
-    at or after each cloud's stamp, as the service fuses them."""
+    at or after each cloud's stamp less ``stamp_delay_s``, as a message-clock service configured with
+    ``camera.stamp_delay_s`` fuses them."""
     from calibrate.bags import read_clip
     from service.config import load_config
 
     path = work / f"held{i:02d}"
     write_clip(path, recording.positions, DT, lab, world_from_optical, seed=2000 + i, occluded=True)
-    clip = read_clip(path, load_config(config))
+    clip = replace(read_clip(path, load_config(config)), cloud_delay_ns=round(stamp_delay_s * 1e9))
     t0 = int(clip.pose_stamps_ns[0])  # the first pose is the motion's first frame
     frames = []
     for stamp, xyz, rgb in clip.clouds():
