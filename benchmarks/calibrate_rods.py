@@ -286,7 +286,11 @@ def main(argv: list[str] | None = None) -> int:
         "service",
         "benchmarks/calibration/clips.py",
         "benchmarks/calibration/score.py",
-        *(["benchmarks/calibration/foreign_lab.py"] if args.setup in FOREIGN_LABS else []),
+        *(
+            ["benchmarks/calibration/foreign_lab.py", "benchmarks/calibration/foreign_session.py"]
+            if args.setup in FOREIGN_LABS
+            else []
+        ),
     )
     config = dict(tracked=args.tracked, quick=args.quick, code=code)
     if args.vertices:
