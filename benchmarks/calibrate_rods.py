@@ -179,7 +179,6 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
     return clips, held, lab, session_camera(lab, positions)
 
 
-@contextmanager
 def _stamp_delay_s(run_dir: Path) -> float:
     """The clouds' stamp delay the calibration's report tells the service to take out
     (``camera.stamp_delay_s``; 0 for a report from before it estimated one)."""
@@ -187,6 +186,7 @@ def _stamp_delay_s(run_dir: Path) -> float:
     return float(report["inputs"].get("cloud_delay", {}).get("delay_s", 0.0))
 
 
+@contextmanager
 def _film(setup: str, lab, camera, config: Path, stamp_delay_s: float = 0.0):
     """How the held-out motions are filmed: None (perception's renderer with the setup's camera) or,
     for the foreign lab, its bags read back by `deform calibrate`'s reader (in a scratch directory),
