@@ -88,7 +88,7 @@ def calibrate_rod(
     from deform import DeformModel
 
     clips, held, lab, camera = _session(rod, seconds, quick, setup)
-    perception = foreign_perception(lab) if setup in FOREIGN_LABS else lab.perception()
+    perception = _perception(setup, lab)
     name = (
         f"{rod}-{int(seconds)}s"
         + (f"-{vertices}v" if vertices else "")
@@ -127,7 +127,7 @@ def calibrate_rod(
     torch.set_num_threads(1)
     calibrated = DeformModel.load(model_path)
     cfg = calibrated.cfg
-    with _film(setup, lab, camera, out / "service.yaml", _stamp_delay_s(out)) as film:
+    with _film(setup, lab, camera, out / "service.yaml", _stamp_delay_s(report)) as film:
         scores = score(
             _three_models(calibrated, rod, session.length_m, session.mass_kg),
             held,
@@ -146,7 +146,7 @@ def calibrate_rod(
         calibrate_s=round(calibrate_s, 1),
         calibrate_printed=printed,
         identified=report.get("identified"),
-        cloud_delay=report.get("inputs", {}).get("cloud_delay"),
+        cloud_delay=report["inputs"].get("cloud_delay"),
         rounds=report.get("rounds"),
         vertices=cfg.n_vertices,
         scores=scores,
@@ -179,10 +179,14 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
     return clips, held, lab, session_camera(lab, positions)
 
 
-def _stamp_delay_s(run_dir: Path) -> float:
-    """The clouds' stamp delay the calibration's report tells the service to take out
+def _perception(setup: str, lab):
+    """The perception settings a lab's user passes: its colour range over perception's defaults."""
+    return foreign_perception(lab) if setup in FOREIGN_LABS else lab.perception()
+
+
+def _stamp_delay_s(report: dict) -> float:
+    """The clouds' stamp delay a calibration's ``report.json`` tells the service to take out
     (``camera.stamp_delay_s``; 0 for a report from before it estimated one)."""
-    report = json.loads((run_dir / "report" / "report.json").read_text())
     return float(report["inputs"].get("cloud_delay", {}).get("delay_s", 0.0))
 
 
@@ -237,10 +241,10 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     torch.set_num_threads(1)
     calibrated = DeformModel.load(repo_path(old["model"]))
     models = _three_models(calibrated, rod, length_m, mass_kg)
-    perception = foreign_perception(lab) if setup in FOREIGN_LABS else lab.perception()
     run_dir = repo_path(old["model"]).parent
-    with _film(setup, lab, camera, run_dir / "service.yaml", _stamp_delay_s(run_dir)) as film:
-        scores = score(models, held, tracked, camera, perception, fps=lab.fps, film=film)
+    delay = _stamp_delay_s(json.loads((run_dir / "report" / "report.json").read_text()))
+    with _film(setup, lab, camera, run_dir / "service.yaml", delay) as film:
+        scores = score(models, held, tracked, camera, _perception(setup, lab), fps=lab.fps, film=film)
     kept = {k: v for k, v in old.items() if k not in ("key", "config", "scores")}
     return {**kept, "scores": scores, "rescored_from": old.get("rescored_from") or old["config"]["code"]}
 

@@ -98,28 +98,22 @@ def _setup(result: dict) -> list[str]:
     name = result.get("args", {}).get("setup") or "session"
     if name == "session":
         return []
-    if name not in SETUPS:
-        from benchmarks.calibration.foreign_session import FOREIGN_LABS
+    from benchmarks.calibration.foreign_session import FOREIGN_LABS
 
-        if name in FOREIGN_LABS:
-            f = FOREIGN_LABS[name]
-            return [
-                f"Filmed by the foreign lab (benchmarks/calibration/foreign_lab.py: a renderer, sensor model and "
-                f"bag writer that share no code with ours): rosbag2 sqlite3 bags, gripper poses at "
-                f"{f.pose_hz:g} Hz in the robot's base frame (world through a /tf_static chain), a TCP "
-                f"{100 * f.tcp_offset_m:g} cm beyond the grip point, {f.width}x{f.height} clouds at "
-                f"{f.fps:g} Hz with jittered stamps and {100 * f.drop_share:g} % dropped, active-stereo depth "
-                f"(disparity noise and quantization, projector shadows, missing points as zeros), a green rope "
-                f"of {2e3 * f.rope_radius_m:g} mm given by its colour range, a forearm hiding about "
-                f"{100 * f.occluded_share:g} % of the rope in one clip of every {f.occluded_every}"
-                + (
-                    f"; clouds stamped {1e3 * f.stamp_delay_s:g} ms after capture."
-                    if f.stamp_delay_s
-                    else "."
-                ),
-                "",
-            ]
-        return [f"Filmed as the lab `{name}` films.", ""]
+    if name in FOREIGN_LABS:
+        f = FOREIGN_LABS[name]
+        return [
+            f"Filmed by the foreign lab (benchmarks/calibration/foreign_lab.py: a renderer, sensor model and "
+            f"bag writer that share no code with ours): rosbag2 sqlite3 bags, gripper poses at "
+            f"{f.pose_hz:g} Hz in the robot's base frame (world through a /tf_static chain), a TCP "
+            f"{100 * f.tcp_offset_m:g} cm beyond the grip point, {f.width}x{f.height} clouds at "
+            f"{f.fps:g} Hz with jittered stamps and {100 * f.drop_share:g} % dropped, active-stereo depth "
+            f"(disparity noise and quantization, projector shadows, missing points as zeros), a green rope "
+            f"of {2e3 * f.rope_radius_m:g} mm given by its colour range, a forearm hiding about "
+            f"{100 * f.occluded_share:g} % of the rope in one clip of every {f.occluded_every}"
+            + (f"; clouds stamped {1e3 * f.stamp_delay_s:g} ms after capture." if f.stamp_delay_s else "."),
+            "",
+        ]
     s = SETUPS[name]
     return [
         f"Filmed as the lab `{name}` films: clouds at {s.fps:g} Hz, camera {s.distance_m:g} m from the "
