@@ -36,7 +36,7 @@ from perception.camera import Camera, intrinsics_from_cloud, look_at
 from perception.config import PerceptionConfig, load_config
 from perception.polyline import segment_distances
 from perception.segment import segment_rope
-from perception.tracker import Tracker
+from perception.tracker import Tracker, TrackerMoment
 
 _RENDERER = ("RenderedFrame", "camera_steps", "default_camera", "render_recording", "rope_centreline")
 
@@ -56,6 +56,7 @@ __all__ = [
     "PerceptionConfig",
     "RenderedFrame",
     "Tracker",
+    "TrackerMoment",
     "camera_steps",
     "default_camera",
     "intrinsics_from_cloud",

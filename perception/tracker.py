@@ -19,7 +19,7 @@ also keeps part of what the projection onto the rest lengths took back from the 
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
@@ -37,6 +37,20 @@ from perception.segment import segment_rope
 log = logging.getLogger(__name__)
 
 NOISE_DEPTH_BAND = 0.1  # m: the depth noise is measured this far in front of and behind the rope
+
+
+@dataclass(frozen=True)
+class TrackerMoment:
+    """What a tracker was after one model step, to go back to (:meth:`Tracker.moment`,
+    :meth:`Tracker.restore`): a cloud that arrives late is fused at the step it was taken and the
+    steps since are replayed. Health counters and the camera's length of the rope are not part of it
+    (what the camera taught since is kept)."""
+
+    state: object  # deform.RodState
+    grip: np.ndarray | None
+    observed: np.ndarray
+    since_update: float
+    residual: np.ndarray
 
 
 class Tracker:
@@ -101,6 +115,25 @@ class Tracker:
         (tracking or lost), ``lost`` / ``recovered`` / ``redetected`` counts, ``since_seen_s`` and
         the last cloud's ``disagreement``."""
         return self.health.as_dict(self.dt)
+
+    def moment(self) -> TrackerMoment | None:
+        """The tracker now, to :meth:`restore` later (None before it is initialised). Copies: a
+        few small tensors and arrays."""
+        if self.state is None:
+            return None
+        state = replace(
+            self.state, **{f.name: getattr(self.state, f.name).clone() for f in fields(self.state)}
+        )
+        grip = None if self._grip is None else self._grip.copy()
+        return TrackerMoment(state, grip, self._observed.copy(), self._since_update, self._residual.copy())
+
+    def restore(self, moment: TrackerMoment) -> None:
+        """Back to ``moment`` (from :meth:`moment` of this tracker or a copy of it)."""
+        self.state = moment.state
+        self._grip = None if moment.grip is None else moment.grip.copy()
+        self._observed = moment.observed.copy()
+        self._since_update = moment.since_update
+        self._residual = moment.residual.copy()
 
     def initialize_from_frames(self, x0: np.ndarray, x1: np.ndarray):
         """State at ``x1`` from two consecutive full observations (the paper's protocol).

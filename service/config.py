@@ -64,6 +64,10 @@ class Camera(_Strict):
     # how late the camera driver stamps its clouds against the gripper poses' clock [s] (a driver that
     # stamps on arrival; `deform calibrate` estimates it): a cloud counts as taken at its stamp less this
     stamp_delay_s: float = Field(default=0.0, ge=-1.0, le=1.0)
+    # wall clock: where in time a cloud is fused. stamp: at the tick of its stamp (the steps since are
+    # replayed), as the message clock does; arrival: at the tick its fusion starts (a camera's
+    # latency then lags the estimate)
+    fuse_at: Literal["stamp", "arrival"] = "stamp"
 
 
 class Timeouts(_Strict):

@@ -12,6 +12,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -43,6 +44,16 @@ class Cloud:
     xyz: np.ndarray  # (H, W, 3) float32, camera frame, NaN = no return
     rgb: np.ndarray  # (H, W, 3) uint8
     camera: object  # perception Camera (intrinsics + world_from_camera)
+
+
+class Tick(NamedTuple):
+    """One loop tick as cloud fusion needs it: the grip it stepped to, the stamp of the poses that
+    gave it and, when clouds are fused at their stamps, the tracker after it (its ``moment()``)."""
+
+    index: int
+    grip: np.ndarray
+    pose_ns: int
+    moment: object | None = None
 
 
 class Estimator:
@@ -77,7 +88,11 @@ class Estimator:
         # estimate
         self.initialized = False
         self.tick_index = 0
-        self.history: deque = deque(maxlen=512)  # (tick, grip) so fusion can catch up
+        self.history: deque[Tick] = deque(maxlen=512)  # so fusion can go back to a cloud's tick and catch up
+        # wall clock: a cloud is fused at the tick of its stamp (needs a tracker that can go back)
+        self.rewinds = (
+            not self.message_clock and cfg.camera.fuse_at == "stamp" and hasattr(self.tracker, "moment")
+        )
         self.estimate: Estimate | None = None
         self.prev_x: np.ndarray | None = None
         self.clock_s = 0.0  # message time of the last tick (message clock)
@@ -228,7 +243,7 @@ class Estimator:
         with self.lock:
             if self.poses is None:
                 return None
-            _, poses, grip = self.poses
+            pose_ns, poses, grip = self.poses
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
             t0 = time.perf_counter()
@@ -240,10 +255,11 @@ class Estimator:
                     x, observed = self.tracker.step(grip)
                     self.stats.step_s.add(time.perf_counter() - t0)
                 self.tick_index += 1
-                self.history.append((self.tick_index, grip))
                 while self.pending and self.pending[0].stamp_ns <= stamp_ns:
                     x, observed = self._correct(self.tracker, self.pending.pop(0))
                     self.fused_at = self.now()
+                moment = self.tracker.moment() if self.rewinds else None
+                self.history.append(Tick(self.tick_index, grip, pose_ns, moment))
             self.prev_x = self.estimate.x if self.estimate is not None else None
             self.estimate = Estimate(
                 stamp_ns,
@@ -254,6 +270,28 @@ class Estimator:
                 self.tick_index,
             )
             return self.estimate
+
+    def fusion_tick(self, stamp_ns: int) -> Tick | None:
+        """The tick a cloud taken at ``stamp_ns`` is fused at (call under ``lock``): the last whose
+        poses are not newer than it by more than half a period (the oldest kept if all are), or None
+        when clouds are fused where they arrive (the newest tick, the tracker as it is)."""
+        if not self.rewinds or not self.history:
+            return None
+        limit = stamp_ns + self.cfg.dt * NS / 2
+        chosen = self.history[0]
+        for t in self.history:
+            if t.pose_ns > limit:
+                break
+            chosen = t
+        return chosen if chosen.moment is not None else None
+
+    def rewrite_history(self, moments: dict[int, object]) -> None:
+        """The ticks a fusion replayed now hold the fused tracker's moments (call under ``lock``):
+        the next cloud goes back to what this one corrected."""
+        for j, t in enumerate(self.history):
+            m = moments.get(t.index)
+            if m is not None:
+                self.history[j] = t._replace(moment=m)
 
     def _correct(self, tracker, cloud: Cloud):
         t0 = time.perf_counter()

@@ -1,10 +1,14 @@
 """Cloud fusion off the loop thread, latest-only: the tick never waits for a cloud.
 
-A cloud is fused into a private copy of the tracker taken at tick k; the copy is then brought
-forward through the grips of the ticks that ran meanwhile and swapped in. The result equals fusing
-at tick k in the loop (same operations, same order), without the loop paying for it. The fusion
-itself runs in a worker (:mod:`service.workers`: a child process by default, so perception's
-Python-level work never holds the loop's interpreter); only the catch-up steps run here.
+A cloud is fused into a private copy of the tracker as it was at tick k, the tick of the cloud's
+stamp (``camera.fuse_at: stamp``, the default: the tracker after each tick is kept for 5 s) or the
+tick its fusion starts (``arrival``). The copy is then brought forward through the grips of the
+ticks since and swapped in. The result equals fusing at tick k in the loop (same operations, same
+order), without the loop paying for it. Why at the stamp: a camera delivers a cloud tens of
+milliseconds after it was taken and decoding adds more; a cloud fused where it arrives pulls the
+rope back to where it was then. The fusion itself runs in a worker (:mod:`service.workers`: a child
+process by default, so perception's Python-level work never holds the loop's interpreter); only the
+catch-up steps run here.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import time
 
 from service import messages as M
 from service.estimator import Estimator
-from service.workers import InlineWorker, WorkerError, pack_tracker, unpack_tracker
+from service.workers import InlineWorker, WorkerError, pack_moment, pack_tracker, unpack_tracker
 
 log = logging.getLogger("deform.service")
 
@@ -120,8 +124,14 @@ class FusionWorker(threading.Thread):
                 est._correct(est.tracker, cloud)
                 est.fused_at = est.now()
                 return
+            start = est.fusion_tick(cloud.stamp_ns)
+            if start is not None:
+                k = start.index
+        moment = None if start is None else pack_moment(start.moment)
         try:
-            fused, seconds = self.worker.call("fuse", blob, cloud, timeout=est.cfg.workers.fusion_timeout_s)
+            fused, seconds = self.worker.call(
+                "fuse", blob, cloud, moment, timeout=est.cfg.workers.fusion_timeout_s
+            )
         except WorkerError as exc:
             log.warning("cloud fusion failed in the worker: %s", exc)
             est.stats.count("fusion_errors")
@@ -130,23 +140,30 @@ class FusionWorker(threading.Thread):
         if hasattr(copy, "step_fn"):  # the worker stepped eagerly: this side's compiled step again
             copy.step_fn = est.step_fn
         est.record_fusion(cloud, seconds)
+        replayed = {k: copy.moment()} if start is not None else {}  # the history's ticks, rewritten
+
+        def catch_up(todo) -> None:
+            for t in todo:
+                copy.step(t.grip)
+                if start is not None:
+                    replayed[t.index] = copy.moment()
+
         while True:
             with est.lock:
-                todo = [(i, g) for i, g in est.history if i > k]
-                if (todo and todo[0][0] != k + 1) or len(todo) > self.max_lag:
+                todo = [t for t in est.history if t.index > k]
+                if (todo and todo[0].index != k + 1) or len(todo) > self.max_lag:
                     est.stats.drop("cloud_too_late", f"{len(todo)} ticks behind")
                     return
                 if len(todo) <= 1:  # one step left: finish under the lock and swap
                     if hasattr(copy, "step_fn"):  # (compiled meanwhile?)
                         copy.step_fn = est.step_fn
-                    for _, g in todo:
-                        copy.step(g)
+                    catch_up(todo)
                     est.tracker = copy
+                    est.rewrite_history(replayed)
                     est.fused_at = est.now()
                     est.stats.count("fusion_catchup_steps", len(todo))
                     return
-            for i, g in todo:
-                copy.step(g)
-                k = i
+            catch_up(todo)
+            k = todo[-1].index
             est.stats.count("fusion_catchup_steps", len(todo))
             time.sleep(0)

@@ -143,11 +143,22 @@ class JobContext:
             raise RuntimeError(f"the model's {self.dtype} step of a rod at rest is not finite")
 
 
-def job_fuse(ctx: JobContext, tracker_blob: bytes, cloud) -> tuple[bytes, float]:
-    """Correct a tracker copy with one cloud. -> (corrected tracker, seconds spent correcting)."""
+def pack_moment(moment) -> bytes:
+    """A tracker's moment as bytes: tensors sent as they are would go through torch's shared-memory
+    reducers, which a worker's connection cannot pass. Only ever between this service's processes."""
+    return pickle.dumps(moment, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def job_fuse(
+    ctx: JobContext, tracker_blob: bytes, cloud, moment_blob: bytes | None = None
+) -> tuple[bytes, float]:
+    """Correct a tracker copy with one cloud, first taken back to a moment (:func:`pack_moment`: the
+    tick of the cloud's stamp; None: as it is). -> (corrected tracker, seconds spent correcting)."""
     import torch
 
     tracker = unpack_tracker(tracker_blob, ctx.model)
+    if moment_blob is not None:
+        tracker.restore(pickle.loads(moment_blob))  # our own process's bytes, never network input
     t0 = time.perf_counter()
     with torch.no_grad():
         tracker.correct(cloud.xyz, cloud.rgb, cloud.camera)

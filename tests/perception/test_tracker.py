@@ -173,6 +173,37 @@ def test_rope_hidden_for_seconds_runs_open_loop(model, recording, grip_idx):
     assert np.all(np.isfinite(x)) and np.allclose(x, x_ref)  # exactly the open-loop prediction
 
 
+def test_a_tracker_taken_back_to_a_moment_goes_on_as_it_did_from_there(
+    model, recording, clear_frames, grip_idx
+):
+    """``moment`` / ``restore``: steps and a correction from a restored moment repeat what followed
+    it exactly, whatever the tracker did in between (what a late cloud fused at its stamp needs)."""
+    p = recording.positions
+    f = clear_frames[2]
+    t = Tracker(model)
+    assert t.moment() is None
+    t.initialize_from_frames(p[0], p[1])
+    for k in range(2, f.step):
+        t.step(p[k, grip_idx])
+    then = t.moment()
+
+    def go_on():
+        t.correct(f.xyz, f.rgb, f.camera)
+        for k in range(f.step, f.step + 5):
+            t.step(p[k, grip_idx])
+        return t.x, t.observed
+
+    x_first, seen_first = go_on()
+    for k in range(f.step + 5, f.step + 20):  # elsewhere meanwhile
+        t.step(p[k, grip_idx])
+    assert np.abs(t.x - x_first).max() > 1e-3
+    t.restore(then)
+    x_again, seen_again = go_on()
+    np.testing.assert_array_equal(x_again, x_first)
+    np.testing.assert_array_equal(seen_again, seen_first)
+    assert seen_first[2:-2].any()  # the cloud was fused: the restored moment was corrected too
+
+
 def test_uninitialised_tracker_does_not_raise(model, grip_idx):
     t = Tracker(model)
     x, observed = t.correct(np.zeros((10, 3), np.float32), None, Camera.kinect())

@@ -47,5 +47,12 @@ class OpenLoopTracker:
             )
         return self._out()
 
+    def moment(self):
+        """perception's Tracker's: what it was, to go back to (here the model state alone)."""
+        return self.state
+
+    def restore(self, moment):
+        self.state = moment
+
     def correct(self, points_xyz, rgb, camera):
         return self._out()

@@ -1,0 +1,69 @@
+"""Cloud fusion off the loop: a cloud that arrives late is fused at the tick of its stamp, with the
+ticks since replayed, so the estimate is the one fusing it in time would have given."""
+
+import numpy as np
+import pytest
+
+from service.estimator import Estimator
+from service.fusion import FusionWorker
+from tests.service.conftest import FakeClock, make_config
+
+LATE_TICKS = 6  # 60 ms: a camera driver's latency and the decoding
+LAST_CLOUD_TICK = 40  # clouds of later ticks are not sent: every cloud sent is fused in each run
+
+
+def _run(model, stream, fuse_at: str, late: int) -> tuple[np.ndarray, np.ndarray]:
+    """The stream's poses ticked at their stamps, each cloud fused (inline worker) ``late`` ticks
+    after the tick of its stamp: the estimates (T, n, 3) and the model states the history keeps for
+    clouds still to come (T, n, 3)."""
+    est = Estimator(make_config(camera={"fuse_at": fuse_at}), model, clock=FakeClock())
+    worker = FusionWorker(est)
+    due: dict[int, list] = {}
+    out = []
+    for m in stream:
+        if m.name == "camera_info":
+            est.on_camera_info(m.data)
+        elif m.name == "camera_pose":
+            est.on_camera_pose(m.data)
+        elif m.name == "points" and 0 < est.tick_index <= LAST_CLOUD_TICK:  # after the pose of its stamp
+            cloud = est.decode_cloud(m.data)
+            if late == 0:
+                worker.fuse(cloud)
+                out[-1] = est.tracker.x
+            else:
+                due.setdefault(est.tick_index + late, []).append(cloud)
+        elif m.name == "ee_poses":
+            assert est.on_poses(m.data)
+            est.tick(m.log_time)
+            for cloud in due.pop(est.tick_index, []):
+                worker.fuse(cloud)
+            out.append(est.tracker.x)
+    assert not due
+    kept = [t.moment.state.x[0].numpy() for t in est.history] if est.rewinds else []
+    return np.array(out), np.array(kept)
+
+
+@pytest.fixture(scope="module")
+def runs(model, sim_stream):
+    _, stream = sim_stream
+    return {
+        "in time": _run(model, stream, "stamp", 0),
+        "late, at the stamp": _run(model, stream, "stamp", LATE_TICKS),
+        "late, at arrival": _run(model, stream, "arrival", LATE_TICKS),
+        "open loop": _run(model, [m for m in stream if m.name != "points"], "stamp", 0),
+    }
+
+
+def test_a_late_cloud_fused_at_its_stamp_gives_the_estimate_of_one_in_time(runs):
+    (in_time, kept_in_time), (late, kept_late) = runs["in time"], runs["late, at the stamp"]
+    after = slice(LAST_CLOUD_TICK + LATE_TICKS, None)
+    np.testing.assert_allclose(late[after], in_time[after], rtol=0, atol=1e-9)
+    assert np.abs(in_time[after] - runs["open loop"][0][after]).max() > 1e-3  # the clouds did correct it
+    # every tick a later cloud could go back to holds what the clouds before it made of it
+    np.testing.assert_allclose(kept_late, kept_in_time, rtol=0, atol=1e-9)
+
+
+def test_a_late_cloud_fused_where_it_arrives_pulls_the_rope_back(runs):
+    in_time, late = runs["in time"][0], runs["late, at arrival"][0]
+    after = slice(LAST_CLOUD_TICK + LATE_TICKS, None)
+    assert np.abs(late[after] - in_time[after]).max() > 1e-3
