@@ -1,0 +1,224 @@
+"""The live service's tracking error when clouds arrive late: fused at the tick of their stamp (the
+default, ``camera.fuse_at: stamp``) against fused where they arrive (``arrival``), in one run.
+
+    .venv/bin/python benchmarks/service_latency.py [--latency-ms 0 50 100] [--run-s 20] [--json out.json]
+
+A camera driver delivers a cloud tens of milliseconds after it was taken (exposure, transfer, the
+driver's own processing); the service then decodes it. As in ``service_bench.py`` a feeder process
+plays a recording over Zenoh on loopback (poses at 100 Hz stamped when sent, rendered clouds at 30
+Hz, back and forth), here with each cloud published ``latency`` after its stamp. The service runs in
+this process with the default config (wall clock, fusion in a worker process, compiled step) and
+the recording's gripper convention. Every
+published estimate is compared with the recording's frame of the poses it used (found by its gripped
+vertices, which the poses set): the tracking error (two-way distance to the rope as rendered, as in
+the tracking benchmarks) [mm], mean and p90 over the estimates after a settling time, and the mean
+vertex distance to the markers. One service per fusion mode; the latencies run one after the other in each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.service_bench import frame_at, status  # noqa: E402
+from benchmarks.tracking.metric import rope_error  # noqa: E402
+
+N_FRAMES = 500  # 5 s of the recording, played back and forth
+SETTLE_S = 3.0  # estimates of the first seconds of a run are not scored (start, a new feeder)
+
+
+def feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> None:
+    """Publish poses at 100 Hz stamped when sent and clouds stamped when taken, ``latency_s`` later;
+    print the poses' (stamp, frame) as JSON at the end."""
+    import zenoh
+
+    from service import messages as M
+    from service import scenario
+    from service.config import ZenohSettings
+    from service.geometry import matrix_to_pose, poses_from_vertices
+    from service.node import open_session
+
+    positions, _ = scenario.demo_positions(N_FRAMES)
+    poses = poses_from_vertices(positions, scenario.offsets_for(positions))
+    frames = {f.step: f for f in scenario.render(positions, 0.01, fps)}
+    cam = next(iter(frames.values())).camera
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    s = open_session(ZenohSettings(connect=[endpoint], multicast_scouting=False))
+    drop = zenoh.CongestionControl.DROP
+    pp = s.declare_publisher("deform/rod1/ee_poses", congestion_control=drop)
+    pc = s.declare_publisher("deform/rod1/points", congestion_control=drop)
+    pi = s.declare_publisher("deform/rod1/camera_info")
+    pk = s.declare_publisher("deform/rod1/camera_pose")
+    print("ready", flush=True)
+    sent, due = [], []  # (stamp, frame); clouds waiting for their latency: (publish at, stamp, frame)
+    t0 = time.perf_counter()
+    k = 0
+    while time.perf_counter() - t0 < seconds:
+        now, t = time.time_ns(), time.perf_counter()
+        if k % 100 == 0:
+            pi.put(M.camera_info(now, K, cam.width, cam.height))
+            pk.put(M.pose_stamped(now, matrix_to_pose(cam.world_from_camera)))
+        i = frame_at(k, N_FRAMES)
+        pp.put(M.pose_array(now, poses[i]))
+        sent.append((now, i))
+        if i in frames:
+            due.append((t + latency_s, now, i))
+        while due and due[0][0] <= t + 1e-4:
+            _, stamp, j = due.pop(0)
+            pc.put(M.point_cloud(stamp, frames[j].xyz, frames[j].rgb))
+        k += 1
+        delay = t0 + k * 0.01 - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+    s.close()
+    print(json.dumps(sent), flush=True)
+
+
+def run_feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> list[tuple[int, int]]:
+    """The feeder as a process; returns what it sent: [(pose stamp, frame)]."""
+    p = subprocess.Popen(
+        [sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)]
+        + ["--feeder-latency-s", str(latency_s)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert p.stdout.readline().strip() == "ready"
+    out, _ = p.communicate(timeout=seconds + 120)
+    return [tuple(e) for e in json.loads(out.strip().splitlines()[-1])]
+
+
+def errors(estimates, sent, positions, grip_idx, from_ns: int) -> np.ndarray:
+    """Per estimate after ``from_ns``, against the recording's frame of the poses it used (of the
+    poses sent in the 60 ms before it, the one whose gripped vertices it holds): (k, 2) the tracking
+    error (two-way distance to the rope as rendered, :func:`benchmarks.tracking.metric.rope_error`)
+    and the mean vertex distance to the markers [m]."""
+    stamps = np.array([s for s, _ in sent])
+    frames = np.array([f for _, f in sent])
+    out = []
+    for stamp, x in estimates:
+        if stamp < from_ns:
+            continue
+        lo, hi = np.searchsorted(stamps, stamp - 60_000_000), np.searchsorted(stamps, stamp, side="right")
+        if hi <= lo:
+            continue
+        cands = np.unique(frames[lo:hi])
+        off = [np.abs(positions[c][grip_idx] - x[grip_idx]).max() for c in cands]
+        best = cands[int(np.argmin(off))]
+        out.append((rope_error(x, positions[best]), np.linalg.norm(x - positions[best], axis=-1).mean()))
+    return np.array(out).reshape(-1, 2)
+
+
+def measure(fuse_at: str, latencies: list[float], run_s: float, fps: float, positions) -> dict:
+    """One service (default config but ``camera.fuse_at``), a feeder run per latency."""
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+    from deform import gripped_indices
+    from service.client import ShapeClient
+    from service.config import load_config
+    from service.demo import free_port
+    from service.node import Service
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    from service import scenario
+
+    cfg = load_config(
+        None,
+        zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False},
+        camera={"fuse_at": fuse_at},
+        grippers=scenario.offsets_for(positions).model_dump(),  # the recording's, as the demo sets them
+    )
+    svc = Service(cfg).start()
+    client = ShapeClient(connect=[ep], timeout_s=5.0)
+    got, lock = [], threading.Lock()
+
+    def on_estimate(stamp, x, _observed):
+        with lock:
+            got.append((stamp, np.asarray(x, dtype=float)))
+
+    client.subscribe(on_estimate)
+    while not (status(client) or {}).get("step_ready"):
+        time.sleep(0.5)
+    out = {}
+    try:
+        for latency in latencies:
+            with lock:
+                got.clear()
+            s0 = status(client)
+            sent = run_feeder(ep, run_s, fps, latency)
+            s1 = status(client)
+            with lock:
+                estimates = list(got)
+            settled = sent[0][0] + int(SETTLE_S * 1e9)
+            e = errors(estimates, sent, positions, gripped_indices(len(positions[0])), settled)
+
+            def grew(key: str, s0=s0, s1=s1) -> int:
+                return s1["counts"].get(key, 0) - s0["counts"].get(key, 0)
+
+            out[f"{round(1e3 * latency)}"] = {
+                "error_mm": round(1e3 * float(e[:, 0].mean()), 2),
+                "error_p90_mm": round(1e3 * float(np.percentile(e[:, 0], 90)), 2),
+                "vertex_error_mm": round(1e3 * float(e[:, 1].mean()), 2),
+                "estimates_scored": len(e),
+                "clouds_fused": grew("clouds_fused"),
+                "catchup_steps_per_cloud": round(
+                    grew("fusion_catchup_steps") / max(grew("clouds_fused"), 1), 1
+                ),
+                "deadline_misses": grew("deadline_misses") + grew("ticks_skipped"),
+                "ticks": grew("ticks"),
+                "tick_to_publish_ms": s1["tick_to_publish_ms"],
+                "fusion_ms": s1["fusion_ms"],
+                "dropped": s1["dropped"],
+            }
+            print(fuse_at, round(1e3 * latency), json.dumps(out[f"{round(1e3 * latency)}"]), flush=True)
+    finally:
+        client.close()
+        svc.stop()
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--latency-ms", type=float, nargs="+", default=[0.0, 50.0, 100.0])
+    ap.add_argument("--run-s", type=float, default=20.0)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--json")
+    ap.add_argument("--feeder")
+    ap.add_argument("--feeder-s", type=float)
+    ap.add_argument("--feeder-latency-s", type=float, default=0.0)
+    args = ap.parse_args()
+    if args.feeder:
+        feeder(args.feeder, args.feeder_s, args.fps, args.feeder_latency_s)
+        return 0
+    from benchmarks.provenance import provenance
+    from service import scenario
+
+    positions, source = scenario.demo_positions(N_FRAMES)
+    latencies = [ms / 1e3 for ms in args.latency_ms]
+    out: dict = {**provenance(), "recording": source, "run_s": args.run_s, "fps": args.fps}
+    out["modes"] = {
+        mode: measure(mode, latencies, args.run_s, args.fps, positions) for mode in ("stamp", "arrival")
+    }
+    out["ratio_stamp_over_arrival"] = {
+        k: round(out["modes"]["stamp"][k]["error_mm"] / out["modes"]["arrival"][k]["error_mm"], 3)
+        for k in out["modes"]["stamp"]
+    }
+    print(json.dumps(out["ratio_stamp_over_arrival"]))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
