@@ -1,7 +1,7 @@
 """The live service's tracking error when clouds arrive late: fused at the tick of their stamp (the
 default, ``camera.fuse_at: stamp``) against fused where they arrive (``arrival``), in one run.
 
-    .venv/bin/python benchmarks/service_latency.py [--latency-ms 0 50 100] [--run-s 20] [--json out.json]
+    .venv/bin/python benchmarks/service_latency.py [--latency-ms 0 50 100] [--run-s 20] [--repeats 2] [--json out.json]
 
 A camera driver delivers a cloud tens of milliseconds after it was taken (exposure, transfer, the
 driver's own processing); the service then decodes it. As in ``service_bench.py`` a feeder process
@@ -37,9 +37,27 @@ N_FRAMES = 500  # 5 s of the recording, played back and forth
 SETTLE_S = 3.0  # estimates of the first seconds of a run are not scored (start, a new feeder)
 
 
-def feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> None:
-    """Publish poses at 100 Hz stamped when sent and clouds stamped when taken, ``latency_s`` later;
-    print the poses' (stamp, frame) as JSON at the end."""
+def render_frames(path: Path, fps: float) -> None:
+    """The recording's clouds, rendered once for every feeder run: ``path`` (.npz)."""
+    from service import scenario
+
+    positions, _ = scenario.demo_positions(N_FRAMES)
+    frames = scenario.render(positions, 0.01, fps)
+    cam = frames[0].camera
+    np.savez(
+        path,
+        steps=np.array([f.step for f in frames]),
+        xyz=np.stack([f.xyz for f in frames]),
+        rgb=np.stack([f.rgb for f in frames]),
+        K=np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]]),
+        size=np.array([cam.width, cam.height]),
+        world_from_camera=cam.world_from_camera,
+    )
+
+
+def feeder(endpoint: str, seconds: float, frames_path: str, latency_s: float) -> None:
+    """Publish poses at 100 Hz stamped when sent and the clouds of ``frames_path`` stamped when
+    taken, ``latency_s`` later; print the poses' (stamp, frame) as JSON at the end."""
     import zenoh
 
     from service import messages as M
@@ -50,9 +68,10 @@ def feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> None:
 
     positions, _ = scenario.demo_positions(N_FRAMES)
     poses = poses_from_vertices(positions, scenario.offsets_for(positions))
-    frames = {f.step: f for f in scenario.render(positions, 0.01, fps)}
-    cam = next(iter(frames.values())).camera
-    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    data = np.load(frames_path)
+    frames = {int(k): i for i, k in enumerate(data["steps"])}
+    xyz, rgb, K, (width, height) = data["xyz"], data["rgb"], data["K"], data["size"]
+    camera_pose = matrix_to_pose(data["world_from_camera"])
     s = open_session(ZenohSettings(connect=[endpoint], multicast_scouting=False))
     drop = zenoh.CongestionControl.DROP
     pp = s.declare_publisher("deform/rod1/ee_poses", congestion_control=drop)
@@ -66,16 +85,16 @@ def feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> None:
     while time.perf_counter() - t0 < seconds:
         now, t = time.time_ns(), time.perf_counter()
         if k % 100 == 0:
-            pi.put(M.camera_info(now, K, cam.width, cam.height))
-            pk.put(M.pose_stamped(now, matrix_to_pose(cam.world_from_camera)))
+            pi.put(M.camera_info(now, K, int(width), int(height)))
+            pk.put(M.pose_stamped(now, camera_pose))
         i = frame_at(k, N_FRAMES)
         pp.put(M.pose_array(now, poses[i]))
         sent.append((now, i))
         if i in frames:
-            due.append((t + latency_s, now, i))
+            due.append((t + latency_s, now, frames[i]))
         while due and due[0][0] <= t + 1e-4:
             _, stamp, j = due.pop(0)
-            pc.put(M.point_cloud(stamp, frames[j].xyz, frames[j].rgb))
+            pc.put(M.point_cloud(stamp, xyz[j], rgb[j]))
         k += 1
         delay = t0 + k * 0.01 - time.perf_counter()
         if delay > 0:
@@ -84,11 +103,11 @@ def feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> None:
     print(json.dumps(sent), flush=True)
 
 
-def run_feeder(endpoint: str, seconds: float, fps: float, latency_s: float) -> list[tuple[int, int]]:
+def run_feeder(endpoint: str, seconds: float, frames_path: Path, latency_s: float) -> list[tuple[int, int]]:
     """The feeder as a process; returns what it sent: [(pose stamp, frame)]."""
     p = subprocess.Popen(
-        [sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds), "--fps", str(fps)]
-        + ["--feeder-latency-s", str(latency_s)],
+        [sys.executable, __file__, "--feeder", endpoint, "--feeder-s", str(seconds)]
+        + ["--frames", str(frames_path), "--feeder-latency-s", str(latency_s)],
         stdout=subprocess.PIPE,
         text=True,
         cwd=ROOT,
@@ -119,7 +138,7 @@ def errors(estimates, sent, positions, grip_idx, from_ns: int) -> np.ndarray:
     return np.array(out).reshape(-1, 2)
 
 
-def measure(fuse_at: str, latencies: list[float], run_s: float, fps: float, positions) -> dict:
+def measure(fuse_at: str, latencies: list[float], run_s: float, frames_path: Path, positions) -> dict:
     """One service (default config but ``camera.fuse_at``), a feeder run per latency."""
     import logging
 
@@ -156,7 +175,7 @@ def measure(fuse_at: str, latencies: list[float], run_s: float, fps: float, posi
             with lock:
                 got.clear()
             s0 = status(client)
-            sent = run_feeder(ep, run_s, fps, latency)
+            sent = run_feeder(ep, run_s, frames_path, latency)
             s1 = status(client)
             with lock:
                 estimates = list(got)
@@ -179,6 +198,7 @@ def measure(fuse_at: str, latencies: list[float], run_s: float, fps: float, posi
                 "ticks": grew("ticks"),
                 "tick_to_publish_ms": s1["tick_to_publish_ms"],
                 "fusion_ms": s1["fusion_ms"],
+                "cloud_age_ms": s1.get("cloud_age_ms"),
                 "dropped": s1["dropped"],
             }
             print(fuse_at, round(1e3 * latency), json.dumps(out[f"{round(1e3 * latency)}"]), flush=True)
@@ -192,23 +212,45 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--latency-ms", type=float, nargs="+", default=[0.0, 50.0, 100.0])
     ap.add_argument("--run-s", type=float, default=20.0)
+    ap.add_argument("--repeats", type=int, default=2, help="each mode's service this many times, alternated")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--json")
     ap.add_argument("--feeder")
     ap.add_argument("--feeder-s", type=float)
     ap.add_argument("--feeder-latency-s", type=float, default=0.0)
+    ap.add_argument("--frames")
     args = ap.parse_args()
     if args.feeder:
-        feeder(args.feeder, args.feeder_s, args.fps, args.feeder_latency_s)
+        feeder(args.feeder, args.feeder_s, args.frames, args.feeder_latency_s)
         return 0
+    import tempfile
+
     from benchmarks.provenance import provenance
     from service import scenario
 
     positions, source = scenario.demo_positions(N_FRAMES)
     latencies = [ms / 1e3 for ms in args.latency_ms]
     out: dict = {**provenance(), "recording": source, "run_s": args.run_s, "fps": args.fps}
+    modes = ("stamp", "arrival")
+    runs: dict = {m: {} for m in modes}
+    with tempfile.TemporaryDirectory() as tmp:
+        frames_path = Path(tmp) / "frames.npz"
+        render_frames(frames_path, args.fps)
+        for _ in range(args.repeats):
+            for mode in modes:
+                for key, row in measure(mode, latencies, args.run_s, frames_path, positions).items():
+                    runs[mode].setdefault(key, []).append(row)
+    out["repeats"] = args.repeats
     out["modes"] = {
-        mode: measure(mode, latencies, args.run_s, args.fps, positions) for mode in ("stamp", "arrival")
+        mode: {
+            key: {
+                "error_mm": round(float(np.mean([r["error_mm"] for r in rows])), 2),
+                "error_p90_mm": round(float(np.mean([r["error_p90_mm"] for r in rows])), 2),
+                "runs": rows,
+            }
+            for key, rows in by_latency.items()
+        }
+        for mode, by_latency in runs.items()
     }
     out["ratio_stamp_over_arrival"] = {
         k: round(out["modes"]["stamp"][k]["error_mm"] / out["modes"]["arrival"][k]["error_mm"], 3)

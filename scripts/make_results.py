@@ -31,6 +31,7 @@ from results_model import (
     render_predict_planning,
     render_roofline,
     render_service,
+    render_service_latency,
     render_speed,
     render_startup,
 )
@@ -62,6 +63,10 @@ KNOWN = {
     "service_soak.json": (
         "Service: 30-minute soak",
         "python benchmarks/service_bench.py --loop-s 30 --soak-s 1800 --predict-n 20 --json benchmarks/results/service_soak.json",
+    ),
+    "service_latency.json": (
+        "Service: clouds arriving late, fused at their stamp or at arrival",
+        "python benchmarks/service_latency.py --run-s 30 --json benchmarks/results/service_latency.json",
     ),
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
@@ -138,6 +143,7 @@ RENDER = {
     "perception.json": render_perception,
     "service.json": render_service,
     "service_soak.json": render_service,
+    "service_latency.json": render_service_latency,
     "baselines.json": render_baselines,
     "ablations.json": render_ablations,
     "diagnose.json": render_diagnose,

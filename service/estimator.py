@@ -67,6 +67,7 @@ class Estimator:
     ):
         self.cfg, self.model = cfg, model
         self.clock = clock  # wall time (s) for arrivals, ages and the cloud rate limit; tests pass a fake
+        self.wall_ns = time.time_ns  # the clock message stamps are on (a cloud's age when fused)
         self.tracker = tracker if tracker is not None else make_tracker(model, config=cfg.perception)
         self.stats = stats or Stats(cfg.namespace)
         self.lock = threading.RLock()
@@ -334,6 +335,7 @@ class Estimator:
             "step_ms": self.stats.step_s.summary(),
             "tick_to_publish_ms": self.stats.publish_s.summary(),
             "fusion_ms": self.stats.fusion_s.summary(),
+            "cloud_age_ms": self.stats.cloud_age_s.summary(),
             "predict_ms": self.stats.predict_s.summary(),
             "predict_compute_ms": self.stats.predict_compute_s.summary(),
             "deadline_misses": snap["counts"].get("deadline_misses", 0),

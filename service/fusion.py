@@ -161,6 +161,7 @@ class FusionWorker(threading.Thread):
                     est.tracker = copy
                     est.rewrite_history(replayed)
                     est.fused_at = est.now()
+                    est.stats.cloud_age_s.add((est.wall_ns() - cloud.stamp_ns) / 1e9)
                     est.stats.count("fusion_catchup_steps", len(todo))
                     return
             catch_up(todo)

@@ -57,6 +57,7 @@ class Stats:
         self.step_s = Rolling()
         self.publish_s = Rolling()  # tick start -> vertices handed to Zenoh
         self.fusion_s = Rolling(500)
+        self.cloud_age_s = Rolling(500)  # wall clock: a cloud's stamp -> its correction in the estimate
         self.predict_s = Rolling(200)  # a predict job handed to the worker -> its reply back (IPC included)
         self.predict_compute_s = Rolling(200)  # the same job inside the worker: parse, rollout, encode
         self.tick_starts = deque(maxlen=500)

@@ -17,6 +17,8 @@ def _run(model, stream, fuse_at: str, late: int) -> tuple[np.ndarray, np.ndarray
     after the tick of its stamp: the estimates (T, n, 3) and the model states the history keeps for
     clouds still to come (T, n, 3)."""
     est = Estimator(make_config(camera={"fuse_at": fuse_at}), model, clock=FakeClock())
+    now = [0]
+    est.wall_ns = lambda: now[0]  # the poses' clock: a cloud's age when fused is exact
     worker = FusionWorker(est)
     due: dict[int, list] = {}
     out = []
@@ -34,13 +36,14 @@ def _run(model, stream, fuse_at: str, late: int) -> tuple[np.ndarray, np.ndarray
                 due.setdefault(est.tick_index + late, []).append(cloud)
         elif m.name == "ee_poses":
             assert est.on_poses(m.data)
+            now[0] = m.log_time
             est.tick(m.log_time)
             for cloud in due.pop(est.tick_index, []):
                 worker.fuse(cloud)
             out.append(est.tracker.x)
     assert not due
     kept = [t.moment.state.x[0].numpy() for t in est.history] if est.rewinds else []
-    return np.array(out), np.array(kept)
+    return np.array(out), np.array(kept), est.status()
 
 
 @pytest.fixture(scope="module")
@@ -55,12 +58,13 @@ def runs(model, sim_stream):
 
 
 def test_a_late_cloud_fused_at_its_stamp_gives_the_estimate_of_one_in_time(runs):
-    (in_time, kept_in_time), (late, kept_late) = runs["in time"], runs["late, at the stamp"]
+    (in_time, kept_in_time, _), (late, kept_late, status) = runs["in time"], runs["late, at the stamp"]
     after = slice(LAST_CLOUD_TICK + LATE_TICKS, None)
     np.testing.assert_allclose(late[after], in_time[after], rtol=0, atol=1e-9)
     assert np.abs(in_time[after] - runs["open loop"][0][after]).max() > 1e-3  # the clouds did correct it
     # every tick a later cloud could go back to holds what the clouds before it made of it
     np.testing.assert_allclose(kept_late, kept_in_time, rtol=0, atol=1e-9)
+    assert status["cloud_age_ms"]["p50"] == status["cloud_age_ms"]["max"] == pytest.approx(10 * LATE_TICKS)
 
 
 def test_a_late_cloud_fused_where_it_arrives_pulls_the_rope_back(runs):
