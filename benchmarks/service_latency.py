@@ -1,18 +1,23 @@
-"""The live service's tracking error when clouds arrive late: fused at the tick of their stamp (the
-default, ``camera.fuse_at: stamp``) against fused where they arrive (``arrival``), in one run.
+"""The live service's tracking error when clouds arrive late: the default (clouds fused at the tick of
+their stamp, ``camera.fuse_at: stamp``) against the service before (fused where they arrive) and
+with the poses sampled one period a tick by their stamps (``pose_delay_s``), in one run. The live
+runs move by up to 2x from one service start to the next (an intermittent regime of repeated
+redetections in every mode, not understood yet), so ``benchmarks/service_timing.py`` is the
+measurement of record; this is the check on the live system.
 
     .venv/bin/python benchmarks/service_latency.py [--latency-ms 0 50 100] [--run-s 20] [--repeats 2] [--json out.json]
 
 A camera driver delivers a cloud tens of milliseconds after it was taken (exposure, transfer, the
 driver's own processing); the service then decodes it. As in ``service_bench.py`` a feeder process
-plays a recording over Zenoh on loopback (poses at 100 Hz stamped when sent, rendered clouds at 30
-Hz, back and forth), here with each cloud published ``latency`` after its stamp. The service runs in
+plays a recording over Zenoh on loopback (poses at 100 Hz stamped on schedule, sent when the feeder
+gets to it, rendered clouds at 30 Hz, back and forth), here with each cloud published ``latency``
+after its stamp. The service runs in
 this process with the default config (wall clock, fusion in a worker process, compiled step) and
 the recording's gripper convention. Every
-published estimate is compared with the recording's frame of the poses it used (found by its gripped
-vertices, which the poses set): the tracking error (two-way distance to the rope as rendered, as in
+published estimate is compared with the recording at the time of the poses it used (found by its
+gripped vertices, which the poses set): the tracking error (two-way distance to the rope as rendered, as in
 the tracking benchmarks) [mm], mean and p90 over the estimates after a settling time, and the mean
-vertex distance to the markers. One service per fusion mode; the latencies run one after the other in each.
+vertex distance to the markers.
 """
 
 from __future__ import annotations
@@ -80,10 +85,12 @@ def feeder(endpoint: str, seconds: float, frames_path: str, latency_s: float) ->
     pk = s.declare_publisher("deform/rod1/camera_pose")
     print("ready", flush=True)
     sent, due = [], []  # (stamp, frame); clouds waiting for their latency: (publish at, stamp, frame)
-    t0 = time.perf_counter()
+    t0, t0_ns = time.perf_counter(), time.time_ns()
     k = 0
     while time.perf_counter() - t0 < seconds:
-        now, t = time.time_ns(), time.perf_counter()
+        # stamped when measured, on schedule (as a robot's controller stamps its poses), sent when the
+        # feeder gets to it: a busy feeder sends late and in bursts
+        now, t = t0_ns + k * 10_000_000, time.perf_counter()
         if k % 100 == 0:
             pi.put(M.camera_info(now, K, int(width), int(height)))
             pk.put(M.pose_stamped(now, camera_pose))
@@ -118,10 +125,11 @@ def run_feeder(endpoint: str, seconds: float, frames_path: Path, latency_s: floa
 
 
 def errors(estimates, sent, positions, grip_idx, from_ns: int) -> np.ndarray:
-    """Per estimate after ``from_ns``, against the recording's frame of the poses it used (of the
-    poses sent in the 60 ms before it, the one whose gripped vertices it holds): (k, 2) the tracking
-    error (two-way distance to the rope as rendered, :func:`benchmarks.tracking.metric.rope_error`)
-    and the mean vertex distance to the markers [m]."""
+    """Per estimate after ``from_ns``, against the recording at the time of the poses it used: of
+    the pairs of consecutive poses sent in the 60 ms before it, the one whose gripped vertices,
+    interpolated, hold its own (it may have stepped to poses between two), and the rope interpolated
+    the same way. (k, 2): the tracking error (two-way distance to the rope as rendered,
+    :func:`benchmarks.tracking.metric.rope_error`) and the mean vertex distance to the markers [m]."""
     stamps = np.array([s for s, _ in sent])
     frames = np.array([f for _, f in sent])
     out = []
@@ -129,17 +137,32 @@ def errors(estimates, sent, positions, grip_idx, from_ns: int) -> np.ndarray:
         if stamp < from_ns:
             continue
         lo, hi = np.searchsorted(stamps, stamp - 60_000_000), np.searchsorted(stamps, stamp, side="right")
-        if hi <= lo:
+        best = None
+        for j in range(lo, min(hi, len(frames) - 1)):
+            g0, g1 = positions[frames[j]][grip_idx], positions[frames[j + 1]][grip_idx]
+            d = g1 - g0
+            a = float(np.clip(np.sum((x[grip_idx] - g0) * d) / max(np.sum(d * d), 1e-12), 0.0, 1.0))
+            off = np.abs(g0 + a * d - x[grip_idx]).max()
+            if best is None or off < best[0]:
+                best = (off, j, a)
+        if best is None:
             continue
-        cands = np.unique(frames[lo:hi])
-        off = [np.abs(positions[c][grip_idx] - x[grip_idx]).max() for c in cands]
-        best = cands[int(np.argmin(off))]
-        out.append((rope_error(x, positions[best]), np.linalg.norm(x - positions[best], axis=-1).mean()))
+        _, j, a = best
+        truth = (1 - a) * positions[frames[j]] + a * positions[frames[j + 1]]
+        out.append((rope_error(x, truth), np.linalg.norm(x - truth, axis=-1).mean()))
     return np.array(out).reshape(-1, 2)
 
 
-def measure(fuse_at: str, latencies: list[float], run_s: float, frames_path: Path, positions) -> dict:
-    """One service (default config but ``camera.fuse_at``), a feeder run per latency."""
+MODES = {
+    # the service before: clouds fused where they arrive, each tick to the newest pose
+    "arrival, newest pose": {"camera": {"fuse_at": "arrival"}, "pose_delay_s": 0.0},
+    "stamp, newest pose": {"camera": {"fuse_at": "stamp"}, "pose_delay_s": 0.0},  # the default
+    "stamp, steady poses": {"camera": {"fuse_at": "stamp"}, "pose_delay_s": 0.015},  # 1.5 pose intervals
+}
+
+
+def measure(mode: dict, latencies: list[float], run_s: float, frames_path: Path, positions) -> dict:
+    """One service (the default config but ``mode``), a feeder run per latency."""
     import logging
 
     logging.basicConfig(level=logging.WARNING)
@@ -155,7 +178,7 @@ def measure(fuse_at: str, latencies: list[float], run_s: float, frames_path: Pat
     cfg = load_config(
         None,
         zenoh={"mode": "peer", "listen": [ep], "multicast_scouting": False},
-        camera={"fuse_at": fuse_at},
+        **mode,
         grippers=scenario.offsets_for(positions).model_dump(),  # the recording's, as the demo sets them
     )
     svc = Service(cfg).start()
@@ -201,7 +224,7 @@ def measure(fuse_at: str, latencies: list[float], run_s: float, frames_path: Pat
                 "cloud_age_ms": s1.get("cloud_age_ms"),
                 "dropped": s1["dropped"],
             }
-            print(fuse_at, round(1e3 * latency), json.dumps(out[f"{round(1e3 * latency)}"]), flush=True)
+            print(mode, round(1e3 * latency), json.dumps(out[f"{round(1e3 * latency)}"]), flush=True)
     finally:
         client.close()
         svc.stop()
@@ -231,14 +254,13 @@ def main() -> int:
     positions, source = scenario.demo_positions(N_FRAMES)
     latencies = [ms / 1e3 for ms in args.latency_ms]
     out: dict = {**provenance(), "recording": source, "run_s": args.run_s, "fps": args.fps}
-    modes = ("stamp", "arrival")
-    runs: dict = {m: {} for m in modes}
+    runs: dict = {m: {} for m in MODES}
     with tempfile.TemporaryDirectory() as tmp:
         frames_path = Path(tmp) / "frames.npz"
         render_frames(frames_path, args.fps)
         for _ in range(args.repeats):
-            for mode in modes:
-                for key, row in measure(mode, latencies, args.run_s, frames_path, positions).items():
+            for mode in MODES:
+                for key, row in measure(MODES[mode], latencies, args.run_s, frames_path, positions).items():
                     runs[mode].setdefault(key, []).append(row)
     out["repeats"] = args.repeats
     out["modes"] = {
@@ -252,11 +274,9 @@ def main() -> int:
         }
         for mode, by_latency in runs.items()
     }
-    out["ratio_stamp_over_arrival"] = {
-        k: round(out["modes"]["stamp"][k]["error_mm"] / out["modes"]["arrival"][k]["error_mm"], 3)
-        for k in out["modes"]["stamp"]
-    }
-    print(json.dumps(out["ratio_stamp_over_arrival"]))
+    now, before = out["modes"]["stamp, newest pose"], out["modes"]["arrival, newest pose"]
+    out["ratio_default_over_before"] = {k: round(now[k]["error_mm"] / before[k]["error_mm"], 3) for k in now}
+    print(json.dumps(out["ratio_default_over_before"]))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
     return 0

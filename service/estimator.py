@@ -20,6 +20,7 @@ import torch
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
+from service.pose_timeline import PoseTimeline
 from service.stats import Stats
 from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker
 
@@ -76,6 +77,9 @@ class Estimator:
         self.cloud_delay_ns = round(cfg.camera.stamp_delay_s * NS)
         # latest inputs
         self.poses: tuple[int, np.ndarray, np.ndarray] | None = None  # stamp, (2,7) poses, (4,3) grip
+        # wall clock: the poses sampled one period a tick by their stamps (None: the newest as it is)
+        steady = not self.message_clock and cfg.pose_delay_s != 0
+        self.timeline = PoseTimeline(cfg.dt, cfg.pose_delay_s) if steady else None
         self.newest_ns: int | None = None
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.fitted_intrinsics: dict[tuple[int, int], np.ndarray] = {}  # (w, h) -> K of the clouds' own
@@ -141,6 +145,8 @@ class Estimator:
     def set_poses(self, parsed) -> None:
         with self.lock:
             self.poses = parsed
+            if self.timeline is not None:
+                self.timeline.add(parsed[0], parsed[1])
             self._see(parsed[0])
             self._arrive("ee_poses", parsed[0])
 
@@ -245,6 +251,9 @@ class Estimator:
             if self.poses is None:
                 return None
             pose_ns, poses, grip = self.poses
+            if self.timeline is not None:
+                pose_ns, poses = self.timeline.next()
+                grip = grips_from_poses(poses, self.cfg.grippers)
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
             t0 = time.perf_counter()

@@ -16,7 +16,9 @@ def _run(model, stream, fuse_at: str, late: int) -> tuple[np.ndarray, np.ndarray
     """The stream's poses ticked at their stamps, each cloud fused (inline worker) ``late`` ticks
     after the tick of its stamp: the estimates (T, n, 3) and the model states the history keeps for
     clouds still to come (T, n, 3)."""
-    est = Estimator(make_config(camera={"fuse_at": fuse_at}), model, clock=FakeClock())
+    # pose_delay_s 0: each tick steps to its own pose, so "the tick of a stamp" is that pose's tick
+    cfg = make_config(camera={"fuse_at": fuse_at}, pose_delay_s=0)
+    est = Estimator(cfg, model, clock=FakeClock())
     now = [0]
     est.wall_ns = lambda: now[0]  # the poses' clock: a cloud's age when fused is exact
     worker = FusionWorker(est)

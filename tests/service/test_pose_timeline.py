@@ -1,0 +1,92 @@
+"""The gripper poses sampled one loop period a tick by their stamps, whatever their arrival pattern."""
+
+import numpy as np
+import pytest
+
+from service.pose_timeline import NS, PoseTimeline, interpolate_poses
+from tests.service.conftest import FakeClock, make_config
+
+DT_NS = 10_000_000
+T0 = 1_700_000_000 * NS
+
+
+def _pose(t_ns: int) -> np.ndarray:
+    """Two gripper poses moving at 0.2 m/s along x and turning about z at 1 rad/s (exact in time)."""
+    s = (t_ns - T0) / NS
+    out = np.zeros((2, 7))
+    out[:, 0] = [-0.3 + 0.2 * s, 0.3 + 0.2 * s]
+    out[:, 5], out[:, 6] = np.sin(s / 2), np.cos(s / 2)
+    return out
+
+
+def test_interpolation_halfway_and_on_the_short_arc():
+    a, b = _pose(T0), _pose(T0 + DT_NS)
+    mid = interpolate_poses(T0, a, T0 + DT_NS, b, T0 + DT_NS // 2)
+    np.testing.assert_allclose(mid, _pose(T0 + DT_NS // 2), atol=1e-9)
+    flipped = b.copy()
+    flipped[:, 3:] *= -1  # the same orientation written with the other sign
+    np.testing.assert_allclose(interpolate_poses(T0, a, T0 + DT_NS, flipped, T0 + DT_NS // 2), mid, atol=1e-9)
+    np.testing.assert_allclose(interpolate_poses(T0, a, T0 + DT_NS, b, T0 + 3 * DT_NS), b)  # clamped
+
+
+def _arrivals(seed: int, ticks: int):
+    """Poses stamped every 8 ms (125 Hz) arriving in bursts: per 10 ms tick, 0 to 3 of them."""
+    rng = np.random.default_rng(seed)
+    k, out = 0, []
+    for tick in range(ticks):
+        due = T0 + (tick + 1) * DT_NS
+        batch = []
+        while T0 + k * 8_000_000 <= due and (rng.random() < 0.6 or not batch):
+            batch.append(T0 + k * 8_000_000)
+            k += 1
+        out.append(batch)
+    return out
+
+
+def test_samples_advance_one_period_a_tick_and_lie_on_the_motion_whatever_the_arrivals():
+    timeline = PoseTimeline(0.01)
+    taus, newest, covered = [], [], 0
+    for tick, batch in enumerate(_arrivals(0, 300)):
+        for t in batch:
+            timeline.add(t, _pose(t))
+        tau, poses = timeline.next()
+        taus.append(tau)
+        newest.append(batch[-1] if batch else newest[-1])
+        if tau <= newest[-1]:  # between two poses: on the motion
+            np.testing.assert_allclose(poses, _pose(tau), atol=1e-6)
+            covered += tick >= 100
+    assert covered >= 0.9 * 200  # the delay keeps the samples behind the newest pose
+    steps = np.diff(taus[100:]) / DT_NS
+    assert np.abs(steps - 1).max() < 0.35  # even steps once following ...
+    assert np.abs(np.diff(newest[100:]) / DT_NS - 1).max() >= 0.6  # ... where the newest pose jumps
+    assert timeline.delay_ns() == pytest.approx(12_000_000)  # 1.5 intervals of 8 ms
+
+
+def test_a_pause_longer_than_the_reset_is_jumped():
+    timeline = PoseTimeline(0.01, delay_s=0.02)
+    for k in range(20):
+        timeline.add(T0 + k * DT_NS, _pose(T0 + k * DT_NS))
+        timeline.next()
+    later = T0 + 5 * NS
+    timeline.add(later, _pose(later))
+    tau, _ = timeline.next()
+    assert tau == later - 20_000_000
+
+
+def test_a_wall_clock_estimator_steps_evenly_on_bursty_poses(model):
+    """The history's pose times advance one period a tick (``pose_delay_s`` 12 ms), or repeat and
+    jump (0, the default)."""
+    from service import messages as M
+    from service.estimator import Estimator
+    from tests.service.open_loop_tracker import OpenLoopTracker
+
+    steps = {}
+    for delay in (0.012, 0.0):
+        est = Estimator(make_config(pose_delay_s=delay), model, OpenLoopTracker(model, 5), clock=FakeClock())
+        for tick, batch in enumerate(_arrivals(1, 120)):
+            for t in batch:
+                assert est.on_poses(M.pose_array(t, _pose(t)))
+            est.tick(T0 + (tick + 1) * DT_NS)
+        steps[delay] = np.diff([t.pose_ns for t in est.history])[60:] / DT_NS
+    assert np.abs(steps[0.012] - 1).max() < 0.35
+    assert np.abs(steps[0.0] - 1).max() >= 0.6  # 0.8 and 1.6 periods: the gripper lurches
