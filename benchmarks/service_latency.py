@@ -190,7 +190,8 @@ def measure(mode: dict, latencies: list[float], run_s: float, frames_path: Path,
             got.append((stamp, np.asarray(x, dtype=float)))
 
     client.subscribe(on_estimate)
-    while not (status(client) or {}).get("step_ready"):
+    # the predict worker compiles its rollout at start-up (a core for tens of seconds): wait for it too
+    while not all((status(client) or {}).get(k) for k in ("predict_ready", "step_ready")):
         time.sleep(0.5)
     out = {}
     try:

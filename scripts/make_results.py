@@ -31,7 +31,7 @@ from results_model import (
     render_predict_planning,
     render_roofline,
     render_service,
-    render_service_latency,
+    render_service_timing,
     render_speed,
     render_startup,
 )
@@ -64,9 +64,9 @@ KNOWN = {
         "Service: 30-minute soak",
         "python benchmarks/service_bench.py --loop-s 30 --soak-s 1800 --predict-n 20 --json benchmarks/results/service_soak.json",
     ),
-    "service_latency.json": (
-        "Service: clouds arriving late, fused at their stamp or at arrival",
-        "python benchmarks/service_latency.py --run-s 30 --json benchmarks/results/service_latency.json",
+    "service_timing.json": (
+        "Service: clouds arriving late, poses in bursts (simulated clock)",
+        "python benchmarks/service_timing.py --ticks 1500 --json benchmarks/results/service_timing.json",
     ),
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
@@ -143,7 +143,7 @@ RENDER = {
     "perception.json": render_perception,
     "service.json": render_service,
     "service_soak.json": render_service,
-    "service_latency.json": render_service_latency,
+    "service_timing.json": render_service_timing,
     "baselines.json": render_baselines,
     "ablations.json": render_ablations,
     "diagnose.json": render_diagnose,
