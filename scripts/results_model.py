@@ -135,7 +135,10 @@ def render_service_timing(d: dict) -> list[str]:
     latencies = list(next(iter(modes.values()), {}))
     rows = [
         [f"{key} ms"]
-        + [f"{fmt(get(m, key, 'error_mm'), 2)} / {fmt(get(m, key, 'error_p90_mm'), 2)}" for m in modes.values()]
+        + [
+            f"{fmt(get(m, key, 'error_mm'), 2)} / {fmt(get(m, key, 'error_p90_mm'), 2)}"
+            for m in modes.values()
+        ]
         + [fmt(get(d, "ratio_default_over_before", key), 2)]
         for key in latencies
     ]
