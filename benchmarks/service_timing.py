@@ -7,11 +7,14 @@ default config otherwise) driven tick by tick on a simulated clock, so that ever
 the same inputs and the figures do not move with the machine's load (``service_latency.py`` runs the
 live service; its runs vary by 2x from one service start to the next, see docs/service.md). The
 recording is played back and forth at 100 Hz; poses are stamped on schedule and reach the loop in
-bursts (per tick 0, 1 or 2 of them, the loop's clock drifting against the robot's by 0.5 %); each
-cloud (30 Hz) is fused ``latency`` plus 20-40 ms (transport, decoding) after its stamp. Modes: the
-service before (clouds fused where they arrive, each tick to the newest pose), the default (clouds
-fused at their stamp), and that with the poses sampled one period a tick by their stamps
-(``pose_delay_s`` 15 ms, off by default). Error: the
+bursts (on a fifth of the ticks the sender is busy and what was due comes with the next; the loop's
+clock drifts against the robot's by 0.5 %); the
+camera takes clouds at 30 Hz on its own clock (a random phase against the poses; each rendered from
+the rope at its time), and each is fused ``latency`` plus 20-40 ms (transport, decoding) after its
+stamp. Modes: the
+service before (clouds fused where they arrive, each tick to the newest pose), clouds fused at their
+stamp alone, and the defaults (also the poses sampled one period a tick by their stamps,
+``pose_delay_s``). Error: the
 tracking error (two-way distance to the rope as rendered) of the estimate after each tick against the
 recording at the time of the poses it stepped to, mean and p90 after the first 3 s.
 """
@@ -30,14 +33,53 @@ sys.path.insert(0, str(ROOT))
 
 MODES = {
     "arrival, newest pose": {"camera": {"fuse_at": "arrival"}, "pose_delay_s": 0.0},
-    "stamp, newest pose": {"camera": {"fuse_at": "stamp"}, "pose_delay_s": 0.0},  # the default
-    "stamp, steady poses": {"camera": {"fuse_at": "stamp"}, "pose_delay_s": 0.015},  # 1.5 pose intervals
+    "stamp, newest pose": {"camera": {"fuse_at": "stamp"}, "pose_delay_s": 0.0},
+    "stamp, steady poses": {},  # the defaults (pose_delay_s: 1.5 pose intervals)
 }
 N_FRAMES = 500
 DT_NS = 10_000_000
 T0 = 1_700_000_000 * 10**9
 SETTLE_TICKS = 300
+NS = 10**9
+CAMERA_HZ = 30.0
 DRIFT = 0.005  # the loop's clock runs this much fast against the robot's
+BUSY = 0.2  # the pose sender's share of ticks too busy to send (what was due then comes in a burst)
+
+
+def played(positions: np.ndarray, t_ns: int) -> np.ndarray:
+    """The rope at time ``t_ns`` of the playback (frame ``frame_at(k)`` at ``T0 + k dt``, linear between)."""
+    from benchmarks.service_bench import frame_at
+
+    k, r = divmod(t_ns - T0, DT_NS)
+    a = r / DT_NS
+    return (1 - a) * positions[frame_at(k, N_FRAMES)] + a * positions[frame_at(k + 1, N_FRAMES)]
+
+
+_CLOUDS: dict = {}
+
+
+def clouds(positions: np.ndarray, ticks: int, seed: int = 0) -> list[tuple[int, object]]:
+    """The camera's clouds over ``ticks`` periods: taken at 30 Hz from a random phase (a camera runs on
+    its own clock, unrelated to the robot's poses), each rendered from the rope at its time, stamped
+    with it. Rendered once for every mode."""
+    key = (ticks, seed)
+    if key not in _CLOUDS:
+        from perception import default_camera, load_config, render_recording
+
+        rng = np.random.default_rng(seed + 1)
+        offset = int(rng.integers(0, DT_NS))
+        stamps = [T0 + offset + round(c * NS / CAMERA_HZ) for c in range(int(ticks * 0.01 * CAMERA_HZ))]
+        shapes = np.stack([played(positions, t) for t in stamps])
+        cfg = load_config(None).render
+        frames = render_recording(
+            shapes,
+            dt=1 / CAMERA_HZ,
+            steps=range(len(stamps)),
+            camera=default_camera(positions, cfg),
+            seed=seed,
+        )
+        _CLOUDS[key] = list(zip(stamps, frames, strict=True))
+    return _CLOUDS[key]
 
 
 def run(mode: dict, latency_s: float, ticks: int, seed: int = 0) -> dict:
@@ -57,46 +99,37 @@ def run(mode: dict, latency_s: float, ticks: int, seed: int = 0) -> dict:
     positions, _ = scenario.demo_positions(N_FRAMES)
     grippers = scenario.offsets_for(positions)
     poses = poses_from_vertices(positions, grippers)
-    frames = {f.step: f for f in scenario.render(positions, 0.01, 30.0)}
+    camera_clouds = clouds(positions, ticks, seed)
     cfg = load_config(None, compile_step=False, grippers=grippers.model_dump(), **mode)
     est = Estimator(cfg, load_model(cfg.rod))
     fusion = FusionWorker(est)
-    cam = next(iter(frames.values())).camera
+    cam = camera_clouds[0][1].camera
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
     est.on_camera_info(M.camera_info(T0, K, cam.width, cam.height))
     est.on_camera_pose(M.pose_stamped(T0, matrix_to_pose(cam.world_from_camera)))
     rng = np.random.default_rng(seed)
-    sent, clouds, errors = 0, [], []
-    frame_of = {}  # pose stamp -> frame
+    ready = [  # (fused from, cloud): the camera's latency plus 20-40 ms of transport and decoding
+        (stamp + round((latency_s + rng.uniform(0.02, 0.04)) * NS), stamp, frame)
+        for stamp, frame in camera_clouds
+    ]
+    sent, errors = 0, []
     for tick in range(ticks):
         now = T0 + round(tick * DT_NS * (1 + DRIFT))
-        # the poses due by now, sent in a burst of at most two (a busy sender catches up)
-        burst = int(rng.choice([0, 1, 2], p=[0.2, 0.6, 0.2]))
-        for _ in range(burst):
-            stamp = T0 + sent * DT_NS
-            if stamp > now:
-                break
-            i = frame_at(sent, N_FRAMES)
-            frame_of[stamp] = i
-            assert est.on_poses(M.pose_array(stamp, poses[i]))
-            if i in frames:
-                ready = stamp + round((latency_s + rng.uniform(0.02, 0.04)) * 1e9)
-                clouds.append((ready, M.point_cloud(stamp, frames[i].xyz, frames[i].rgb)))
+        # the poses due by now, unless the sender is busy this tick (then they come with the next)
+        busy = rng.random() < BUSY
+        while not busy and T0 + sent * DT_NS <= now:
+            assert est.on_poses(M.pose_array(T0 + sent * DT_NS, poses[frame_at(sent, N_FRAMES)]))
             sent += 1
         if est.poses is None:
             continue
         est.tick(now)
-        while clouds and clouds[0][0] <= now:
-            fusion.fuse(est.decode_cloud(clouds.pop(0)[1]))
+        while ready and ready[0][0] <= now:
+            _, stamp, f = ready.pop(0)
+            fusion.fuse(est.decode_cloud(M.point_cloud(stamp, f.xyz, f.rgb)))
         if tick >= SETTLE_TICKS:
             # the time the state was stepped to (a sample past the newest pose holds that pose)
             t = min(est.history[-1].pose_ns, T0 + (sent - 1) * DT_NS)
-            k = (t - T0) // DT_NS
-            a = (t - T0 - k * DT_NS) / DT_NS
-            f0 = frame_of[T0 + k * DT_NS]
-            f1 = frame_of.get(T0 + (k + 1) * DT_NS, f0)
-            truth = (1 - a) * positions[f0] + a * positions[f1]
-            errors.append(rope_error(est.tracker.x, truth))
+            errors.append(rope_error(est.tracker.x, played(positions, t)))
     e = 1e3 * np.array(errors)
     return {
         "error_mm": round(float(e.mean()), 2),
@@ -123,7 +156,7 @@ def main() -> int:
             row = run(mode, ms / 1e3, args.ticks)
             out["modes"][name][f"{ms:g}"] = row
             print(name, ms, json.dumps(row), flush=True)
-    now, before = out["modes"]["stamp, newest pose"], out["modes"]["arrival, newest pose"]
+    now, before = out["modes"]["stamp, steady poses"], out["modes"]["arrival, newest pose"]
     out["ratio_default_over_before"] = {k: round(now[k]["error_mm"] / before[k]["error_mm"], 3) for k in now}
     print(json.dumps(out["ratio_default_over_before"]))
     if args.json:

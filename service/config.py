@@ -178,12 +178,11 @@ class ServiceConfig(_Strict):
     rod: str = "DLO1"
     rate_hz: float = Field(default=100.0, gt=0, le=1000)
     clock: Literal["wall", "message"] = "wall"
-    # wall clock: 0 (default): each tick steps to the newest pose as it arrived (jitter then steps the
-    # model unevenly); > 0: to the poses this long before the newest stamp, interpolated between the
-    # two around it, advancing one period a tick (service/pose_timeline.py); null: 1.5 times the
-    # poses' median interval. Measured (benchmarks/service_timing.py): better with 100 ms camera
-    # latency and bursty poses, worse without latency, so off by default
-    pose_delay_s: float | None = Field(default=0.0, ge=0, le=1)
+    # wall clock: each tick steps to the gripper poses this long before the newest stamp, interpolated
+    # between the two around it, advancing one period a tick (service/pose_timeline.py); null
+    # (default): 1.5 times the poses' median interval; 0: the newest pose as it arrived (poses in
+    # bursts, or at another rate than the loop's, then step the model unevenly)
+    pose_delay_s: float | None = Field(default=None, ge=0, le=1)
     torch_threads: int = Field(default=1, ge=1)
     realtime_priority: int | None = Field(
         default=10, ge=1, le=99
