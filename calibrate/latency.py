@@ -23,9 +23,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calibrate.bags import Clip
-from calibrate.tracks import interpolate_poses
 from service.config import Grippers
-from service.geometry import grips_from_poses
+from service.geometry import grips_from_poses, interpolate_poses
 
 DELAYS_S = np.round(np.arange(-0.1, 0.2 + 1e-9, 0.005), 3)  # the candidates: 100 ms early to 200 ms late
 CAP_M = 0.03  # a distance above this is a hidden or unsegmented end: it counts as this

@@ -5,7 +5,7 @@ The gripper poses are interpolated to the model's step :math:`\Delta t` (10 ms) 
 :math:`t_k = t_0 + k \Delta t` (positions linearly, orientations by normalised linear interpolation
 of the quaternions after aligning their signs: the poses come at 100 Hz or faster, where nlerp and
 slerp differ by far less than a pose's noise), and turned into the gripped vertices by the service's
-gripper convention (:func:`service.geometry.grips_from_poses`). The track starts at the first cloud
+gripper convention (:func:`service.geometry.interpolate_poses`, :func:`service.geometry.grips_from_poses`). The track starts at the first cloud
 (the tracker's model-free start, :meth:`perception.Tracker.initialize` with that cloud: a clip may
 start in any state); the model steps every :math:`\Delta t`, and each cloud corrects the estimate
 at the first step at or after its stamp, as the service does with a message clock: clouds are not
@@ -53,7 +53,7 @@ from calibrate.points import rope_points
 from deform import Recording, gripped_indices
 from perception import Tracker
 from service.config import Grippers
-from service.geometry import grips_from_poses
+from service.geometry import grips_from_poses, interpolate_poses
 
 
 @dataclass(frozen=True)
@@ -146,28 +146,6 @@ def moving_average(x: np.ndarray, width: float) -> np.ndarray:
 
     t = np.arange(n, dtype=np.float64) + pad
     return ((integral(t + half) - integral(t - half)) / width).reshape(x.shape)
-
-
-def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, times_ns: np.ndarray) -> np.ndarray:
-    """(K, 2, 7) poses at ``times_ns`` (K,) from poses (P, 2, 7) at ``stamps_ns`` (P,), increasing.
-
-    Positions are interpolated linearly; quaternions by nlerp after flipping each onto the
-    hemisphere of its predecessor (q and -q are the same rotation, and interpolating between the two
-    would pass through zero). Times outside the stamps take the nearest pose.
-    """
-    poses = np.asarray(poses, dtype=float).copy()
-    q = poses[..., 3:7]
-    for i in range(1, len(q)):
-        flip = (q[i] * q[i - 1]).sum(-1) < 0
-        q[i, flip] *= -1
-    t = (np.asarray(stamps_ns) - stamps_ns[0]).astype(float)
-    tt = np.clip((np.asarray(times_ns) - stamps_ns[0]).astype(float), t[0], t[-1])
-    flat = poses.reshape(len(poses), -1)
-    out = np.stack([np.interp(tt, t, flat[:, j]) for j in range(flat.shape[1])], axis=1).reshape(
-        (len(tt),) + poses.shape[1:]
-    )
-    out[..., 3:7] /= np.linalg.norm(out[..., 3:7], axis=-1, keepdims=True)
-    return out
 
 
 def track_clip(

@@ -128,3 +128,27 @@ def matrix_to_pose(M: np.ndarray) -> np.ndarray:
         q[i], q[j], q[k] = 0.25 * s, (R[j, i] + R[i, j]) / s, (R[k, i] + R[i, k]) / s
     q = np.asarray(q) / np.linalg.norm(q)
     return np.concatenate([np.asarray(M, dtype=float)[:3, 3], q])
+
+
+def interpolate_poses(stamps_ns: np.ndarray, poses: np.ndarray, times_ns: np.ndarray) -> np.ndarray:
+    """(K, 2, 7) poses at ``times_ns`` (K,) from poses (P, 2, 7) at ``stamps_ns`` (P,), increasing
+    (calibration resamples a bag's poses to the model's step; the wall-clock service samples one per
+    tick, :mod:`service.pose_timeline`).
+
+    Positions are interpolated linearly; quaternions by nlerp after flipping each onto the
+    hemisphere of its predecessor (q and -q are the same rotation, and interpolating between the two
+    would pass through zero). Times outside the stamps take the nearest pose.
+    """
+    poses = np.asarray(poses, dtype=float).copy()
+    q = poses[..., 3:7]
+    for i in range(1, len(q)):
+        flip = (q[i] * q[i - 1]).sum(-1) < 0
+        q[i, flip] *= -1
+    t = (np.asarray(stamps_ns) - stamps_ns[0]).astype(float)
+    tt = np.clip((np.asarray(times_ns) - stamps_ns[0]).astype(float), t[0], t[-1])
+    flat = poses.reshape(len(poses), -1)
+    out = np.stack([np.interp(tt, t, flat[:, j]) for j in range(flat.shape[1])], axis=1).reshape(
+        (len(tt),) + poses.shape[1:]
+    )
+    out[..., 3:7] /= np.linalg.norm(out[..., 3:7], axis=-1, keepdims=True)
+    return out

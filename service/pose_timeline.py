@@ -19,25 +19,12 @@ from collections import deque
 
 import numpy as np
 
+from service.geometry import interpolate_poses
+
 NS = 1_000_000_000
 FOLLOW = 0.1  # of the gap between tau and its target closed per tick (a 10-tick time constant)
 RESET_S = 0.1  # a gap wider than this (a start, a pause, a new sender) is jumped, not followed
 AUTO_PERIODS = 1.5  # the automatic delay in median pose intervals
-
-
-def interpolate_poses(t0: int, p0: np.ndarray, t1: int, p1: np.ndarray, t: int) -> np.ndarray:
-    """Poses (k, 7) (x y z qx qy qz qw) at ``t`` between ``p0`` at ``t0`` and ``p1`` at ``t1``
-    (clamped to the two): positions linearly, quaternions by normalised linear interpolation on the
-    same hemisphere."""
-    if t1 <= t0:
-        return p1.copy()
-    a = min(max((t - t0) / (t1 - t0), 0.0), 1.0)
-    out = (1 - a) * p0 + a * p1
-    q0, q1 = p0[:, 3:], p1[:, 3:]
-    sign = np.where(np.sum(q0 * q1, axis=1, keepdims=True) < 0, -1.0, 1.0)
-    q = (1 - a) * q0 + a * sign * q1
-    out[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return out
 
 
 class PoseTimeline:
@@ -81,9 +68,7 @@ class PoseTimeline:
         """The poses at ``t``: interpolated between the two kept around it, else the nearest end."""
         stamps = [s for s, _ in self.poses]
         i = int(np.searchsorted(stamps, t, side="right"))
-        if i == 0:
-            return self.poses[0][1].copy()
-        if i == len(stamps):
-            return self.poses[-1][1].copy()
-        (t0, p0), (t1, p1) = self.poses[i - 1], self.poses[i]
-        return interpolate_poses(t0, p0, t1, p1, t)
+        around = range(max(i - 1, 0), min(i + 1, len(stamps)))  # the two around t, or the end
+        return interpolate_poses(
+            np.array([stamps[j] for j in around]), np.stack([self.poses[j][1] for j in around]), np.array([t])
+        )[0]

@@ -1,9 +1,9 @@
-"""Offline tracking of a clip from the model-free start: close to the truth; pose interpolation."""
+"""Offline tracking of a clip from the model-free start: close to the truth."""
 
 import numpy as np
 
 from calibrate.bags import read_clip
-from calibrate.tracks import cut, interpolate_poses, track_clip
+from calibrate.tracks import cut, track_clip
 from deform import generic_model
 from perception import load_config
 from service.config import ServiceConfig
@@ -40,18 +40,6 @@ def test_a_clip_is_tracked_at_the_given_length_even_where_the_camera_disagrees(c
     assert track.status["length_scale"] == 1.0
     free = np.linalg.norm(np.diff(track.positions[-1], axis=0), axis=1)[1:-1].sum()
     assert abs(free / rest[1:-1].sum() - 1.0) < 0.01
-
-
-def test_poses_are_interpolated_between_stamps_whatever_the_quaternion_sign():
-    stamps = np.array([0, 20_000_000])
-    q = np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)])
-    poses = np.zeros((2, 2, 7))
-    poses[0, :, 3:] = q
-    poses[1, :, 3:] = -q  # the same rotation
-    poses[1, :, 0] = 0.02
-    mid = interpolate_poses(stamps, poses, np.array([10_000_000]))[0]
-    np.testing.assert_allclose(mid[:, 0], 0.01)
-    np.testing.assert_allclose(np.abs(mid[:, 3:]), np.abs(q[None].repeat(2, 0)), atol=1e-12)
 
 
 def test_training_scores_the_track_where_and_when_a_cloud_corrected_it():

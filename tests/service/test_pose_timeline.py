@@ -1,9 +1,11 @@
-"""The gripper poses sampled one loop period a tick by their stamps, whatever their arrival pattern."""
+"""Gripper poses interpolated between stamps (``service.geometry.interpolate_poses``, also what
+calibration resamples bags with), and sampled one loop period a tick, whatever their arrival pattern."""
 
 import numpy as np
 import pytest
 
-from service.pose_timeline import NS, PoseTimeline, interpolate_poses
+from service.geometry import interpolate_poses
+from service.pose_timeline import NS, PoseTimeline
 from tests.service.conftest import FakeClock, make_config
 
 DT_NS = 10_000_000
@@ -21,12 +23,29 @@ def _pose(t_ns: int) -> np.ndarray:
 
 def test_interpolation_halfway_and_on_the_short_arc():
     a, b = _pose(T0), _pose(T0 + DT_NS)
-    mid = interpolate_poses(T0, a, T0 + DT_NS, b, T0 + DT_NS // 2)
+    stamps = np.array([T0, T0 + DT_NS])
+
+    def at(p1, t):
+        return interpolate_poses(stamps, np.stack([a, p1]), np.array([t]))[0]
+
+    mid = at(b, T0 + DT_NS // 2)
     np.testing.assert_allclose(mid, _pose(T0 + DT_NS // 2), atol=1e-9)
     flipped = b.copy()
     flipped[:, 3:] *= -1  # the same orientation written with the other sign
-    np.testing.assert_allclose(interpolate_poses(T0, a, T0 + DT_NS, flipped, T0 + DT_NS // 2), mid, atol=1e-9)
-    np.testing.assert_allclose(interpolate_poses(T0, a, T0 + DT_NS, b, T0 + 3 * DT_NS), b)  # clamped
+    np.testing.assert_allclose(at(flipped, T0 + DT_NS // 2), mid, atol=1e-9)
+    np.testing.assert_allclose(at(b, T0 + 3 * DT_NS), b)  # clamped
+
+
+def test_poses_are_interpolated_between_stamps_whatever_the_quaternion_sign():
+    stamps = np.array([0, 20_000_000])
+    q = np.array([0.0, 0.0, np.sin(0.1), np.cos(0.1)])
+    poses = np.zeros((2, 2, 7))
+    poses[0, :, 3:] = q
+    poses[1, :, 3:] = -q  # the same rotation
+    poses[1, :, 0] = 0.02
+    mid = interpolate_poses(stamps, poses, np.array([10_000_000]))[0]
+    np.testing.assert_allclose(mid[:, 0], 0.01)
+    np.testing.assert_allclose(np.abs(mid[:, 3:]), np.abs(q[None].repeat(2, 0)), atol=1e-12)
 
 
 def _arrivals(seed: int, ticks: int):
