@@ -37,6 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.service_bench import frame_at, status  # noqa: E402
+from benchmarks.service_timing import MODES, finish  # noqa: E402
 from benchmarks.tracking.metric import rope_error  # noqa: E402
 
 N_FRAMES = 500  # 5 s of the recording, played back and forth
@@ -154,14 +155,6 @@ def errors(estimates, sent, positions, grip_idx, from_ns: int) -> np.ndarray:
     return np.array(out).reshape(-1, 2)
 
 
-MODES = {
-    # the service before: clouds fused where they arrive, each tick to the newest pose
-    "arrival, newest pose": {"camera": {"fuse_at": "arrival"}, "pose_delay_s": 0.0},
-    "stamp, newest pose": {"camera": {"fuse_at": "stamp"}, "pose_delay_s": 0.0},
-    "stamp, steady poses": {},  # the defaults (pose_delay_s: 1.5 pose intervals)
-}
-
-
 def measure(mode: dict, latencies: list[float], run_s: float, frames_path: Path, positions) -> dict:
     """One service (the default config but ``mode``), a feeder run per latency."""
     import logging
@@ -276,11 +269,7 @@ def main() -> int:
         }
         for mode, by_latency in runs.items()
     }
-    now, before = out["modes"]["stamp, steady poses"], out["modes"]["arrival, newest pose"]
-    out["ratio_default_over_before"] = {k: round(now[k]["error_mm"] / before[k]["error_mm"], 3) for k in now}
-    print(json.dumps(out["ratio_default_over_before"]))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    finish(out, args.json)
     return 0
 
 

@@ -156,12 +156,17 @@ def main() -> int:
             row = run(mode, ms / 1e3, args.ticks)
             out["modes"][name][f"{ms:g}"] = row
             print(name, ms, json.dumps(row), flush=True)
+    finish(out, args.json)
+    return 0
+
+
+def finish(out: dict, json_path: str | None) -> None:
+    """The defaults' error over the service before's per latency (means), printed; ``out`` written."""
     now, before = out["modes"]["stamp, steady poses"], out["modes"]["arrival, newest pose"]
     out["ratio_default_over_before"] = {k: round(now[k]["error_mm"] / before[k]["error_mm"], 3) for k in now}
     print(json.dumps(out["ratio_default_over_before"]))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
-    return 0
+    if json_path:
+        Path(json_path).write_text(json.dumps(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":
