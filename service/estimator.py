@@ -20,7 +20,7 @@ import torch
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
-from service.pose_timeline import PoseTimeline
+from service.pose_timeline import PoseGrid, PoseTimeline
 from service.stats import Stats
 from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker
 
@@ -29,7 +29,7 @@ NS = 1_000_000_000
 
 @dataclass
 class Estimate:
-    stamp_ns: int
+    stamp_ns: int  # the time the state describes: that of the gripper poses it stepped to
     x: np.ndarray  # (n, 3) float64, world
     observed: np.ndarray  # (n,) bool
     grip: np.ndarray  # (4, 3) the gripped vertices used
@@ -80,6 +80,9 @@ class Estimator:
         # wall clock: the poses sampled one period a tick by their stamps (None: the newest as it is)
         steady = not self.message_clock and cfg.pose_delay_s != 0
         self.timeline = PoseTimeline(cfg.dt, cfg.pose_delay_s) if steady else None
+        # message clock: ticks every dt of the poses' own time (not one per message)
+        self.grid = PoseGrid(cfg.dt) if self.message_clock else None
+        self.due: deque[tuple[int, np.ndarray]] = deque()  # message clock: the grid's ticks not yet taken
         self.newest_ns: int | None = None
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.fitted_intrinsics: dict[tuple[int, int], np.ndarray] = {}  # (w, h) -> K of the clouds' own
@@ -142,13 +145,18 @@ class Estimator:
             self.stats.reject("ee_poses", exc.reason, str(exc))
             return None
 
-    def set_poses(self, parsed) -> None:
+    def set_poses(self, parsed) -> list[int]:
+        """Take a parsed pose message; on the message clock, the times of the ticks it completes
+        (:class:`service.pose_timeline.PoseGrid`; the wall clock's timer ticks: empty)."""
         with self.lock:
             self.poses = parsed
             if self.timeline is not None:
                 self.timeline.add(parsed[0], parsed[1])
+            due = self.grid.add(parsed[0], parsed[1]) if self.grid is not None else []
+            self.due.extend(due)
             self._see(parsed[0])
             self._arrive("ee_poses", parsed[0])
+            return [t for t, _ in due]
 
     def on_poses(self, raw: bytes) -> bool:
         parsed = self.parse_poses(raw, self.poses[0] if self.poses else None)
@@ -254,6 +262,10 @@ class Estimator:
             if self.timeline is not None:
                 pose_ns, poses = self.timeline.next()
                 grip = grips_from_poses(poses, self.cfg.grippers)
+            elif self.due and self.due[0][0] <= stamp_ns:
+                while self.due and self.due[0][0] <= stamp_ns:
+                    pose_ns, poses = self.due.popleft()
+                grip = grips_from_poses(poses, self.cfg.grippers)
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
             t0 = time.perf_counter()
@@ -272,7 +284,7 @@ class Estimator:
                 self.history.append(Tick(self.tick_index, grip, pose_ns, moment))
             self.prev_x = self.estimate.x if self.estimate is not None else None
             self.estimate = Estimate(
-                stamp_ns,
+                pose_ns,  # the time the state describes: its grip's, not the tick's
                 np.asarray(x, dtype=float),
                 np.asarray(observed, dtype=bool),
                 grip,

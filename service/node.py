@@ -1,8 +1,9 @@
 """The Zenoh side: subscribers, the 100 Hz loop thread, the vertices publisher and the queryables.
 
-Two clocks. ``wall``: a fixed-rate timer ticks with the latest gripper poses, clouds are fused by a
-worker. ``message``: every gripper message is one tick at its own stamp and everything is handled
-on one thread in send order (:mod:`service.ordering`), so a replay gives the same output bit for bit.
+Two clocks. ``wall``: a fixed-rate timer ticks with the gripper poses sampled by their stamps, clouds
+are fused by a worker. ``message``: the gripper messages tick every ``dt`` of their own stamps
+(:class:`service.pose_timeline.PoseGrid`) and everything is handled on one thread in send order
+(:mod:`service.ordering`), so a replay gives the same output bit for bit.
 """
 
 from __future__ import annotations
@@ -520,9 +521,9 @@ class Service:
                 ready = cloud_seen or (poses[-1][0][0] - t >= window and now - arrived >= patience)
             if not (flush or ready):
                 return
-            est.set_poses(poses.pop(0)[0])
-            self.stats.count("ticks")
-            self._tick(t)
+            for tick_ns in est.set_poses(poses.pop(0)[0]):  # every dt of message time up to t
+                self.stats.count("ticks")
+                self._tick(tick_ns)
         self._idle = True
 
     # ----- queries -----------------------------------------------------------------------------

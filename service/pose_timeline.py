@@ -1,4 +1,4 @@
-"""The gripper poses sampled at the loop's steady step, by their stamps (wall clock).
+"""The gripper poses sampled at the loop's steady step, by their stamps (wall clock and message clock).
 
 Why: the model steps ``dt`` per tick, so the grip it steps to must advance ``dt`` of the robot's time
 per tick. Taking the newest pose at each tick does not: poses arrive with jitter, in bursts when
@@ -11,6 +11,11 @@ the newest stamp less a ``delay`` (1.5 times the poses' median interval unless s
 poses around ``tau`` have almost always arrived; between two poses the positions are interpolated
 linearly and the orientations along the shorter arc (normalised linear interpolation, exact enough
 over one pose interval).
+
+On the message clock (a replay, the demo) nothing arrives late, so :class:`PoseGrid` ticks on a
+fixed grid of the poses' own time: every ``dt`` from the first pose, each tick's poses interpolated
+between the two messages around it. A bag with poses at 125 Hz (or 500, or 30) then plays at the
+rate it was recorded; one tick per message ran it 1.25x (5x, 0.3x) slow in the model's time.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ NS = 1_000_000_000
 FOLLOW = 0.1  # of the gap between tau and its target closed per tick (a 10-tick time constant)
 RESET_S = 0.1  # a gap wider than this (a start, a pause, a new sender) is jumped, not followed
 AUTO_PERIODS = 1.5  # the automatic delay in median pose intervals
+GRID_GAP_S = 1.0  # message clock: poses farther apart than this start the grid again at the later one
 
 
 class PoseTimeline:
@@ -72,3 +78,43 @@ class PoseTimeline:
         return interpolate_poses(
             np.array([stamps[j] for j in around]), np.stack([self.poses[j][1] for j in around]), np.array([t])
         )[0]
+
+
+class PoseGrid:
+    """Message clock: ticks every ``dt_s`` of the poses' own time from the first pose's stamp.
+
+    :meth:`add` takes the pose messages in stamp order and returns the ticks each one completes,
+    ``(time, poses (k, 7) at time)`` for every grid time after the previous message up to its stamp.
+    A grid time on a stamp takes that message's poses as they are (poses exactly on the grid tick as
+    one tick per message did, bit for bit); one between two messages interpolates them. A gap wider
+    than ``gap_s`` (a paused sender) is not filled in: the grid starts again at the later message.
+    """
+
+    def __init__(self, dt_s: float, gap_s: float = GRID_GAP_S):
+        self.dt_ns = round(dt_s * NS)
+        self.gap_ns = round(gap_s * NS)
+        self.last: tuple[int, np.ndarray] | None = None
+        self.next_ns: int | None = None
+
+    def add(self, stamp_ns: int, poses: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        stamp_ns, poses = int(stamp_ns), np.asarray(poses, dtype=float)
+        last, self.last = self.last, (stamp_ns, poses)
+        if last is None or stamp_ns - last[0] > self.gap_ns:
+            self.next_ns = stamp_ns + self.dt_ns
+            return [(stamp_ns, poses)]
+        ticks = []
+        while self.next_ns <= stamp_ns:
+            t = self.next_ns
+            if t == stamp_ns:
+                ticks.append((t, poses))
+            else:
+                ticks.append(
+                    (
+                        t,
+                        interpolate_poses(
+                            np.array([last[0], stamp_ns]), np.stack([last[1], poses]), np.array([t])
+                        )[0],
+                    )
+                )
+            self.next_ns += self.dt_ns
+        return ticks

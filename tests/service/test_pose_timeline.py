@@ -107,5 +107,66 @@ def test_a_wall_clock_estimator_steps_evenly_on_bursty_poses(model):
                 assert est.on_poses(M.pose_array(t, _pose(t)))
             est.tick(T0 + (tick + 1) * DT_NS)
         steps[delay] = np.diff([t.pose_ns for t in est.history])[60:] / DT_NS
+        # the estimate is stamped with the time it describes (its poses'), not the tick's
+        assert est.estimate.stamp_ns == est.history[-1].pose_ns
+        if delay:
+            assert est.estimate.stamp_ns < T0 + (tick + 1) * DT_NS - DT_NS
     assert np.abs(steps[0.012] - 1).max() < 0.35
     assert np.abs(steps[0.0] - 1).max() >= 0.6  # 0.8 and 1.6 periods: the gripper lurches
+
+
+def test_the_message_grid_ticks_every_period_of_the_poses_own_time():
+    """Poses at 125 Hz: one tick per 10 ms of their stamps, on the motion between them; poses on the
+    grid are taken as they are; a gap beyond ``gap_s`` starts the grid again."""
+    from service.pose_timeline import PoseGrid
+
+    grid = PoseGrid(0.01)
+    ticks = []
+    for k in range(126):  # 1 s at 8 ms
+        t = T0 + k * 8_000_000
+        ticks += grid.add(t, _pose(t))
+    times = np.array([t for t, _ in ticks])
+    assert len(ticks) == 101 and times[0] == T0 and times[-1] == T0 + NS
+    assert set(np.diff(times)) == {DT_NS}
+    for t, p in ticks:
+        np.testing.assert_allclose(p[:, :3], _pose(t)[:, :3], atol=1e-12)  # linear motion: exact
+        np.testing.assert_allclose(p[:, 3:], _pose(t)[:, 3:], atol=1e-5)  # nlerp over 8 ms
+    on_grid = PoseGrid(0.01)
+    poses = [_pose(T0 + k * DT_NS) for k in range(3)]
+    taken = [p for k in range(3) for _, p in on_grid.add(T0 + k * DT_NS, poses[k])]
+    assert all(a is b for a, b in zip(taken, poses, strict=True))
+    later = T0 + 2 * DT_NS + 3 * NS
+    assert [t for t, _ in on_grid.add(later, _pose(later))] == [later]
+
+
+def test_a_message_clock_estimator_replays_125_hz_poses_at_their_own_rate(model):
+    """A bag with poses at 125 Hz: the model steps once per 10 ms of their stamps, and the rope after
+    1.2 s is the one 100 Hz poses of the same motion give (one tick per message ran it 1.25x slow)."""
+    from service import messages as M
+    from service.estimator import Estimator
+    from tests.service.open_loop_tracker import OpenLoopTracker
+
+    def swing(t_ns: int) -> np.ndarray:
+        s = (t_ns - T0) / NS
+        out = np.zeros((2, 7))
+        out[:, 0] = [-0.35, 0.35]
+        out[:, 1] = 0.15 * np.sin(2 * np.pi * s)  # both grippers swing sideways at 1 Hz
+        out[:, 2] = 0.5
+        out[:, 5], out[:, 6] = 0.0, 1.0
+        out[1, 5], out[1, 6] = 1.0, 0.0
+        return out
+
+    end = {}
+    for period in (10_000_000, 8_000_000):
+        est = Estimator(make_config(clock="message"), model, OpenLoopTracker(model, 20), clock=FakeClock())
+        ticks, last = 0, None
+        for k in range(int(1.2 * NS) // period + 1):
+            t = T0 + k * period
+            parsed = est.parse_poses(M.pose_array(t, swing(t)), last)
+            last = t
+            for tick_ns in est.set_poses(parsed):  # as the service's message loop ticks
+                est.tick(tick_ns)
+                ticks += 1
+        assert ticks == 121 and est.estimate.stamp_ns == T0 + int(1.2 * NS)
+        end[period] = est.estimate.x
+    assert np.abs(end[8_000_000] - end[10_000_000]).max() < 1e-3
