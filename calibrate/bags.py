@@ -2,8 +2,10 @@
 the camera), decoded with the service's own message codecs so that a bag means to calibration what
 it means to the running service.
 
-Topics are found by message type when that is unambiguous (one ``PoseArray``, one organized
-``PointCloud2``, one ``CameraInfo``), chosen with :class:`Topics` otherwise. The camera's pose (its
+Topics are found by message type when that is unambiguous (one ``PoseArray``, one ``PointCloud2``
+with colour, organized preferred, one ``CameraInfo``), chosen with :class:`Topics` otherwise. An
+unorganized cloud (height 1: RealSense's pointcloud filter) is put on the image grid of its
+CameraInfo, as the service does. The camera's pose (its
 optical frame in the world frame) comes, in this order, from a chosen topic,
 from ``/tf_static`` (the chain from the world frame to the clouds' frame, or CameraInfo's), from a lone
 ``PoseStamped`` topic, or from the config. Times are the messages' header stamps, never the bag's
@@ -29,7 +31,7 @@ from perception import Camera
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import matrix_to_pose, pose_matrix
-from service.tracking import camera_frame_cloud, cloud_intrinsics
+from service.tracking import camera_frame_cloud, cloud_intrinsics, organized_cloud
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
@@ -74,8 +76,11 @@ class Clip:
         """Decoded clouds in stamp order: ``(stamp_ns, xyz (H, W, 3) float32 camera frame, rgb (H, W,
         3) uint8)``, the stamp less ``cloud_delay_ns`` (the time the cloud was taken, on the poses'
         clock). Clouds the service would refuse (malformed, empty, wrong size) are skipped; a
-        cloud published in the world frame is moved back into the optical frame, as the service does."""
+        cloud published in the world frame is moved back into the optical frame, and an unorganized
+        one put on the camera's image grid, as the service does."""
         T = self.camera.world_from_camera
+        cam = self.camera
+        K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
         out = []
         with _open(self.path) as reader:
             conns = [c for c in reader.connections if c.topic == self.points_topic]
@@ -84,9 +89,14 @@ class Clip:
                     stamp, xyz, rgb, frame = M.parse_point_cloud(bytes(raw))
                 except M.InputError:
                     continue
-                if xyz.shape[:2] != (self.camera.height, self.camera.width):
+                if xyz.shape[0] == 1:
+                    xyz, rgb = organized_cloud(
+                        camera_frame_cloud(xyz, frame, self.world_frame, T), rgb, K, cam.width, cam.height
+                    )
+                elif xyz.shape[:2] != (cam.height, cam.width):
                     continue
-                xyz = camera_frame_cloud(xyz, frame, self.world_frame, T)
+                else:
+                    xyz = camera_frame_cloud(xyz, frame, self.world_frame, T)
                 out.append((stamp - self.cloud_delay_ns, xyz, rgb))
                 if len(out) > 8:  # a little look-ahead sorts clouds recorded slightly out of order
                     out.sort(key=lambda c: c[0])
@@ -112,8 +122,9 @@ def _open(path: Path) -> Iterator[AnyReader]:
         reader.close()
 
 
-def _pick(path: Path, reader, msgtype: str, chosen: str | None, option: str, what: str, keep=None):
-    """The one connection of ``msgtype`` (or the ``chosen`` topic); None when the bag has none."""
+def _pick(path: Path, reader, msgtype: str, chosen: str | None, option: str, what: str, keep=()):
+    """The one connection of ``msgtype`` (or the ``chosen`` topic); None when the bag has none. Among
+    several, the first of the ``keep`` filters that leaves any narrows them down."""
     if chosen is not None:
         conns = [c for c in reader.connections if c.topic == chosen]
         if not conns:
@@ -121,8 +132,11 @@ def _pick(path: Path, reader, msgtype: str, chosen: str | None, option: str, wha
             raise CalibrationError(f"{path}: no topic {chosen} ({option}); the bag has {topics}")
         return conns[0]
     conns = [c for c in reader.connections if c.msgtype == msgtype and c.msgcount > 0]  # recorded, never sent
-    if keep is not None and len(conns) > 1:
-        conns = [c for c in conns if keep(c)]
+    for k in keep if len(conns) > 1 else ():
+        kept = [c for c in conns if k(c)]
+        if kept:
+            conns = kept
+            break
     if len({c.topic for c in conns}) > 1:
         names = ", ".join(sorted({c.topic for c in conns}))
         raise CalibrationError(f"{path}: several {what} topics ({names}): choose one with {option}")
@@ -147,35 +161,46 @@ def _camera_info_values(reader, conn) -> tuple | None:
         return None
 
 
-def _first_cloud(reader, conn):
-    """The first message of a cloud topic, decoded (None when there is none or it cannot be read)."""
+def _first_cloud(reader, conn) -> tuple[object | None, str | None]:
+    """The first message of a cloud topic, decoded (None when there is none or it cannot be read),
+    and why the service would refuse it as a camera's cloud (None: it would not)."""
     raw = _first(reader, conn)
+    if raw is None:
+        return None, None
     try:
-        return M.decode(raw, M.POINT_CLOUD2) if raw is not None else None
-    except M.InputError:
-        return None
+        msg = M.decode(raw, M.POINT_CLOUD2)
+    except M.InputError as exc:
+        return None, str(exc)
+    try:
+        M.parse_point_cloud(raw)
+    except M.InputError as exc:
+        return msg, str(exc)
+    return msg, None
 
 
 def _pick_camera_info(path: Path, reader, chosen: str | None, cloud):
     """The CameraInfo topic of the cloud's image: the ``chosen`` one, the only one, or among several
     (a driver publishes its colour, depth and aligned-depth intrinsics side by side) those of the
-    organized ``cloud``'s size (its topic's first message), when they all say the same (one camera's
-    intrinsics published twice)."""
+    organized ``cloud``'s size (its topic's first message), or for an unorganized cloud those of its
+    frame, when they all say the same (one camera's intrinsics published twice)."""
     conns = [c for c in reader.connections if c.msgtype == M.CAMERA_INFO and c.msgcount > 0]
     if chosen is not None or len({c.topic for c in conns}) <= 1:
         return _pick(path, reader, M.CAMERA_INFO, chosen, "--topic-camera-info", "camera info")
     values = {c.topic: _camera_info_values(reader, c) for c in conns}
-    fitting = [
-        c
-        for c in conns
-        if values[c.topic] is not None
-        and cloud is not None
-        and values[c.topic][1:3] == (cloud.width, cloud.height)
-    ]
+
+    def fits(v) -> bool:
+        if cloud is None:
+            return False
+        if cloud.height > 1:
+            return v[1:3] == (cloud.width, cloud.height)
+        return v[3].strip("/") == cloud.header.frame_id.strip("/")
+
+    fitting = [c for c in conns if values[c.topic] is not None and fits(values[c.topic])]
     if fitting and len({values[c.topic] for c in fitting}) == 1:
         return fitting[0]
     names = ", ".join(sorted({c.topic for c in conns}))
-    why = "" if fitting else ", none of them of the clouds' size"
+    whose = "the clouds' size" if cloud is None or cloud.height > 1 else "the clouds' frame"
+    why = "" if fitting else f", none of them of {whose}"
     raise CalibrationError(
         f"{path}: several camera info topics ({names}){why}: choose one with --topic-camera-info"
     )
@@ -204,12 +229,22 @@ def _intrinsics_of_cloud(path, reader, conn, world_from_camera, world: str, why_
 
 
 def _organized(reader, conn) -> bool:
-    """A camera's cloud is organized (height > 1); the service's own ``vertices`` output is not."""
+    """A camera's organized cloud (height > 1); the service's own ``vertices`` output is not."""
     raw = _first(reader, conn)
     try:
         return raw is not None and M.decode(raw, M.POINT_CLOUD2).height > 1
     except M.InputError:
         return False
+
+
+def _coloured(reader, conn) -> bool:
+    """A cloud with colour (an unorganized camera cloud; the service's ``vertices`` output has none)."""
+    raw = _first(reader, conn)
+    try:
+        names = {f.name for f in M.decode(raw, M.POINT_CLOUD2).fields} if raw is not None else set()
+    except M.InputError:
+        return False
+    return bool(names & {"rgb", "rgba"}) or {"r", "g", "b"} <= names
 
 
 def _tf_graph(reader, conns) -> dict[str, list[tuple[str, np.ndarray]]]:
@@ -320,8 +355,9 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         The clip (clouds are read later, by :meth:`Clip.clouds`).
 
     Raises:
-        CalibrationError: not a bag, no gripper poses, no organized clouds, no camera info, an
-            ambiguous or missing topic; every pose refused (the reasons counted).
+        CalibrationError: not a bag, no gripper poses, no clouds, no camera info for unorganized
+            clouds (their grid is its), an ambiguous or missing topic; every pose refused (the
+            reasons counted).
     """
     path = Path(path)
     topics = topics or Topics()
@@ -338,18 +374,17 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
             topics.points,
             "--topic-points",
             "point cloud",
-            keep=lambda c: _organized(reader, c),
+            keep=(lambda c: _organized(reader, c), lambda c: _coloured(reader, c)),
         )
         if points_c is None or points_c.msgcount == 0:
             raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
-        cloud = _first_cloud(reader, points_c)  # read once: 1-5 MB
-        if cloud is not None and cloud.height <= 1:
+        cloud, refused = _first_cloud(reader, points_c)  # read once: 1-5 MB
+        if refused is not None and cloud is not None and cloud.height <= 1:
             raise CalibrationError(
-                f"{path}: the clouds on {points_c.topic} are not organized (height {cloud.height}): "
-                "calibration needs the camera's organized cloud, one point per pixel (as camera drivers "
-                "and depth_image_proc publish it)"
+                f"{path}: the clouds on {points_c.topic} are no camera's clouds ({refused})"
             )
-        size = (cloud.width, cloud.height) if cloud is not None else None
+        flat = cloud is not None and cloud.height <= 1  # unorganized: the grid is CameraInfo's
+        size = (cloud.width, cloud.height) if cloud is not None and not flat else None
         why_not = f"no {M.CAMERA_INFO} topic"
         try:
             info_c = _pick_camera_info(path, reader, topics.camera_info, cloud)
@@ -376,6 +411,11 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
             reader, poses_c, _tf_static(reader), cfg.frame_id
         )
         world_from_camera, source = _camera_pose(path, reader, topics, frames, cfg, world)
+        if K is None and flat:
+            raise CalibrationError(
+                f"{path}: the clouds on {points_c.topic} are unorganized (height 1), and their image grid "
+                f"needs the camera's CameraInfo ({why_not}): record it or choose it with --topic-camera-info"
+            )
         if K is None:
             K, (width, height), intrinsics_from = _intrinsics_of_cloud(
                 path, reader, points_c, world_from_camera, world, why_not

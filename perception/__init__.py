@@ -29,10 +29,12 @@ API used by the service (keep it stable)::
 Also public for tools built on perception (calibration, benchmarks): ``segment_rope(xyz, rgb, cfg)``
 (the rope's points of a cloud, camera frame) and ``segment_distances(points, x)`` (each point's
 distance to the polyline through ``x``), ``intrinsics_from_cloud(xyz)`` (the pinhole intrinsics an
-organized cloud was made with).
+organized cloud was made with), ``organize_cloud(xyz, rgb, camera)`` (an unorganized cloud on the camera's
+image grid).
 """
 
 from perception.camera import Camera, intrinsics_from_cloud, look_at
+from perception.cloud import organize_cloud
 from perception.config import PerceptionConfig, load_config
 from perception.polyline import segment_distances
 from perception.segment import segment_rope
@@ -62,6 +64,7 @@ __all__ = [
     "intrinsics_from_cloud",
     "load_config",
     "look_at",
+    "organize_cloud",
     "render_recording",
     "rope_centreline",
     "segment_distances",

@@ -1,4 +1,5 @@
-"""Cloud utilities the estimator needs: voxel-grid downsampling and a depth image for occlusion tests.
+"""Cloud utilities the estimator needs: voxel-grid downsampling, a depth image for occlusion tests,
+and unorganized clouds put back on the camera's image grid.
 
 A depth image is what the occlusion test compares predicted vertex depths against; flat clouds (or
 organized clouds of the wrong size) are projected into one with a z-buffer.
@@ -132,6 +133,47 @@ def depth_image(xyz: np.ndarray, camera: Camera) -> np.ndarray:
         np.minimum.at(depth, (v[ok], u[ok]), z[ok])
     depth[np.isinf(depth)] = np.nan
     return depth
+
+
+def organize_cloud(xyz: np.ndarray, rgb: np.ndarray | None, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """An unorganized camera-frame cloud on the camera's image grid: each point in the pixel it
+    projects to, the nearest where several do, NaN (black) where none does.
+
+    Why: drivers publish clouds without their grid too (RealSense's ``pointcloud`` filter drops the
+    pixels without depth and sends the rest as one row, ``create_cloud`` makes one from a list of
+    points), and the tracker reasons about occlusion, the rope's front surface and depth noise on the
+    image grid. A cloud made from this camera's pixels comes back as it was made: pixel (i, j) holds
+    the point whose ray passes through its centre (:meth:`Camera.project`).
+
+    Args:
+        xyz: (..., 3) camera-frame points [m]; missing points NaN, zero or inf are dropped.
+        rgb: (..., 3) uint8 colours of the same leading shape, or None.
+        camera: the camera whose grid the points are put on (its intrinsics and image size).
+
+    Returns:
+        ``(xyz (H, W, 3) float32, rgb (H, W, 3) uint8)``.
+    """
+    pts = np.asarray(xyz).reshape(-1, 3)
+    col = (
+        np.zeros_like(pts, dtype=np.uint8) if rgb is None else np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
+    )
+    z = measured_depth(pts)
+    keep = np.isfinite(z) & np.isfinite(pts).all(-1)
+    pts, col, z = pts[keep], col[keep], z[keep]
+    H, W = camera.height, camera.width
+    out_xyz = np.full((H, W, 3), np.nan, dtype=np.float32)
+    out_rgb = np.zeros((H, W, 3), dtype=np.uint8)
+    if len(pts):
+        uv, _ = camera.project(pts)
+        u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+        inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        pixel = (v[inside] * W + u[inside]).astype(np.int64)
+        order = np.lexsort((z[inside], pixel))  # by pixel, nearest first within one
+        _, first = np.unique(pixel[order], return_index=True)
+        chosen = np.flatnonzero(inside)[order[first]]
+        out_xyz.reshape(-1, 3)[pixel[order[first]]] = pts[chosen]
+        out_rgb.reshape(-1, 3)[pixel[order[first]]] = col[chosen]
+    return out_xyz, out_rgb
 
 
 def window_min(depth: np.ndarray, uv: np.ndarray, half: int) -> np.ndarray:

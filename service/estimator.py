@@ -22,7 +22,7 @@ from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
 from service.pose_timeline import PoseGrid, PoseTimeline
 from service.stats import Stats
-from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker
+from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker, organized_cloud
 
 NS = 1_000_000_000
 
@@ -210,8 +210,15 @@ class Estimator:
             self._check_stamp("points", stamp, self.last_cloud_ns)
             info, pose = self.camera_info, self.camera_pose.copy()
         xyz = camera_frame_cloud(xyz, frame, self.cfg.frame_id, pose_matrix(pose))
-        K = self._intrinsics(xyz, info)
-        h, w = xyz.shape[:2]
+        if xyz.shape[0] == 1:  # unorganized: onto the grid of its CameraInfo
+            if info is None:
+                raise M.InputError("no_camera_info", "an unorganized cloud (height 1) needs its CameraInfo")
+            K, w, h = info
+            xyz, rgb = organized_cloud(xyz, rgb, K, w, h)
+            self.stats.count("clouds_organized")
+        else:
+            K = self._intrinsics(xyz, info)
+            h, w = xyz.shape[:2]
         with self.lock:
             self.last_cloud_ns = stamp
             self._see(stamp)

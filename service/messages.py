@@ -237,14 +237,16 @@ def _channel(values: np.ndarray) -> np.ndarray:
 
 def parse_point_cloud(raw: bytes) -> tuple[int, np.ndarray, np.ndarray, str]:
     """-> stamp, xyz (H, W, 3) float32 (NaN where nothing was seen), rgb (H, W, 3) uint8, frame_id.
-    The cloud stays organized: the tracker reasons about occlusion on the image grid.
+    The cloud stays organized: the tracker reasons about occlusion on the image grid. An unorganized
+    cloud (height 1: RealSense's pointcloud filter, ``create_cloud``) comes as (1, N, 3); the
+    estimator puts it on its camera's grid (``perception.organize_cloud``).
 
     x, y, z may be float32 or float64. Drivers mark a pixel without depth as NaN, as ``(0, 0, 0)``
     (RealSense's ordered clouds) or as +-inf; all become NaN here, before a cloud published in the
     world frame is moved into the camera's, where its zeros would turn into a wall of points."""
     msg = decode(raw, POINT_CLOUD2)
-    if msg.height <= 1:
-        raise InputError("unorganized_cloud", f"height {msg.height}")
+    if msg.height < 1 or msg.width < 1:
+        raise InputError("empty_cloud", f"{msg.width}x{msg.height}")
     # colour as "rgb" (most drivers) or "rgba" (PCL's PointXYZRGBA, some structured-light cameras),
     # both packing red, green, blue in the low three bytes, or as three fields "r", "g", "b" (uint8,
     # or float in 0..1 as Open3D's colours), as clouds made in Python often are

@@ -54,21 +54,58 @@ def test_not_a_bag(tmp_path):
         read_clip(path, ServiceConfig())
 
 
-def test_an_unorganized_cloud_is_refused_by_name(clips, tmp_path):
-    """A cloud without its image grid (height 1, as ``create_cloud`` makes from a list of points) is
-    named as such, not read as a rope the colour range cannot find."""
+def _flattened(messages):
+    """The clip's clouds as RealSense's pointcloud filter sends them: one row of the pixels with
+    depth, in another order."""
     from service import messages as M
     from service.bag import Message
 
-    flat = []
-    for m in clips.messages:
+    rng = np.random.default_rng(0)
+    out = []
+    for m in messages:
         if m.name == "points":
             stamp, xyz, rgb, frame = M.parse_point_cloud(m.data)
-            m = Message(
-                m.name, m.log_time, M.point_cloud(stamp, xyz.reshape(1, -1, 3), rgb.reshape(1, -1, 3), frame)
-            )
-        flat.append(m)
+            seen = np.isfinite(xyz[..., 2]).ravel()
+            order = rng.permutation(int(seen.sum()))
+            flat_xyz, flat_rgb = xyz.reshape(-1, 3)[seen][order], rgb.reshape(-1, 3)[seen][order]
+            m = Message(m.name, m.log_time, M.point_cloud(stamp, flat_xyz[None], flat_rgb[None], frame))
+        out.append(m)
+    return out
+
+
+def test_an_unorganized_cloud_is_read_on_its_camera_info_grid(clips, tmp_path):
+    """Unorganized clouds (height 1) give the clip the organized clouds they were made from, put on
+    the CameraInfo's grid as the service puts them; without a CameraInfo the clip is refused by
+    that name, and a bag whose only cloud is the service's own output by its fields."""
+    from service.bag import Message
+
+    flat = _flattened(clips.messages)
     path = tmp_path / "flat.mcap"
     write_messages(path, "deform/rod1", flat)
-    with pytest.raises(CalibrationError, match="not organized"):
-        read_clip(path, ServiceConfig())
+    cfg = ServiceConfig(grippers=clips.grippers)
+    want, got = read_clip(clips.bags[0], cfg), read_clip(path, cfg)
+    a, b = got.camera, want.camera
+    assert (a.fx, a.fy, a.cx, a.cy, a.width, a.height) == (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+    np.testing.assert_array_equal(a.world_from_camera, b.world_from_camera)
+    pairs = list(zip(want.clouds(), got.clouds(), strict=True))
+    assert len(pairs) == 15
+    for (s0, xyz0, rgb0), (s1, xyz1, rgb1) in pairs:
+        assert s0 == s1
+        np.testing.assert_array_equal(xyz1, xyz0)
+        np.testing.assert_array_equal(rgb1[np.isfinite(xyz0[..., 2])], rgb0[np.isfinite(xyz0[..., 2])])
+    no_info = tmp_path / "flat_no_info.mcap"
+    write_messages(no_info, "deform/rod1", [m for m in flat if m.name != "camera_info"])
+    with pytest.raises(CalibrationError, match=r"unorganized.*CameraInfo"):
+        read_clip(no_info, cfg)
+    from service import messages as M
+
+    vertices = [
+        Message(m.name, m.log_time, M.vertices_cloud(m.log_time, np.zeros((5, 3)), np.zeros(5)))
+        if m.name == "points"
+        else m
+        for m in clips.messages
+    ]
+    only_output = tmp_path / "vertices.mcap"
+    write_messages(only_output, "deform/rod1", vertices)
+    with pytest.raises(CalibrationError, match=r"no camera's clouds.*rgb"):
+        read_clip(only_output, cfg)

@@ -52,3 +52,28 @@ def test_every_drivers_missing_point_is_missing_depth():
     cam = Camera(100.0, 100.0, 1.5, 1.0, 3, 2, np.eye(4))
     depth = depth_image(xyz[1:].reshape(2, 3, 3), cam)
     assert depth.shape == (2, 3) and np.isfinite(depth).sum() == 1 and depth[1, 1] == 0.8
+
+
+def test_an_unorganized_cloud_comes_back_on_its_image_grid():
+    """A camera's cloud with the pixels without depth dropped and the rest shuffled into one row (as
+    RealSense's pointcloud filter sends it) is put back pixel for pixel; where two points fall in one
+    pixel the nearer is kept; zeros are no points."""
+    from perception.cloud import organize_cloud
+
+    cam = Camera(80.0, 80.0, 32.0, 24.0, 64, 48, np.eye(4))
+    rng = np.random.default_rng(1)
+    depth = 1.0 + 0.3 * rng.random((48, 64))
+    depth[rng.random((48, 64)) < 0.2] = np.nan  # no return
+    xyz = (cam.ray_directions() * depth[..., None]).astype(np.float32)
+    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    seen = np.isfinite(depth).ravel()
+    order = rng.permutation(int(seen.sum()))
+    flat_xyz, flat_rgb = xyz.reshape(-1, 3)[seen][order], rgb.reshape(-1, 3)[seen][order]
+    got_xyz, got_rgb = organize_cloud(flat_xyz[None], flat_rgb[None], cam)
+    np.testing.assert_array_equal(np.isnan(got_xyz[..., 2]), np.isnan(depth))
+    np.testing.assert_array_equal(got_xyz[seen.reshape(48, 64)], xyz[seen.reshape(48, 64)])
+    np.testing.assert_array_equal(got_rgb[seen.reshape(48, 64)], rgb[seen.reshape(48, 64)])
+    behind = flat_xyz[:1] * 1.5  # on the first point's ray, farther: hidden by it
+    zero = np.zeros((1, 3), np.float32)
+    again, _ = organize_cloud(np.vstack([behind, flat_xyz, zero]), None, cam)
+    np.testing.assert_array_equal(again, got_xyz)

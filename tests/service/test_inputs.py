@@ -10,6 +10,7 @@ from perception import Camera
 from service import messages as M
 from service.estimator import Estimator
 from service.fusion import FusionWorker
+from service.geometry import pose_matrix
 from tests.service.conftest import FakeClock, make_config
 from tests.service.open_loop_tracker import OpenLoopTracker
 
@@ -61,7 +62,8 @@ def test_bad_clouds_rejected(est):
     worker.submit(bytes(20_000))  # too large
     for raw, reason in [
         (b"garbage", "malformed_cdr"),
-        (M.vertices_cloud(T0, np.zeros((5, 3)), np.zeros(5)), "unorganized_cloud"),
+        (M.vertices_cloud(T0, np.zeros((5, 3)), np.zeros(5)), "wrong_point_fields"),
+        (M.point_cloud(T0, np.ones((1, 16, 3), np.float32), np.zeros((1, 16, 3), np.uint8)), "no_camera_info"),
         (
             M.point_cloud(T0, np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.uint8)),
             "empty_cloud",
@@ -95,6 +97,36 @@ def test_a_cloud_without_its_camera_info_is_read_with_its_own_intrinsics(est):
         est.decode_cloud(small)
     est.on_camera_info(M.camera_info(T0, np.diag([300.0, 300, 1]), 320, 288))  # now of the clouds' size
     assert est.decode_cloud(M.point_cloud(T0 + 4, xyz, rgb)).camera.fx == 300.0
+
+
+def test_an_unorganized_cloud_is_put_on_its_camera_info_grid(est):
+    """A cloud sent as one row of the pixels with depth, shuffled (RealSense's pointcloud filter),
+    decodes to the organized cloud it was made from, in the camera frame or published in the world
+    frame; the grid comes from CameraInfo, so without one it is refused by that reason."""
+    cam = Camera(250.0, 251.0, 161.0, 143.0, 320, 288)
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.8, 2.0, (cam.height, cam.width, 1))
+    depth[rng.random(depth.shape) < 0.3] = np.nan
+    xyz = (cam.ray_directions() * depth).astype(np.float32)
+    rgb = rng.integers(0, 256, xyz.shape, dtype=np.uint8)
+    seen = np.isfinite(xyz[..., 2]).ravel()
+    order = rng.permutation(int(seen.sum()))
+    flat_xyz, flat_rgb = xyz.reshape(-1, 3)[seen][order][None], rgb.reshape(-1, 3)[seen][order][None]
+    assert est.on_poses(M.pose_array(T0, GOOD))
+    with pytest.raises(M.InputError, match="no_camera_info"):
+        est.decode_cloud(M.point_cloud(T0 + 1, flat_xyz, flat_rgb))
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
+    est.on_camera_info(M.camera_info(T0, K, cam.width, cam.height))
+    organized = est.decode_cloud(M.point_cloud(T0 + 2, xyz, rgb))
+    flat = est.decode_cloud(M.point_cloud(T0 + 3, flat_xyz, flat_rgb))
+    np.testing.assert_array_equal(flat.xyz, organized.xyz)
+    np.testing.assert_array_equal(flat.rgb[seen.reshape(xyz.shape[:2])], rgb[seen.reshape(xyz.shape[:2])])
+    assert (flat.camera.width, flat.camera.height, flat.camera.cx) == (320, 288, cam.cx)
+    T = pose_matrix(est.camera_pose)  # published in the world frame: moved back first
+    world = (flat_xyz[0] @ T[:3, :3].T + T[:3, 3]).astype(np.float32)[None]
+    moved = est.decode_cloud(M.point_cloud(T0 + 4, world, flat_rgb, frame_id=est.cfg.frame_id))
+    np.testing.assert_allclose(moved.xyz, organized.xyz, atol=1e-5)
+    assert est.status()["counts"]["clouds_organized"] == 2
 
 
 def test_a_late_stamped_cloud_counts_as_taken_its_delay_earlier(model):

@@ -195,10 +195,10 @@ def test_bad_pose_content_rejected():
 
 
 def test_wrong_point_fields_rejected():
-    # a vertices cloud has no rgb field and is not organized: both are refused as input clouds
+    # a vertices cloud has no rgb field: refused as an input cloud
     with pytest.raises(M.InputError) as err:
         M.parse_point_cloud(M.vertices_cloud(1, np.zeros((4, 3)), np.zeros(4)))
-    assert err.value.reason == "unorganized_cloud"
+    assert err.value.reason == "wrong_point_fields"
     msg = M.decode(
         M.point_cloud(1, np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.uint8)), M.POINT_CLOUD2
     )
