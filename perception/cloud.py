@@ -153,26 +153,33 @@ def organize_cloud(xyz: np.ndarray, rgb: np.ndarray | None, camera: Camera) -> t
     Returns:
         ``(xyz (H, W, 3) float32, rgb (H, W, 3) uint8)``.
     """
-    pts = np.asarray(xyz).reshape(-1, 3)
+    pts = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
     col = (
-        np.zeros_like(pts, dtype=np.uint8) if rgb is None else np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
+        np.zeros(pts.shape, dtype=np.uint8) if rgb is None else np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
     )
-    z = measured_depth(pts)
-    keep = np.isfinite(z) & np.isfinite(pts).all(-1)
-    pts, col, z = pts[keep], col[keep], z[keep]
     H, W = camera.height, camera.width
     out_xyz = np.full((H, W, 3), np.nan, dtype=np.float32)
     out_rgb = np.zeros((H, W, 3), dtype=np.uint8)
-    if len(pts):
-        uv, _ = camera.project(pts)
-        u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-        inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        pixel = (v[inside] * W + u[inside]).astype(np.int64)
-        order = np.lexsort((z[inside], pixel))  # by pixel, nearest first within one
-        _, first = np.unique(pixel[order], return_index=True)
-        chosen = np.flatnonzero(inside)[order[first]]
-        out_xyz.reshape(-1, 3)[pixel[order[first]]] = pts[chosen]
-        out_rgb.reshape(-1, 3)[pixel[order[first]]] = col[chosen]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        z = pts[:, 2]
+        u = np.floor(camera.fx * pts[:, 0] / z + camera.cx)
+        v = np.floor(camera.fy * pts[:, 1] / z + camera.cy)
+        # (NaN and inf fail every comparison; a point at or behind the lens is no measurement)
+        idx = np.flatnonzero((z > 0) & (z < np.inf) & (u >= 0) & (u < W) & (v >= 0) & (v < H))
+    pixel = (v[idx] * W + u[idx]).astype(np.int64)
+    shared = np.bincount(pixel, minlength=H * W)[pixel] > 1
+    if shared.any():  # several points in one pixel (another camera's cloud, merged clouds): the nearest
+        nearest = np.full(H * W, np.inf, dtype=z.dtype)
+        np.minimum.at(nearest, pixel[shared], z[idx[shared]])
+        keep = ~shared | (z[idx] == nearest[pixel])  # (a tie keeps either: both are as near)
+        idx, pixel = idx[keep], pixel[keep]
+    # rows copied as one 12-byte (3-byte) item each: a third of the time of three floats
+    out_xyz.reshape(-1).view(np.dtype((np.void, 12)))[pixel] = np.ascontiguousarray(pts).view(
+        np.dtype((np.void, 12))
+    )[idx, 0]
+    out_rgb.reshape(-1).view(np.dtype((np.void, 3)))[pixel] = np.ascontiguousarray(col).view(
+        np.dtype((np.void, 3))
+    )[idx, 0]
     return out_xyz, out_rgb
 
 
