@@ -23,6 +23,8 @@ from service.workers import InlineWorker, WorkerError, pack_moment, pack_tracker
 
 log = logging.getLogger("deform.service")
 
+AHEAD_WAIT_S = 0.1  # a cloud newer than the newest tick waits at most this long for the tick of its stamp
+
 
 class LatestSlot:
     """Holds one item; a new put replaces the unread one (which is reported as superseded)."""
@@ -78,6 +80,31 @@ class FusionWorker(threading.Thread):
         while self.yield_to.is_set() and self.clock() < deadline and not self._stop_event.is_set():
             self.sleep(0.002)
 
+    def due(self, cloud) -> bool:
+        """Has the loop reached ``cloud``'s tick? On the wall clock, fused at the stamp, the ticks
+        step to poses ``pose_delay_s`` behind the newest, so a camera faster than that (a simulator's,
+        a fast driver on loopback: 8 ms from stamp to decoded, against ticks 16-24 ms behind the wall
+        clock) delivers clouds newer than every tick. Fused at once, each would correct a state
+        older than itself toward where the rope is later (on the live service fed over loopback,
+        every cloud was 16 ms ahead); it waits for the first tick within half a period of its stamp
+        instead. Always due elsewhere."""
+        est = self.est
+        if not est.rewinds:
+            return True
+        with est.lock:
+            newest = est.history[-1].pose_ns if est.history else None
+        return newest is None or newest >= cloud.stamp_ns - est.cfg.dt * 1e9 / 2
+
+    def _await_tick(self, cloud) -> None:
+        """Wait (at most ``AHEAD_WAIT_S``) until ``cloud`` is :meth:`due`; a cloud still ahead then
+        (its camera's clock ahead of the robot's) is fused at the newest tick and counted."""
+        deadline = self.clock() + AHEAD_WAIT_S
+        while not self.due(cloud) and not self._stop_event.is_set():
+            if self.clock() >= deadline:
+                self.est.stats.count("clouds_ahead_of_poses")
+                return
+            self.sleep(0.001)
+
     def submit(self, raw: bytes) -> None:
         if not self.est.admit_cloud(raw):
             return
@@ -101,6 +128,7 @@ class FusionWorker(threading.Thread):
             except M.InputError as exc:
                 self.est.stats.reject("points", exc.reason, str(exc))
                 continue
+            self._await_tick(cloud)
             try:
                 with torch.no_grad():
                     self.fuse(cloud)

@@ -73,3 +73,38 @@ def test_a_late_cloud_fused_where_it_arrives_pulls_the_rope_back(runs):
     in_time, late = runs["in time"][0], runs["late, at arrival"][0]
     after = slice(LAST_CLOUD_TICK + LATE_TICKS, None)
     assert np.abs(late[after] - in_time[after]).max() > 1e-3
+
+
+def test_a_cloud_newer_than_every_tick_waits_for_its_own(model, sim_stream):
+    """Ticks step to poses ``pose_delay_s`` (20 ms) behind the newest, so a cloud taken with the
+    newest pose is newer than every tick: not due until a tick reaches its stamp, then fused at
+    that tick. One whose stamp no tick reaches (its camera's clock ahead) waits ``AHEAD_WAIT_S``
+    of the fusion thread's clock and is counted."""
+    from service.fusion import AHEAD_WAIT_S
+
+    _, stream = sim_stream
+    est = Estimator(make_config(pose_delay_s=0.02), model, clock=FakeClock())
+    worker = FusionWorker(est)
+    cloud, stamps = None, []
+    for m in stream:
+        if m.name == "camera_info":
+            est.on_camera_info(m.data)
+        elif m.name == "camera_pose":
+            est.on_camera_pose(m.data)
+        elif m.name == "points" and cloud is None and len(stamps) > 30:
+            cloud = est.decode_cloud(m.data)
+            assert cloud.stamp_ns == stamps[-1] and not worker.due(cloud)
+        elif m.name == "ee_poses":
+            assert est.on_poses(m.data)
+            stamps.append(m.log_time)
+            est.tick(m.log_time)
+            if cloud is not None and worker.due(cloud):
+                break
+    assert abs(est.fusion_tick(cloud.stamp_ns).pose_ns - cloud.stamp_ns) <= 5_000_000  # its own tick
+    assert abs(est.history[-1].pose_ns - cloud.stamp_ns) <= 5_000_000  # and the first to reach it
+    ahead = type(cloud)(cloud.stamp_ns + 10**9, cloud.xyz, cloud.rgb, cloud.camera)
+    worker.clock = worker_clock = FakeClock()
+    worker.sleep = worker_clock.sleep
+    worker._await_tick(ahead)
+    assert worker_clock.t - 1000.0 == pytest.approx(AHEAD_WAIT_S, abs=0.002)
+    assert est.status()["counts"]["clouds_ahead_of_poses"] == 1

@@ -63,7 +63,10 @@ def test_bad_clouds_rejected(est):
     for raw, reason in [
         (b"garbage", "malformed_cdr"),
         (M.vertices_cloud(T0, np.zeros((5, 3)), np.zeros(5)), "wrong_point_fields"),
-        (M.point_cloud(T0, np.ones((1, 16, 3), np.float32), np.zeros((1, 16, 3), np.uint8)), "no_camera_info"),
+        (
+            M.point_cloud(T0, np.ones((1, 16, 3), np.float32), np.zeros((1, 16, 3), np.uint8)),
+            "no_camera_info",
+        ),
         (
             M.point_cloud(T0, np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.uint8)),
             "empty_cloud",
