@@ -95,7 +95,7 @@ def run(mode: dict, latency_s: float, ticks: int, seed: int = 0) -> dict:
     from service import scenario
     from service.config import load_config
     from service.estimator import Estimator
-    from service.fusion import AHEAD_WAIT_S, FusionWorker
+    from service.fusion import FusionWorker
     from service.geometry import matrix_to_pose, poses_from_vertices
 
     torch.set_num_threads(1)
@@ -130,8 +130,8 @@ def run(mode: dict, latency_s: float, ticks: int, seed: int = 0) -> dict:
         while ready and ready[0][0] <= now:
             at, stamp, f = ready.pop(0)
             waiting.append((at, est.decode_cloud(M.point_cloud(stamp, f.xyz, f.rgb))))
-        # as the fusion thread: a cloud waits for its tick, at most AHEAD_WAIT_S
-        while waiting and (fusion.due(waiting[0][1]) or now - waiting[0][0] >= AHEAD_WAIT_S * NS):
+        # as the fusion thread: a cloud waits for its tick, at most ahead_wait_s()
+        while waiting and (fusion.due(waiting[0][1]) or now - waiting[0][0] >= fusion.ahead_wait_s() * NS):
             fusion.fuse(waiting.pop(0)[1])
         if tick >= SETTLE_TICKS:
             # the time the state was stepped to (a sample past the newest pose holds that pose)

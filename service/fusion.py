@@ -23,7 +23,7 @@ from service.workers import InlineWorker, WorkerError, pack_moment, pack_tracker
 
 log = logging.getLogger("deform.service")
 
-AHEAD_WAIT_S = 0.1  # a cloud newer than the newest tick waits at most this long for the tick of its stamp
+AHEAD_WAIT_PERIODS = 3  # a cloud newer than every tick waits at most the pose delay and this many periods
 
 
 class LatestSlot:
@@ -95,10 +95,19 @@ class FusionWorker(threading.Thread):
             newest = est.history[-1].pose_ns if est.history else None
         return newest is None or newest >= cloud.stamp_ns - est.cfg.dt * 1e9 / 2
 
+    def ahead_wait_s(self) -> float:
+        """How long a cloud may wait for its tick: the ticks lag the newest pose by the pose delay
+        and up to a period or two more (the tick's phase, the pose interval), so a cloud still
+        ahead after ``AHEAD_WAIT_PERIODS`` periods beyond it has a stamp no tick will reach soon
+        (its camera's clock ahead of the robot's: ``camera.stamp_delay_s`` corrects that)."""
+        timeline = self.est.timeline
+        delay = timeline.delay_ns() / 1e9 if timeline is not None else 0.0
+        return delay + AHEAD_WAIT_PERIODS * self.est.cfg.dt
+
     def _await_tick(self, cloud) -> None:
-        """Wait (at most ``AHEAD_WAIT_S``) until ``cloud`` is :meth:`due`; a cloud still ahead then
-        (its camera's clock ahead of the robot's) is fused at the newest tick and counted."""
-        deadline = self.clock() + AHEAD_WAIT_S
+        """Wait (at most :meth:`ahead_wait_s`) until ``cloud`` is :meth:`due`; a cloud still ahead
+        then is fused at the newest tick and counted (``clouds_ahead_of_poses``)."""
+        deadline = self.clock() + self.ahead_wait_s()
         while not self.due(cloud) and not self._stop_event.is_set():
             if self.clock() >= deadline:
                 self.est.stats.count("clouds_ahead_of_poses")

@@ -78,9 +78,8 @@ def test_a_late_cloud_fused_where_it_arrives_pulls_the_rope_back(runs):
 def test_a_cloud_newer_than_every_tick_waits_for_its_own(model, sim_stream):
     """Ticks step to poses ``pose_delay_s`` (20 ms) behind the newest, so a cloud taken with the
     newest pose is newer than every tick: not due until a tick reaches its stamp, then fused at
-    that tick. One whose stamp no tick reaches (its camera's clock ahead) waits ``AHEAD_WAIT_S``
-    of the fusion thread's clock and is counted."""
-    from service.fusion import AHEAD_WAIT_S
+    that tick. One whose stamp no tick reaches (its camera's clock ahead) waits the pose delay and
+    three periods of the fusion thread's clock, and is counted."""
 
     _, stream = sim_stream
     est = Estimator(make_config(pose_delay_s=0.02), model, clock=FakeClock())
@@ -106,5 +105,6 @@ def test_a_cloud_newer_than_every_tick_waits_for_its_own(model, sim_stream):
     worker.clock = worker_clock = FakeClock()
     worker.sleep = worker_clock.sleep
     worker._await_tick(ahead)
-    assert worker_clock.t - 1000.0 == pytest.approx(AHEAD_WAIT_S, abs=0.002)
+    assert worker.ahead_wait_s() == pytest.approx(0.05)
+    assert worker_clock.t - 1000.0 == pytest.approx(0.05, abs=0.002)
     assert est.status()["counts"]["clouds_ahead_of_poses"] == 1
