@@ -54,7 +54,7 @@ class Tick(NamedTuple):
     index: int
     grip: np.ndarray
     pose_ns: int
-    moment: object | None = None
+    moment: object | None  # None when clouds are fused where they arrive
 
 
 class Estimator:

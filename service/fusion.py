@@ -160,6 +160,7 @@ class FusionWorker(threading.Thread):
             if not self._can_clone:
                 est._correct(est.tracker, cloud)
                 est.fused_at = est.now()
+                est.stats.cloud_age_s.add((est.wall_ns() - cloud.stamp_ns) / 1e9)
                 return
             start = est.fusion_tick(cloud.stamp_ns)
             if start is not None:

@@ -48,18 +48,22 @@ class PoseTimeline:
         self.delay_s = delay_s
         self.poses: deque[tuple[int, np.ndarray]] = deque(maxlen=size)
         self.tau: int | None = None
+        self._auto_ns: int | None = None  # the automatic delay of the poses kept (None: to compute)
 
     def add(self, stamp_ns: int, poses: np.ndarray) -> None:
         """A pose message (stamps increasing: the estimator refuses others)."""
         self.poses.append((int(stamp_ns), np.asarray(poses, dtype=float)))
+        self._auto_ns = None
 
     def delay_ns(self) -> int:
         if self.delay_s is not None:
             return round(self.delay_s * NS)
         if len(self.poses) < 3:
             return 0
-        stamps = np.array([s for s, _ in self.poses])
-        return round(AUTO_PERIODS * float(np.median(np.diff(stamps))))
+        if self._auto_ns is None:  # once per pose, not once per tick
+            stamps = np.array([s for s, _ in self.poses])
+            self._auto_ns = round(AUTO_PERIODS * float(np.median(np.diff(stamps))))
+        return self._auto_ns
 
     def next(self) -> tuple[int, np.ndarray] | None:
         """``(tau, poses (k, 7) at tau)`` for the next tick; None before any pose."""

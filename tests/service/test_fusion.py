@@ -8,6 +8,7 @@ from service.estimator import Estimator
 from service.fusion import FusionWorker
 from tests.service.conftest import FakeClock, make_config
 
+T0 = 1_700_000_000 * 10**9
 LATE_TICKS = 6  # 60 ms: a camera driver's latency and the decoding
 LAST_CLOUD_TICK = 40  # clouds of later ticks are not sent: every cloud sent is fused in each run
 
@@ -108,3 +109,31 @@ def test_a_cloud_newer_than_every_tick_waits_for_its_own(model, sim_stream):
     assert worker.ahead_wait_s() == pytest.approx(0.05)
     assert worker_clock.t - 1000.0 == pytest.approx(0.05, abs=0.002)
     assert est.status()["counts"]["clouds_ahead_of_poses"] == 1
+
+
+def test_a_tracker_that_cannot_be_copied_is_corrected_in_the_loop_thread(model):
+    """The fallback: no copy to fuse in a worker, so the cloud corrects the tracker itself; it is
+    counted, and its age recorded, as a fused cloud."""
+    import threading
+
+    from service import messages as M
+    from tests.service.open_loop_tracker import OpenLoopTracker
+
+    tracker = OpenLoopTracker(model, settle_steps=5)
+    tracker.unpicklable = threading.Lock()
+    est = Estimator(make_config(), model, tracker, clock=FakeClock())
+    est.wall_ns = lambda: T0 + 40_000_000
+    worker = FusionWorker(est)
+    pose = np.array([[-0.4, 0, 0.5, 0, 0, 0, 1], [0.4, 0, 0.5, 0, 0, 1, 0]], dtype=float)
+    assert est.on_poses(M.pose_array(T0, pose))
+    est.tick(T0)
+    est.on_camera_info(M.camera_info(T0, np.diag([100.0, 100, 1]), 4, 4))
+    worker.fuse(
+        est.decode_cloud(
+            M.point_cloud(T0 + 10_000_000, np.ones((4, 4, 3), np.float32), np.zeros((4, 4, 3), np.uint8))
+        )
+    )
+    assert not worker._can_clone and est.tracker is tracker
+    status = est.status()
+    assert status["counts"]["clouds_fused"] == 1
+    assert status["cloud_age_ms"]["p50"] == pytest.approx(30.0)
