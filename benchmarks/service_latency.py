@@ -218,6 +218,7 @@ def measure(mode: dict, latencies: list[float], run_s: float, frames_path: Path,
                 "fusion_ms": s1["fusion_ms"],
                 "cloud_age_ms": s1.get("cloud_age_ms"),
                 "dropped": s1["dropped"],
+                "rope": s1.get("rope"),  # redetections, the camera's length over the model's, ...
             }
             print(mode, round(1e3 * latency), json.dumps(out[f"{round(1e3 * latency)}"]), flush=True)
     finally:
@@ -232,6 +233,7 @@ def main() -> int:
     ap.add_argument("--run-s", type=float, default=20.0)
     ap.add_argument("--repeats", type=int, default=2, help="each mode's service this many times, alternated")
     ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--modes", nargs="+", choices=list(MODES), default=list(MODES))
     ap.add_argument("--json")
     ap.add_argument("--feeder")
     ap.add_argument("--feeder-s", type=float)
@@ -249,12 +251,12 @@ def main() -> int:
     positions, source = scenario.demo_positions(N_FRAMES)
     latencies = [ms / 1e3 for ms in args.latency_ms]
     out: dict = {**provenance(), "recording": source, "run_s": args.run_s, "fps": args.fps}
-    runs: dict = {m: {} for m in MODES}
+    runs: dict = {m: {} for m in args.modes}
     with tempfile.TemporaryDirectory() as tmp:
         frames_path = Path(tmp) / "frames.npz"
         render_frames(frames_path, args.fps)
         for _ in range(args.repeats):
-            for mode in MODES:
+            for mode in args.modes:
                 for key, row in measure(MODES[mode], latencies, args.run_s, frames_path, positions).items():
                     runs[mode].setdefault(key, []).append(row)
     out["repeats"] = args.repeats

@@ -169,9 +169,12 @@ def main() -> int:
 
 def finish(out: dict, json_path: str | None) -> None:
     """The defaults' error over the service before's per latency (means), printed; ``out`` written."""
-    now, before = out["modes"]["stamp, steady poses"], out["modes"]["arrival, newest pose"]
-    out["ratio_default_over_before"] = {k: round(now[k]["error_mm"] / before[k]["error_mm"], 3) for k in now}
-    print(json.dumps(out["ratio_default_over_before"]))
+    now, before = out["modes"].get("stamp, steady poses"), out["modes"].get("arrival, newest pose")
+    if now and before:
+        out["ratio_default_over_before"] = {
+            k: round(now[k]["error_mm"] / before[k]["error_mm"], 3) for k in now
+        }
+        print(json.dumps(out["ratio_default_over_before"]))
     if json_path:
         Path(json_path).write_text(json.dumps(out, indent=1) + "\n")
 
