@@ -52,6 +52,39 @@ def test_predict_in_child_process_equals_inline(est, child, model):
     assert np.array(json.loads(reply_c)["vertices"]).shape == (2, 4, 13, 3)
 
 
+def test_a_cloud_fused_in_the_child_process_equals_inline(child, model, sim_stream):
+    """perception's tracker, taken back to a kept tick's moment and corrected with a rendered cloud:
+    the child returns the tracker the inline worker returns, bit for bit (state, velocities, the
+    recovery counts)."""
+    from service.estimator import Estimator as Est
+    from service.workers import pack_moment
+    from tests.service.conftest import FakeClock
+
+    _, stream = sim_stream
+    e = Est(make_config(pose_delay_s=0), model, clock=FakeClock())
+    inline, fused = InlineWorker(model, e.cfg), 0
+    for m in stream:
+        if m.name == "camera_info":
+            e.on_camera_info(m.data)
+        elif m.name == "camera_pose":
+            e.on_camera_pose(m.data)
+        elif m.name == "ee_poses":
+            assert e.on_poses(m.data)
+            e.tick(m.log_time)
+        elif m.name == "points" and e.tick_index > 2:
+            cloud = e.decode_cloud(m.data)
+            blob, moment = pack_tracker(e.tracker, model), pack_moment(e.fusion_tick(cloud.stamp_ns).moment)
+            a = unpack_tracker(child.call("fuse", blob, cloud, moment, timeout=120)[0], model)
+            b = unpack_tracker(inline.call("fuse", blob, cloud, moment)[0], model)
+            for f in ("x", "v", "theta"):
+                assert np.array_equal(getattr(a.state, f).numpy(), getattr(b.state, f).numpy())
+            assert a.health.as_dict(0.01) == b.health.as_dict(0.01) and a.observed.any()
+            e.tracker, fused = b, fused + 1
+            if fused == 3:
+                break
+    assert fused == 3
+
+
 def test_errors_come_back_and_the_child_keeps_serving(est, child):
     ok, reply = predict_pool.handle(est, b"{not json", child)
     assert not ok and json.loads(reply)["error"] == "bad_json"
