@@ -27,11 +27,11 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from calibrate.errors import CalibrationError
-from perception import Camera
+from perception import Camera, organize_cloud
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import matrix_to_pose, pose_matrix
-from service.tracking import camera_frame_cloud, cloud_intrinsics, organized_cloud
+from service.tracking import camera_frame_cloud, cloud_intrinsics
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
@@ -78,9 +78,7 @@ class Clip:
         clock). Clouds the service would refuse (malformed, empty, wrong size) are skipped; a
         cloud published in the world frame is moved back into the optical frame, and an unorganized
         one put on the camera's image grid, as the service does."""
-        T = self.camera.world_from_camera
         cam = self.camera
-        K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
         out = []
         with _open(self.path) as reader:
             conns = [c for c in reader.connections if c.topic == self.points_topic]
@@ -89,14 +87,12 @@ class Clip:
                     stamp, xyz, rgb, frame = M.parse_point_cloud(bytes(raw))
                 except M.InputError:
                     continue
-                if xyz.shape[0] == 1:
-                    xyz, rgb = organized_cloud(
-                        camera_frame_cloud(xyz, frame, self.world_frame, T), rgb, K, cam.width, cam.height
-                    )
-                elif xyz.shape[:2] != (cam.height, cam.width):
+                flat = xyz.shape[0] == 1
+                if not flat and xyz.shape[:2] != (cam.height, cam.width):
                     continue
-                else:
-                    xyz = camera_frame_cloud(xyz, frame, self.world_frame, T)
+                xyz = camera_frame_cloud(xyz, frame, self.world_frame, cam.world_from_camera)
+                if flat:
+                    xyz, rgb = organize_cloud(xyz, rgb, cam)
                 out.append((stamp - self.cloud_delay_ns, xyz, rgb))
                 if len(out) > 8:  # a little look-ahead sorts clouds recorded slightly out of order
                     out.sort(key=lambda c: c[0])
@@ -163,7 +159,8 @@ def _camera_info_values(reader, conn) -> tuple | None:
 
 def _first_cloud(reader, conn) -> tuple[object | None, str | None]:
     """The first message of a cloud topic, decoded (None when there is none or it cannot be read),
-    and why the service would refuse it as a camera's cloud (None: it would not)."""
+    and, for an unorganized one, why the service would refuse it as a camera's cloud (None: it
+    would not; an organized cloud is not read further here)."""
     raw = _first(reader, conn)
     if raw is None:
         return None, None
@@ -171,6 +168,8 @@ def _first_cloud(reader, conn) -> tuple[object | None, str | None]:
         msg = M.decode(raw, M.POINT_CLOUD2)
     except M.InputError as exc:
         return None, str(exc)
+    if msg.height > 1:
+        return msg, None
     try:
         M.parse_point_cloud(raw)
     except M.InputError as exc:
@@ -379,7 +378,7 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         if points_c is None or points_c.msgcount == 0:
             raise CalibrationError(f"{path}: no clouds (no {M.POINT_CLOUD2} messages)")
         cloud, refused = _first_cloud(reader, points_c)  # read once: 1-5 MB
-        if refused is not None and cloud is not None and cloud.height <= 1:
+        if refused is not None and cloud is not None:
             raise CalibrationError(
                 f"{path}: the clouds on {points_c.topic} are no camera's clouds ({refused})"
             )

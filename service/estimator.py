@@ -22,7 +22,7 @@ from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
 from service.pose_timeline import PoseGrid, PoseTimeline
 from service.stats import Stats
-from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker, organized_cloud
+from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker, organize_cloud
 
 NS = 1_000_000_000
 
@@ -82,7 +82,9 @@ class Estimator:
         self.timeline = PoseTimeline(cfg.dt, cfg.pose_delay_s) if steady else None
         # message clock: ticks every dt of the poses' own time (not one per message)
         self.grid = PoseGrid(cfg.dt) if self.message_clock else None
-        self.due: deque[tuple[int, np.ndarray]] = deque()  # message clock: the grid's ticks not yet taken
+        self.grid_ticks: deque[tuple[int, np.ndarray]] = (
+            deque()
+        )  # message clock: the grid's ticks not yet taken
         self.newest_ns: int | None = None
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.fitted_intrinsics: dict[tuple[int, int], np.ndarray] = {}  # (w, h) -> K of the clouds' own
@@ -153,7 +155,7 @@ class Estimator:
             if self.timeline is not None:
                 self.timeline.add(parsed[0], parsed[1])
             due = self.grid.add(parsed[0], parsed[1]) if self.grid is not None else []
-            self.due.extend(due)
+            self.grid_ticks.extend(due)
             self._see(parsed[0])
             self._arrive("ee_poses", parsed[0])
             return [t for t, _ in due]
@@ -210,20 +212,19 @@ class Estimator:
             self._check_stamp("points", stamp, self.last_cloud_ns)
             info, pose = self.camera_info, self.camera_pose.copy()
         xyz = camera_frame_cloud(xyz, frame, self.cfg.frame_id, pose_matrix(pose))
-        if xyz.shape[0] == 1:  # unorganized: onto the grid of its CameraInfo
-            if info is None:
-                raise M.InputError("no_camera_info", "an unorganized cloud (height 1) needs its CameraInfo")
-            K, w, h = info
-            xyz, rgb = organized_cloud(xyz, rgb, K, w, h)
+        flat = xyz.shape[0] == 1  # unorganized: onto the grid of its CameraInfo
+        if flat and info is None:
+            raise M.InputError("no_camera_info", "an unorganized cloud (height 1) needs its CameraInfo")
+        K, w, h = info if flat else (self._intrinsics(xyz, info), xyz.shape[1], xyz.shape[0])
+        camera = make_camera(K, w, h, pose)
+        if flat:
+            xyz, rgb = organize_cloud(xyz, rgb, camera)
             self.stats.count("clouds_organized")
-        else:
-            K = self._intrinsics(xyz, info)
-            h, w = xyz.shape[:2]
         with self.lock:
             self.last_cloud_ns = stamp
             self._see(stamp)
             self._arrive("points", stamp)
-        return Cloud(stamp, xyz, rgb, make_camera(K, w, h, pose))
+        return Cloud(stamp, xyz, rgb, camera)
 
     def _intrinsics(self, xyz: np.ndarray, info) -> np.ndarray:
         """K for a camera-frame cloud: CameraInfo's when it is of the cloud's image size; otherwise
@@ -269,9 +270,9 @@ class Estimator:
             if self.timeline is not None:
                 pose_ns, poses = self.timeline.next()
                 grip = grips_from_poses(poses, self.cfg.grippers)
-            elif self.due and self.due[0][0] <= stamp_ns:
-                while self.due and self.due[0][0] <= stamp_ns:
-                    pose_ns, poses = self.due.popleft()
+            elif self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
+                while self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
+                    pose_ns, poses = self.grid_ticks.popleft()
                 grip = grips_from_poses(poses, self.cfg.grippers)
             if self.message_clock:
                 self.clock_s = stamp_ns / NS

@@ -100,8 +100,9 @@ class FusionWorker(threading.Thread):
         and up to a period or two more (the tick's phase, the pose interval), so a cloud still
         ahead after ``AHEAD_WAIT_PERIODS`` periods beyond it has a stamp no tick will reach soon
         (its camera's clock ahead of the robot's: ``camera.stamp_delay_s`` corrects that)."""
-        timeline = self.est.timeline
-        delay = timeline.delay_ns() / 1e9 if timeline is not None else 0.0
+        with self.est.lock:  # the pose subscriber adds to the timeline under it
+            timeline = self.est.timeline
+            delay = timeline.delay_ns() / 1e9 if timeline is not None else 0.0
         return delay + AHEAD_WAIT_PERIODS * self.est.cfg.dt
 
     def _await_tick(self, cloud) -> None:

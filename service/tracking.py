@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from perception import Camera, Tracker, intrinsics_from_cloud, organize_cloud
+# organize_cloud is the estimator's: it reaches perception through this module, as the rest of the service
+from perception import Camera, Tracker, intrinsics_from_cloud
+from perception import organize_cloud as organize_cloud
 from service.geometry import pose_matrix
 
 
@@ -34,12 +36,6 @@ def camera_frame_cloud(xyz: np.ndarray, frame: str, world: str, world_from_camer
         return xyz
     T = np.asarray(world_from_camera, dtype=np.float64)
     return ((xyz - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
-
-
-def organized_cloud(xyz: np.ndarray, rgb: np.ndarray, K: np.ndarray, width: int, height: int):
-    """An unorganized camera-frame cloud (1, N, 3) and its colours on the image grid of intrinsics
-    ``K`` and that size (``perception.organize_cloud``) -> (xyz (H, W, 3) float32, rgb (H, W, 3) uint8)."""
-    return organize_cloud(xyz, rgb, make_camera(K, width, height, np.array([0, 0, 0, 0, 0, 0, 1.0])))
 
 
 def cloud_intrinsics(xyz: np.ndarray) -> np.ndarray | None:
