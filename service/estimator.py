@@ -262,34 +262,28 @@ class Estimator:
 
     # ----- loop --------------------------------------------------------------------------------
     def tick(self, stamp_ns: int) -> Estimate | None:
-        """Advance one period with the latest grip; None while no gripper pose has arrived."""
+        """Advance one period with the latest grip; None while no gripper pose has arrived. On the
+        wall clock a tick whose poses fell far behind steps through those missed, one period each
+        (:meth:`service.pose_timeline.PoseTimeline.next`; counted as ``pose_catch_up_steps``)."""
         with self.lock:
             if self.poses is None:
                 return None
             pose_ns, poses, grip = self.poses
+            samples = [(pose_ns, poses, grip)]
             if self.timeline is not None:
-                pose_ns, poses = self.timeline.next()
-                grip = grips_from_poses(poses, self.cfg.grippers)
+                samples = [(t, p, grips_from_poses(p, self.cfg.grippers)) for t, p in self.timeline.next()]
+                self.stats.count("pose_catch_up_steps", len(samples) - 1)
             elif self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
                 while self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
                     pose_ns, poses = self.grid_ticks.popleft()
-                grip = grips_from_poses(poses, self.cfg.grippers)
+                samples = [(pose_ns, poses, grips_from_poses(poses, self.cfg.grippers))]
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
-            t0 = time.perf_counter()
-            with torch.no_grad():
-                if not self.initialized:
-                    x, observed = self.tracker.initialize(grip)
-                    self.initialized = True
-                else:
-                    x, observed = self.tracker.step(grip)
-                    self.stats.step_s.add(time.perf_counter() - t0)
-                self.tick_index += 1
-                while self.pending and self.pending[0].stamp_ns <= stamp_ns:
-                    x, observed = self._correct(self.tracker, self.pending.pop(0))
-                    self.fused_at = self.now()
-                moment = self.tracker.moment() if self.rewinds else None
-                self.history.append(Tick(self.tick_index, grip, pose_ns, moment))
+            for pose_ns, poses, grip in samples:
+                x, observed = self._advance(grip, pose_ns)
+            while self.pending and self.pending[0].stamp_ns <= stamp_ns:
+                x, observed = self._correct(self.tracker, self.pending.pop(0))
+                self.fused_at = self.now()  # (message clock: no history moments to rewrite)
             self.prev_x = self.estimate.x if self.estimate is not None else None
             self.estimate = Estimate(
                 pose_ns,  # the time the state describes: its grip's, not the tick's
@@ -300,6 +294,22 @@ class Estimator:
                 self.tick_index,
             )
             return self.estimate
+
+    def _advance(self, grip: np.ndarray, pose_ns: int):
+        """One model step to ``grip`` (the first: the tracker's initialisation), kept in the history
+        (call under ``lock``). -> the tracker's ``(x, observed)``."""
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            if not self.initialized:
+                x, observed = self.tracker.initialize(grip)
+                self.initialized = True
+            else:
+                x, observed = self.tracker.step(grip)
+                self.stats.step_s.add(time.perf_counter() - t0)
+        self.tick_index += 1
+        moment = self.tracker.moment() if self.rewinds else None
+        self.history.append(Tick(self.tick_index, grip, pose_ns, moment))
+        return x, observed
 
     def fusion_tick(self, stamp_ns: int) -> Tick | None:
         """The tick a cloud taken at ``stamp_ns`` is fused at (call under ``lock``): the last whose

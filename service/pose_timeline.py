@@ -12,6 +12,12 @@ poses around ``tau`` have almost always arrived; between two poses the positions
 linearly and the orientations along the shorter arc (normalised linear interpolation, exact enough
 over one pose interval).
 
+When the samples fall far behind (the first tick settles the rope for half a second, the loop
+stalls), the next tick steps through the poses missed, one sample a period, up to ``CATCH_UP_S``:
+jumped to in one step, the grippers would move that far in 10 ms and whip the model's rope (measured
+on the live service: 2 m/s after the first cloud, then repeated redetections). A longer gap (a paused
+sender) or samples ahead of their target (a sender whose clock went back) are jumped.
+
 On the message clock (a replay, the demo) nothing arrives late, so :class:`PoseGrid` ticks on a
 fixed grid of the poses' own time: every ``dt`` from the first pose, each tick's poses interpolated
 between the two messages around it. A bag with poses at 125 Hz (or 500, or 30) then plays at the
@@ -28,7 +34,8 @@ from service.geometry import interpolate_poses
 
 NS = 1_000_000_000
 FOLLOW = 0.1  # of the gap between tau and its target closed per tick (a 10-tick time constant)
-RESET_S = 0.1  # a gap wider than this (a start, a pause, a new sender) is jumped, not followed
+RESET_S = 0.1  # a gap wider than this (a start, a pause, a new sender) is not followed slowly ...
+CATCH_UP_S = 1.0  # ... but stepped through when the samples are at most this far behind; else jumped
 AUTO_PERIODS = 1.5  # the automatic delay in median pose intervals
 GRID_GAP_S = 1.0  # message clock: poses farther apart than this start the grid again at the later one
 
@@ -65,14 +72,27 @@ class PoseTimeline:
             self._auto_ns = round(AUTO_PERIODS * float(np.median(np.diff(stamps))))
         return self._auto_ns
 
-    def next(self) -> tuple[int, np.ndarray] | None:
-        """``(tau, poses (k, 7) at tau)`` for the next tick; None before any pose."""
+    def next(self) -> list[tuple[int, np.ndarray]]:
+        """The samples ``(tau, poses (k, 7) at tau)`` the next tick steps through: one, or when the
+        samples lag their target by more than ``RESET_S`` and at most ``CATCH_UP_S``, one a period
+        up to the target (see the module docstring); empty before any pose."""
         if not self.poses:
-            return None
+            return []
         target = self.poses[-1][0] - self.delay_ns()
-        ahead = target if self.tau is None else self.tau + self.dt_ns
-        self.tau = target if abs(target - ahead) > RESET_S * NS else round(ahead + FOLLOW * (target - ahead))
-        return self.tau, self.at(self.tau)
+        if self.tau is None:
+            self.tau = target
+            return [(target, self.at(target))]
+        ahead = self.tau + self.dt_ns
+        gap = target - ahead
+        if RESET_S * NS < gap <= CATCH_UP_S * NS:
+            count = max(round((target - self.tau) / self.dt_ns), 1)
+            taus = [self.tau + round(j * (target - self.tau) / count) for j in range(1, count + 1)]
+        elif abs(gap) > RESET_S * NS:
+            taus = [target]
+        else:
+            taus = [round(ahead + FOLLOW * gap)]
+        self.tau = taus[-1]
+        return [(t, self.at(t)) for t in taus]
 
     def at(self, t: int) -> np.ndarray:
         """The poses at ``t``: interpolated between the two kept around it, else the nearest end."""

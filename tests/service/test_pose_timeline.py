@@ -68,7 +68,7 @@ def test_samples_advance_one_period_a_tick_and_lie_on_the_motion_whatever_the_ar
     for tick, batch in enumerate(_arrivals(0, 300)):
         for t in batch:
             timeline.add(t, _pose(t))
-        tau, poses = timeline.next()
+        [(tau, poses)] = timeline.next()
         taus.append(tau)
         newest.append(batch[-1] if batch else newest[-1])
         if tau <= newest[-1]:  # between two poses: on the motion
@@ -88,8 +88,27 @@ def test_a_pause_longer_than_the_reset_is_jumped():
         timeline.next()
     later = T0 + 5 * NS
     timeline.add(later, _pose(later))
-    tau, _ = timeline.next()
+    [(tau, _)] = timeline.next()
     assert tau == later - 20_000_000
+
+
+def test_samples_that_fell_half_a_second_behind_step_through_the_poses_missed():
+    """A tick half a second late (the first tick's static solve, a stall): the next steps one period
+    at a time up to where the samples should be, each on the motion, then one a tick again."""
+    timeline = PoseTimeline(0.01, delay_s=0.02)
+    for k in range(3):
+        timeline.add(T0 + k * DT_NS, _pose(T0 + k * DT_NS))
+    [(first, _)] = timeline.next()
+    for k in range(3, 53):  # 0.5 s of poses arrive while the loop is busy
+        timeline.add(T0 + k * DT_NS, _pose(T0 + k * DT_NS))
+    samples = timeline.next()
+    taus = np.array([t for t, _ in samples])
+    assert taus[-1] == T0 + 52 * DT_NS - 20_000_000  # the target, not beyond
+    np.testing.assert_allclose(np.diff(np.r_[first, taus]) / DT_NS, 1.0, atol=0.05)
+    for t, poses in samples:
+        np.testing.assert_allclose(poses, _pose(t), atol=1e-6)
+    timeline.add(T0 + 53 * DT_NS, _pose(T0 + 53 * DT_NS))
+    assert len(timeline.next()) == 1
 
 
 def test_a_wall_clock_estimator_steps_evenly_on_bursty_poses(model):
@@ -170,3 +189,35 @@ def test_a_message_clock_estimator_replays_125_hz_poses_at_their_own_rate(model)
         assert ticks == 121 and est.estimate.stamp_ns == T0 + int(1.2 * NS)
         end[period] = est.estimate.x
     assert np.abs(end[8_000_000] - end[10_000_000]).max() < 1e-3
+
+
+def test_a_late_first_tick_does_not_whip_the_rope(model, monkeypatch):
+    """The first tick settles the rope (half a second); the poses sent meanwhile are stepped through
+    at the next tick, so the model's rope moves as its grippers do. Jumped to in one step (as before),
+    the grippers move 10 cm in 10 ms and the free rope flies off at metres a second."""
+    from service import messages as M
+    from service import pose_timeline
+    from service import scenario
+    from service.estimator import Estimator
+    from service.geometry import poses_from_vertices
+
+    positions, _ = scenario.demo_positions(120)
+    grippers = scenario.offsets_for(positions)
+    poses = poses_from_vertices(positions, grippers)
+    cfg = make_config(pose_delay_s=0.02, grippers=grippers.model_dump())
+    speed, counts, default = {}, {}, pose_timeline.CATCH_UP_S
+    for catch_up_s in (default, 0.0):
+        monkeypatch.setattr(pose_timeline, "CATCH_UP_S", catch_up_s)
+        est = Estimator(cfg, model, clock=FakeClock())
+        for k in range(3):
+            assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
+        est.tick(T0 + 3 * DT_NS)  # initialises
+        for k in range(3, 60):  # 0.57 s of motion arrive during the static solve
+            assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
+        est.tick(T0 + 60 * DT_NS)
+        speed[catch_up_s] = float(est.tracker.state.v[0].norm(dim=-1).max())
+        counts[catch_up_s] = est.stats.snapshot()["counts"].get("pose_catch_up_steps", 0)
+    truth = np.linalg.norm(positions[57] - positions[56], axis=-1).max() / 0.01
+    assert counts[default] >= 50 and counts[0.0] == 0
+    assert speed[default] < 1.5 * truth  # measured: equal to the recording's 0.40 m/s
+    assert speed[0.0] > 10 * speed[default]  # measured: 18.6 m/s
