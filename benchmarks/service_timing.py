@@ -8,7 +8,8 @@ the same inputs and the figures do not move with the machine's load (``service_l
 live service; its runs vary by 2x from one service start to the next, see docs/service.md). The
 recording is played back and forth at 100 Hz; poses are stamped on schedule and reach the loop in
 bursts (on a fifth of the ticks the sender is busy and what was due comes with the next; the loop's
-clock drifts against the robot's by 0.5 %); the
+clock drifts against the robot's by 0.5 %; its first tick, which settles the rope, takes half a
+second, the ticks meanwhile skipped as the live loop skips them); the
 camera takes clouds at 30 Hz on its own clock (a random phase against the poses; each rendered from
 the rope at its time), and each is decoded ``latency`` plus 5-30 ms (transport, decoding) after its
 stamp and fused once due (``FusionWorker.due``: a cloud newer than every tick waits for its own, as
@@ -45,6 +46,8 @@ NS = 10**9
 CAMERA_HZ = 30.0
 DRIFT = 0.005  # the loop's clock runs this much fast against the robot's
 BUSY = 0.2  # the pose sender's share of ticks too busy to send (what was due then comes in a burst)
+INIT_S = 0.5  # the first tick's static solve (Tracker.initialize settles the rope: 0.48-0.50 s on one
+# core, measured): the live loop skips the ticks meanwhile, while poses and clouds keep coming
 TRANSPORT_S = (0.005, 0.03)  # a cloud's transport and decoding after the camera's latency: loopback (the
 # live service measured 8 ms from stamp to decoded) to a network
 
@@ -116,7 +119,7 @@ def run(mode: dict, latency_s: float, ticks: int, seed: int = 0) -> dict:
         for stamp, frame in camera_clouds
     ]
     waiting: list = []  # (decoded at, cloud) not yet due: newer than the newest tick (FusionWorker.due)
-    sent, errors = 0, []
+    sent, errors, busy_until = 0, [], 0
     for tick in range(ticks):
         now = T0 + round(tick * DT_NS * (1 + DRIFT))
         # the poses due by now, unless the sender is busy this tick (then they come with the next)
@@ -124,9 +127,12 @@ def run(mode: dict, latency_s: float, ticks: int, seed: int = 0) -> dict:
         while not busy and T0 + sent * DT_NS <= now:
             assert est.on_poses(M.pose_array(T0 + sent * DT_NS, poses[frame_at(sent, N_FRAMES)]))
             sent += 1
-        if est.poses is None:
+        if est.poses is None or now < busy_until:
             continue
+        first = not est.initialized
         est.tick(now)
+        if first:
+            busy_until = now + round(INIT_S * NS)
         while ready and ready[0][0] <= now:
             at, stamp, f = ready.pop(0)
             waiting.append((at, est.decode_cloud(M.point_cloud(stamp, f.xyz, f.rgb))))

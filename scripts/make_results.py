@@ -31,6 +31,7 @@ from results_model import (
     render_predict_planning,
     render_roofline,
     render_service,
+    render_service_latency,
     render_service_timing,
     render_speed,
     render_startup,
@@ -67,6 +68,11 @@ KNOWN = {
     "service_timing.json": (
         "Service: clouds arriving late, poses in bursts (simulated clock)",
         "python benchmarks/service_timing.py --ticks 1500 --json benchmarks/results/service_timing.json",
+    ),
+    "service_latency.json": (
+        "Service: the live service's tracking, start after start",
+        'python benchmarks/service_latency.py --modes "stamp, steady poses" --latency-ms 0 100 --run-s 20 '
+        "--repeats 8 --json benchmarks/results/service_latency.json",
     ),
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
@@ -144,6 +150,7 @@ RENDER = {
     "service.json": render_service,
     "service_soak.json": render_service,
     "service_timing.json": render_service_timing,
+    "service_latency.json": render_service_latency,
     "baselines.json": render_baselines,
     "ablations.json": render_ablations,
     "diagnose.json": render_diagnose,

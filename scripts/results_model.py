@@ -129,20 +129,56 @@ def render_service_timing(d: dict) -> list[str]:
         f"Recording {d.get('recording', '-')}, played back and forth at 100 Hz, clouds at 30 Hz. Tracking "
         "error: two-way distance of the estimate to the rope as rendered at the time of the poses it "
         "stepped to [mm], mean / p90. Camera latency: from a cloud's stamp to its arrival; transport "
-        "and decoding come on top. Ratio: the default over the service before, means.",
+        "and decoding come on top. Ratio: the default over the service before, means. In brackets, "
+        "where recorded: the rope's redetections from the cloud alone over the run, start included.",
         "",
     ]
     latencies = list(next(iter(modes.values()), {}))
+
+    def cell(m: dict, key: str) -> str:
+        text = f"{fmt(get(m, key, 'error_mm'), 2)} / {fmt(get(m, key, 'error_p90_mm'), 2)}"
+        redetected = (get(m, key, "rope") or {}).get("redetected")
+        return text if redetected is None else f"{text} ({redetected})"
+
     rows = [
         [f"{key} ms"]
-        + [
-            f"{fmt(get(m, key, 'error_mm'), 2)} / {fmt(get(m, key, 'error_p90_mm'), 2)}"
-            for m in modes.values()
-        ]
+        + [cell(m, key) for m in modes.values()]
         + [fmt(get(d, "ratio_default_over_before", key), 2)]
         for key in latencies
     ]
     return out + table(["camera latency", *modes, "ratio"], rows)
+
+
+def render_service_latency(d: dict) -> list[str]:
+    """The live service (``service_latency.py``): per mode and camera latency, the tracking error of
+    each service start and the rope's redetections, which the episodes of docs/service.md showed."""
+    out = [
+        f"Recording {d.get('recording', '-')}, played back and forth by a feeder process over Zenoh on "
+        f"loopback, clouds at {fmt(d.get('fps'), 0)} Hz; {d.get('repeats', '-')} service starts per mode, "
+        f"{fmt(d.get('run_s'), 0)} s per camera latency (the latencies one after another in each start). "
+        "Tracking error: two-way distance of each published estimate to the rope as rendered at the "
+        "time of its poses [mm], after the first 3 s. Redetections: the rope found again from the "
+        "cloud alone, counted from the start (the status after each latency's run).",
+        "",
+    ]
+    rows = []
+    for mode, by_latency in (d.get("modes") or {}).items():
+        for key, row in by_latency.items():
+            runs = row.get("runs") or []
+            errors = [r.get("error_mm") for r in runs if r.get("error_mm") is not None]
+            redetected = [(r.get("rope") or {}).get("redetected") for r in runs]
+            rows.append(
+                [
+                    mode,
+                    f"{key} ms",
+                    f"{fmt(row.get('error_mm'), 2)} / {fmt(row.get('error_p90_mm'), 2)}",
+                    f"{fmt(min(errors), 2)}-{fmt(max(errors), 2)}" if errors else "-",
+                    ", ".join("-" if n is None else str(n) for n in redetected) or "-",
+                ]
+            )
+    return out + table(
+        ["mode", "camera latency", "error mean / p90", "per start, range", "redetections per start"], rows
+    )
 
 
 def render_service(d: dict) -> list[str]:
