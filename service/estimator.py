@@ -279,8 +279,9 @@ class Estimator:
                 samples = [(pose_ns, poses, grips_from_poses(poses, self.cfg.grippers))]
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
-            for pose_ns, poses, grip in samples:
-                x, observed = self._advance(grip, pose_ns)
+            for t, _, g in samples:
+                x, observed = self._advance(g, t)
+            pose_ns, poses, grip = samples[-1]
             while self.pending and self.pending[0].stamp_ns <= stamp_ns:
                 x, observed = self._correct(self.tracker, self.pending.pop(0))
                 self.fused_at = self.now()  # (message clock: no history moments to rewrite)

@@ -196,8 +196,7 @@ def test_a_late_first_tick_does_not_whip_the_rope(model, monkeypatch):
     at the next tick, so the model's rope moves as its grippers do. Jumped to in one step (as before),
     the grippers move 10 cm in 10 ms and the free rope flies off at metres a second."""
     from service import messages as M
-    from service import pose_timeline
-    from service import scenario
+    from service import pose_timeline, scenario
     from service.estimator import Estimator
     from service.geometry import poses_from_vertices
 
