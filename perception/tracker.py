@@ -135,6 +135,13 @@ class Tracker:
         self._since_update = moment.since_update
         self._residual = moment.residual.copy()
 
+    def hold_still(self) -> None:
+        """The rope at rest where it is (its velocity zero): after its grippers jumped in one step (a
+        pose sender that paused while the robot moved), the step's projection moved the free rope
+        that far in one period, and that velocity would throw it on."""
+        if self.state is not None:
+            self.state = replace(self.state, v=torch.zeros_like(self.state.v))
+
     def initialize_from_frames(self, x0: np.ndarray, x1: np.ndarray):
         """State at ``x1`` from two consecutive full observations (the paper's protocol).
 

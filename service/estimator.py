@@ -279,8 +279,9 @@ class Estimator:
                 samples = [(pose_ns, poses, grips_from_poses(poses, self.cfg.grippers))]
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
+            jumped = self.timeline is not None and self.timeline.jumped
             for t, _, g in samples:
-                x, observed = self._advance(g, t)
+                x, observed = self._advance(g, t, still=jumped)
             pose_ns, poses, grip = samples[-1]
             while self.pending and self.pending[0].stamp_ns <= stamp_ns:
                 x, observed = self._correct(self.tracker, self.pending.pop(0))
@@ -296,9 +297,10 @@ class Estimator:
             )
             return self.estimate
 
-    def _advance(self, grip: np.ndarray, pose_ns: int):
+    def _advance(self, grip: np.ndarray, pose_ns: int, still: bool = False):
         """One model step to ``grip`` (the first: the tracker's initialisation), kept in the history
-        (call under ``lock``). -> the tracker's ``(x, observed)``."""
+        (call under ``lock``); ``still``: the grippers jumped there, the rope is stopped after the step
+        (``Tracker.hold_still``; counted as ``pose_jumps``). -> the tracker's ``(x, observed)``."""
         t0 = time.perf_counter()
         with torch.no_grad():
             if not self.initialized:
@@ -307,6 +309,9 @@ class Estimator:
             else:
                 x, observed = self.tracker.step(grip)
                 self.stats.step_s.add(time.perf_counter() - t0)
+                if still and hasattr(self.tracker, "hold_still"):
+                    self.tracker.hold_still()
+                    self.stats.count("pose_jumps")
         self.tick_index += 1
         moment = self.tracker.moment() if self.rewinds else None
         self.history.append(Tick(self.tick_index, grip, pose_ns, moment))

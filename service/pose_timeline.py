@@ -16,7 +16,8 @@ When the samples fall far behind (the first tick settles the rope for half a sec
 stalls), the next tick steps through the poses missed, one sample a period, up to ``CATCH_UP_S``:
 jumped to in one step, the grippers would move that far in 10 ms and whip the model's rope (measured
 on the live service: 2 m/s after the first cloud, then repeated redetections). A longer gap (a paused
-sender) or samples ahead of their target (a sender whose clock went back) are jumped.
+sender) or samples ahead of their target (a sender whose clock went back) are jumped (``jumped``: the
+estimator then stops the rope, which the jump's step threw).
 
 On the message clock (a replay, the demo) nothing arrives late, so :class:`PoseGrid` ticks on a
 fixed grid of the poses' own time: every ``dt`` from the first pose, each tick's poses interpolated
@@ -55,6 +56,7 @@ class PoseTimeline:
         self.delay_s = delay_s
         self.poses: deque[tuple[int, np.ndarray]] = deque(maxlen=size)
         self.tau: int | None = None
+        self.jumped = False  # the last :meth:`next` jumped (a gap beyond CATCH_UP_S, or back in time)
         self._auto_ns: int | None = None  # the automatic delay of the poses kept (None: to compute)
 
     def add(self, stamp_ns: int, poses: np.ndarray) -> None:
@@ -76,6 +78,7 @@ class PoseTimeline:
         """The samples ``(tau, poses (k, 7) at tau)`` the next tick steps through: one, or when the
         samples lag their target by more than ``RESET_S`` and at most ``CATCH_UP_S``, one a period
         up to the target (see the module docstring); empty before any pose."""
+        self.jumped = False
         if not self.poses:
             return []
         target = self.poses[-1][0] - self.delay_ns()
@@ -88,7 +91,7 @@ class PoseTimeline:
             count = max(round((target - self.tau) / self.dt_ns), 1)
             taus = [self.tau + round(j * (target - self.tau) / count) for j in range(1, count + 1)]
         elif abs(gap) > RESET_S * NS:
-            taus = [target]
+            taus, self.jumped = [target], True
         else:
             taus = [round(ahead + FOLLOW * gap)]
         self.tau = taus[-1]

@@ -204,6 +204,23 @@ def test_a_tracker_taken_back_to_a_moment_goes_on_as_it_did_from_there(
     assert seen_first[2:-2].any()  # the cloud was fused: the restored moment was corrected too
 
 
+def test_a_tracker_held_still_keeps_its_shape_at_rest(model, recording, grip_idx):
+    """``hold_still``: the state's velocity zero, its shape and everything else as they were (and a
+    tracker not yet started is left alone)."""
+    Tracker(model).hold_still()
+    p = recording.positions
+    t = Tracker(model)
+    t.initialize_from_frames(p[0], p[1])
+    for k in range(2, 30):
+        t.step(p[k, grip_idx])
+    before = t.moment()
+    assert float(before.state.v.abs().max()) > 0.01
+    t.hold_still()
+    assert float(t.state.v.abs().max()) == 0.0
+    for name in ("x", "d1", "theta", "rest"):
+        torch.testing.assert_close(getattr(t.state, name), getattr(before.state, name), rtol=0, atol=0)
+
+
 def test_uninitialised_tracker_does_not_raise(model, grip_idx):
     t = Tracker(model)
     x, observed = t.correct(np.zeros((10, 3), np.float32), None, Camera.kinect())

@@ -195,6 +195,7 @@ def test_a_late_first_tick_does_not_whip_the_rope(model, monkeypatch):
     """The first tick settles the rope (half a second); the poses sent meanwhile are stepped through
     at the next tick, so the model's rope moves as its grippers do. Jumped to in one step (as before),
     the grippers move 10 cm in 10 ms and the free rope flies off at metres a second."""
+    from perception.tracker import Tracker
     from service import messages as M
     from service import pose_timeline, scenario
     from service.estimator import Estimator
@@ -207,6 +208,8 @@ def test_a_late_first_tick_does_not_whip_the_rope(model, monkeypatch):
     speed, counts, default = {}, {}, pose_timeline.CATCH_UP_S
     for catch_up_s in (default, 0.0):
         monkeypatch.setattr(pose_timeline, "CATCH_UP_S", catch_up_s)
+        if not catch_up_s:  # the jump as it was: the rope not stopped after it either
+            monkeypatch.setattr(Tracker, "hold_still", lambda self: None)
         est = Estimator(cfg, model, clock=FakeClock())
         for k in range(3):
             assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
@@ -220,3 +223,35 @@ def test_a_late_first_tick_does_not_whip_the_rope(model, monkeypatch):
     assert counts[default] >= 50 and counts[0.0] == 0
     assert speed[default] < 1.5 * truth  # measured: equal to the recording's 0.40 m/s
     assert speed[0.0] > 10 * speed[default]  # measured: 18.6 m/s
+
+
+def test_a_jump_after_a_paused_sender_leaves_the_rope_at_rest(model, monkeypatch):
+    """Poses stop for 3 s while the robot moves on: the next tick jumps the grippers there (too long
+    a gap to step through) and stops the rope; kept, the jump's velocity throws it on."""
+    from perception.tracker import Tracker
+    from service import messages as M
+    from service import scenario
+    from service.estimator import Estimator
+    from service.geometry import poses_from_vertices
+
+    positions, _ = scenario.demo_positions(400)
+    grippers = scenario.offsets_for(positions)
+    poses = poses_from_vertices(positions, grippers)
+    cfg = make_config(pose_delay_s=0.02, grippers=grippers.model_dump())
+    speed, jumps = {}, {}
+    for kept in (False, True):
+        if kept:
+            monkeypatch.setattr(Tracker, "hold_still", lambda self: None)
+        est = Estimator(cfg, model, clock=FakeClock())
+        for k in range(40):
+            assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
+            est.tick(T0 + (k + 1) * DT_NS)
+        later = 340  # 3 s on
+        for k in (later, later + 1):
+            assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
+        est.tick(T0 + (later + 2) * DT_NS)
+        speed[kept] = float(est.tracker.state.v[0].norm(dim=-1).max())
+        jumps[kept] = est.stats.snapshot()["counts"].get("pose_jumps", 0)
+    assert np.abs(positions[later] - positions[39]).max() > 0.05  # the grippers moved on
+    assert speed[False] == 0.0 and jumps[False] == 1
+    assert speed[True] > 1.0  # m/s
