@@ -85,6 +85,7 @@ class Estimator:
         self.grid_ticks: deque[tuple[int, np.ndarray]] = (
             deque()
         )  # message clock: the grid's ticks not yet taken
+        self.grid_jumps: set[int] = set()  # message clock: the times of ticks the grid restarted at
         self.newest_ns: int | None = None
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.fitted_intrinsics: dict[tuple[int, int], np.ndarray] = {}  # (w, h) -> K of the clouds' own
@@ -156,6 +157,8 @@ class Estimator:
                 self.timeline.add(parsed[0], parsed[1])
             due = self.grid.add(parsed[0], parsed[1]) if self.grid is not None else []
             self.grid_ticks.extend(due)
+            if due and self.grid.restarted:  # the grippers jump to this tick's poses
+                self.grid_jumps.add(due[0][0])
             self._see(parsed[0])
             self._arrive("ee_poses", parsed[0])
             return [t for t, _ in due]
@@ -264,22 +267,27 @@ class Estimator:
     def tick(self, stamp_ns: int) -> Estimate | None:
         """Advance one period with the latest grip; None while no gripper pose has arrived. On the
         wall clock a tick whose poses fell far behind steps through those missed, one period each
-        (:meth:`service.pose_timeline.PoseTimeline.next`; counted as ``pose_catch_up_steps``)."""
+        (:meth:`service.pose_timeline.PoseTimeline.next`; counted as ``pose_catch_up_steps``); where
+        the grippers jumped (a gap too long for that, or the message clock's grid started again after
+        one), the rope is stopped after the step."""
         with self.lock:
             if self.poses is None:
                 return None
             pose_ns, poses, grip = self.poses
-            samples = [(pose_ns, poses, grip)]
+            samples, jumped = [(pose_ns, poses, grip)], False  # jumped: stop the rope after the step
             if self.timeline is not None:
                 samples = [(t, p, grips_from_poses(p, self.cfg.grippers)) for t, p in self.timeline.next()]
                 self.stats.count("pose_catch_up_steps", len(samples) - 1)
+                jumped = self.timeline.jumped
             elif self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
                 while self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
                     pose_ns, poses = self.grid_ticks.popleft()
+                    if pose_ns in self.grid_jumps:
+                        self.grid_jumps.discard(pose_ns)
+                        jumped = True
                 samples = [(pose_ns, poses, grips_from_poses(poses, self.cfg.grippers))]
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
-            jumped = self.timeline is not None and self.timeline.jumped
             for t, _, g in samples:
                 x, observed = self._advance(g, t, still=jumped)
             pose_ns, poses, grip = samples[-1]

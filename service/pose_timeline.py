@@ -122,11 +122,13 @@ class PoseGrid:
         self.gap_ns = round(gap_s * NS)
         self.last: tuple[int, np.ndarray] | None = None
         self.next_ns: int | None = None
+        self.restarted = False  # the last :meth:`add` started the grid again after a gap
 
     def add(self, stamp_ns: int, poses: np.ndarray) -> list[tuple[int, np.ndarray]]:
         stamp_ns, poses = int(stamp_ns), np.asarray(poses, dtype=float)
         last, self.last = self.last, (stamp_ns, poses)
-        if last is None or stamp_ns - last[0] > self.gap_ns:
+        self.restarted = last is not None and stamp_ns - last[0] > self.gap_ns
+        if last is None or self.restarted:
             self.next_ns = stamp_ns + self.dt_ns
             return [(stamp_ns, poses)]
         ticks = []

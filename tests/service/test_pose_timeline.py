@@ -255,3 +255,28 @@ def test_a_jump_after_a_paused_sender_leaves_the_rope_at_rest(model, monkeypatch
     assert np.abs(positions[later] - positions[39]).max() > 0.05  # the grippers moved on
     assert speed[False] == 0.0 and jumps[False] == 1
     assert speed[True] > 1.0  # m/s
+
+
+def test_the_message_clock_stops_the_rope_where_its_grid_starts_again(model):
+    """A replay whose poses pause 3 s while the robot moves: the grid starts again at the later pose
+    and the rope is stopped after that tick's step (as on the wall clock)."""
+    from service import messages as M
+    from service import scenario
+    from service.estimator import Estimator
+    from service.geometry import poses_from_vertices
+
+    positions, _ = scenario.demo_positions(400)
+    grippers = scenario.offsets_for(positions)
+    poses = poses_from_vertices(positions, grippers)
+    est = Estimator(make_config(clock="message", grippers=grippers.model_dump()), model, clock=FakeClock())
+    last = None
+    for k in [*range(40), 340]:
+        parsed = est.parse_poses(M.pose_array(T0 + k * DT_NS, poses[k]), last)
+        last = parsed[0]
+        for t in est.set_poses(parsed):
+            est.tick(t)
+        if k == 39:
+            assert float(est.tracker.state.v.abs().max()) > 0.01
+    assert est.history[-1].pose_ns == T0 + 340 * DT_NS
+    assert float(est.tracker.state.v.abs().max()) == 0.0
+    assert est.stats.snapshot()["counts"].get("pose_jumps") == 1
