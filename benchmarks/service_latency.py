@@ -1,10 +1,11 @@
 """The live service's tracking error when clouds arrive late: the defaults (clouds fused at the tick of
 their stamp, ``camera.fuse_at: stamp``; poses sampled one period a tick by their stamps,
 ``pose_delay_s``) against the service before (fused where they arrive, the newest pose) and the
-first change alone, in one run. The live
-runs move by up to 2x from one service start to the next (an intermittent regime of repeated
-redetections in every mode, not understood yet), so ``benchmarks/service_timing.py`` is the
-measurement of record; this is the check on the live system.
+first change alone, in one run. Each mode's service is started ``--repeats`` times: before the
+first tick's poses were stepped through (docs/service.md) some starts fell into episodes of
+repeated redetections and tracked up to 2x worse, so one start does not speak for the service.
+``benchmarks/service_timing.py`` (a simulated clock, the same inputs for every mode) is the
+comparison of record between modes; this is the check on the live system.
 
     .venv/bin/python benchmarks/service_latency.py [--latency-ms 0 50 100] [--run-s 20] [--repeats 2] [--json out.json]
 

@@ -5,7 +5,7 @@
 The wall-clock service's own code (``Estimator`` and ``FusionWorker`` with the inline worker, the
 default config otherwise) driven tick by tick on a simulated clock, so that every mode sees exactly
 the same inputs and the figures do not move with the machine's load (``service_latency.py`` runs the
-live service; its runs vary by 2x from one service start to the next, see docs/service.md). The
+live service, start after start, and moves with the machine's load). The
 recording is played back and forth at 100 Hz; poses are stamped on schedule and reach the loop in
 bursts (on a fifth of the ticks the sender is busy and what was due comes with the next; the loop's
 clock drifts against the robot's by 0.5 %; its first tick, which settles the rope, takes half a
