@@ -27,7 +27,9 @@ rate it was recorded; one tick per message ran it 1.25x (5x, 0.3x) slow in the m
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections import deque
+from itertools import islice
 
 import numpy as np
 
@@ -37,7 +39,9 @@ NS = 1_000_000_000
 FOLLOW = 0.1  # of the gap between tau and its target closed per tick (a 10-tick time constant)
 RESET_S = 0.1  # a gap wider than this (a start, a pause, a new sender) is not followed slowly ...
 CATCH_UP_S = 1.0  # ... but stepped through when the samples are at most this far behind; else jumped
-AUTO_PERIODS = 1.5  # the automatic delay in median pose intervals
+KEEP_S = CATCH_UP_S + 0.2  # poses kept this long: those a catch-up steps through, at any rate
+AUTO_PERIODS = 1.5  # the automatic delay in median pose intervals ...
+DELAY_POSES = 65  # ... of the last this many poses
 GRID_GAP_S = 1.0  # message clock: poses farther apart than this start the grid again at the later one
 
 
@@ -47,31 +51,38 @@ class PoseTimeline:
     Args:
         dt_s: the loop's period [s].
         delay_s: how far behind the newest stamp the samples follow [s]; None: ``AUTO_PERIODS``
-            times the median interval of the poses kept.
-        size: poses kept (at 1 kHz, 64 are 64 ms: the delay must stay within them).
+            times the median interval of the last ``DELAY_POSES`` poses.
+        max_poses: at most this many poses kept; otherwise those of the last ``KEEP_S`` (a
+            catch-up steps through them, at any pose rate) and at least three.
     """
 
-    def __init__(self, dt_s: float, delay_s: float | None = None, size: int = 64):
+    def __init__(self, dt_s: float, delay_s: float | None = None, max_poses: int = 4096):
         self.dt_ns = round(dt_s * NS)
         self.delay_s = delay_s
-        self.poses: deque[tuple[int, np.ndarray]] = deque(maxlen=size)
+        self.stamps: deque[int] = deque(maxlen=max_poses)
+        self.values: deque[np.ndarray] = deque(maxlen=max_poses)
         self.tau: int | None = None
         self.jumped = False  # the last :meth:`next` jumped (a gap beyond CATCH_UP_S, or back in time)
         self._auto_ns: int | None = None  # the automatic delay of the poses kept (None: to compute)
 
     def add(self, stamp_ns: int, poses: np.ndarray) -> None:
         """A pose message (stamps increasing: the estimator refuses others)."""
-        self.poses.append((int(stamp_ns), np.asarray(poses, dtype=float)))
+        self.stamps.append(int(stamp_ns))
+        self.values.append(np.asarray(poses, dtype=float))
+        oldest = int(stamp_ns) - round(KEEP_S * NS)
+        while len(self.stamps) > 3 and self.stamps[0] < oldest:
+            self.stamps.popleft()
+            self.values.popleft()
         self._auto_ns = None
 
     def delay_ns(self) -> int:
         if self.delay_s is not None:
             return round(self.delay_s * NS)
-        if len(self.poses) < 3:
+        if len(self.stamps) < 3:
             return 0
         if self._auto_ns is None:  # once per pose, not once per tick
-            stamps = np.array([s for s, _ in self.poses])
-            self._auto_ns = round(AUTO_PERIODS * float(np.median(np.diff(stamps))))
+            recent = np.fromiter(islice(reversed(self.stamps), DELAY_POSES), dtype=np.int64)
+            self._auto_ns = round(AUTO_PERIODS * float(np.median(-np.diff(recent))))
         return self._auto_ns
 
     def next(self) -> list[tuple[int, np.ndarray]]:
@@ -79,9 +90,9 @@ class PoseTimeline:
         samples lag their target by more than ``RESET_S`` and at most ``CATCH_UP_S``, one a period
         up to the target (see the module docstring); empty before any pose."""
         self.jumped = False
-        if not self.poses:
+        if not self.stamps:
             return []
-        target = self.poses[-1][0] - self.delay_ns()
+        target = self.stamps[-1] - self.delay_ns()
         if self.tau is None:
             self.tau = target
             return [(target, self.at(target))]
@@ -99,11 +110,12 @@ class PoseTimeline:
 
     def at(self, t: int) -> np.ndarray:
         """The poses at ``t``: interpolated between the two kept around it, else the nearest end."""
-        stamps = [s for s, _ in self.poses]
-        i = int(np.searchsorted(stamps, t, side="right"))
-        around = range(max(i - 1, 0), min(i + 1, len(stamps)))  # the two around t, or the end
+        i = bisect_right(self.stamps, t)
+        around = range(max(i - 1, 0), min(i + 1, len(self.stamps)))  # the two around t, or the end
         return interpolate_poses(
-            np.array([stamps[j] for j in around]), np.stack([self.poses[j][1] for j in around]), np.array([t])
+            np.array([self.stamps[j] for j in around]),
+            np.stack([self.values[j] for j in around]),
+            np.array([t]),
         )[0]
 
 

@@ -92,22 +92,25 @@ def test_a_pause_longer_than_the_reset_is_jumped():
     assert tau == later - 20_000_000
 
 
-def test_samples_that_fell_half_a_second_behind_step_through_the_poses_missed():
+@pytest.mark.parametrize("interval_ns", [DT_NS, 1_000_000])
+def test_samples_that_fell_half_a_second_behind_step_through_the_poses_missed(interval_ns):
     """A tick half a second late (the first tick's static solve, a stall): the next steps one period
-    at a time up to where the samples should be, each on the motion, then one a tick again."""
+    at a time up to where the samples should be, each on the motion (poses at 100 Hz and at 1 kHz:
+    the half second's 500 are kept), then one a tick again."""
     timeline = PoseTimeline(0.01, delay_s=0.02)
-    for k in range(3):
-        timeline.add(T0 + k * DT_NS, _pose(T0 + k * DT_NS))
+    per_tick = DT_NS // interval_ns
+    for k in range(3 * per_tick):
+        timeline.add(T0 + k * interval_ns, _pose(T0 + k * interval_ns))
     [(first, _)] = timeline.next()
-    for k in range(3, 53):  # 0.5 s of poses arrive while the loop is busy
-        timeline.add(T0 + k * DT_NS, _pose(T0 + k * DT_NS))
+    for k in range(3 * per_tick, 53 * per_tick):  # 0.5 s of poses arrive while the loop is busy
+        timeline.add(T0 + k * interval_ns, _pose(T0 + k * interval_ns))
     samples = timeline.next()
     taus = np.array([t for t, _ in samples])
-    assert taus[-1] == T0 + 52 * DT_NS - 20_000_000  # the target, not beyond
+    assert taus[-1] == T0 + k * interval_ns - 20_000_000  # the target, not beyond
     np.testing.assert_allclose(np.diff(np.r_[first, taus]) / DT_NS, 1.0, atol=0.05)
     for t, poses in samples:
         np.testing.assert_allclose(poses, _pose(t), atol=1e-6)
-    timeline.add(T0 + 53 * DT_NS, _pose(T0 + 53 * DT_NS))
+    timeline.add(T0 + (k + per_tick) * interval_ns, _pose(T0 + (k + per_tick) * interval_ns))
     assert len(timeline.next()) == 1
 
 
