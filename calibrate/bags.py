@@ -390,7 +390,7 @@ def read_clip(path: str | Path, cfg: ServiceConfig, topics: Topics | None = None
         except CalibrationError as exc:
             if topics.camera_info is not None:
                 raise
-            info_c, why_not = None, str(exc).split(": ", 1)[-1]
+            info_c, why_not = None, str(exc).removeprefix(f"{path}: ")  # (a path may hold ": ")
         K, info_frame, intrinsics_from = None, "", ""
         if info_c is not None:
             raw_info = _first(reader, info_c)
