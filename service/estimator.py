@@ -20,7 +20,7 @@ import torch
 from service import messages as M
 from service.config import ServiceConfig
 from service.geometry import grips_from_poses, pose_matrix
-from service.pose_timeline import PoseGrid, PoseTimeline
+from service.pose_timeline import RESET_S, PoseGrid, PoseTimeline
 from service.stats import Stats
 from service.tracking import camera_frame_cloud, cloud_intrinsics, make_camera, make_tracker, organize_cloud
 
@@ -268,13 +268,16 @@ class Estimator:
         """Advance one period with the latest grip; None while no gripper pose has arrived. On the
         wall clock a tick whose poses fell far behind steps through those missed, one period each
         (:meth:`service.pose_timeline.PoseTimeline.next`; counted as ``pose_catch_up_steps``); where
-        the grippers jumped (a gap too long for that, or the message clock's grid started again after
-        one), the rope is stopped after the step."""
+        the grippers jumped (a gap too long for that; with ``pose_delay_s: 0`` a newest pose more than
+        ``RESET_S`` on; the message clock's grid started again after a gap), the rope is stopped
+        after the step."""
         with self.lock:
             if self.poses is None:
                 return None
             pose_ns, poses, grip = self.poses
             samples, jumped = [(pose_ns, poses, grip)], False  # jumped: stop the rope after the step
+            if not self.message_clock and self.timeline is None and self.history:  # the newest pose:
+                jumped = pose_ns - self.history[-1].pose_ns > RESET_S * NS  # far on (the first tick)
             if self.timeline is not None:
                 samples = [(t, p, grips_from_poses(p, self.cfg.grippers)) for t, p in self.timeline.next()]
                 self.stats.count("pose_catch_up_steps", len(samples) - 1)

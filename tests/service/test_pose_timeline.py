@@ -260,6 +260,32 @@ def test_a_jump_after_a_paused_sender_leaves_the_rope_at_rest(model, monkeypatch
     assert speed[True] > 1.0  # m/s
 
 
+def test_the_newest_pose_each_tick_stops_the_rope_after_a_late_first_tick(model):
+    """``pose_delay_s: 0`` keeps no timeline to step through: the tick after the static solve jumps
+    to the newest pose, and the rope is stopped after that step."""
+    from service import messages as M
+    from service import scenario
+    from service.estimator import Estimator
+    from service.geometry import poses_from_vertices
+
+    positions, _ = scenario.demo_positions(120)
+    grippers = scenario.offsets_for(positions)
+    poses = poses_from_vertices(positions, grippers)
+    est = Estimator(make_config(pose_delay_s=0.0, grippers=grippers.model_dump()), model, clock=FakeClock())
+    assert est.on_poses(M.pose_array(T0, poses[0]))
+    est.tick(T0 + DT_NS)  # initialises
+    for k in range(1, 60):
+        assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
+    est.tick(T0 + 60 * DT_NS)
+    assert float(est.tracker.state.v.abs().max()) == 0.0
+    assert est.stats.snapshot()["counts"].get("pose_jumps") == 1
+    for k in range(60, 70):  # then on as usual, one pose a tick
+        assert est.on_poses(M.pose_array(T0 + k * DT_NS, poses[k]))
+        est.tick(T0 + (k + 1) * DT_NS)
+    assert est.stats.snapshot()["counts"].get("pose_jumps") == 1
+    assert float(est.tracker.state.v.abs().max()) > 0.01
+
+
 def test_the_message_clock_stops_the_rope_where_its_grid_starts_again(model):
     """A replay whose poses pause 3 s while the robot moves: the grid starts again at the later pose
     and the rope is stopped after that tick's step (as on the wall clock)."""
