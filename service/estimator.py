@@ -82,10 +82,8 @@ class Estimator:
         self.timeline = PoseTimeline(cfg.dt, cfg.pose_delay_s) if steady else None
         # message clock: ticks every dt of the poses' own time (not one per message)
         self.grid = PoseGrid(cfg.dt) if self.message_clock else None
-        self.grid_ticks: deque[tuple[int, np.ndarray]] = (
-            deque()
-        )  # message clock: the grid's ticks not yet taken
-        self.grid_jumps: set[int] = set()  # message clock: the times of ticks the grid restarted at
+        # message clock: the grid's ticks not yet taken, (time, poses, the grid started again there)
+        self.grid_ticks: deque[tuple[int, np.ndarray, bool]] = deque()
         self.newest_ns: int | None = None
         self.camera_info: tuple[np.ndarray, int, int] | None = None
         self.fitted_intrinsics: dict[tuple[int, int], np.ndarray] = {}  # (w, h) -> K of the clouds' own
@@ -156,9 +154,8 @@ class Estimator:
             if self.timeline is not None:
                 self.timeline.add(parsed[0], parsed[1])
             due = self.grid.add(parsed[0], parsed[1]) if self.grid is not None else []
-            self.grid_ticks.extend(due)
-            if due and self.grid.restarted:  # the grippers jump to this tick's poses
-                self.grid_jumps.add(due[0][0])
+            # a grid started again after a gap: the grippers jump to its first tick's poses
+            self.grid_ticks.extend((t, p, i == 0 and self.grid.restarted) for i, (t, p) in enumerate(due))
             self._see(parsed[0])
             self._arrive("ee_poses", parsed[0])
             return [t for t, _ in due]
@@ -276,19 +273,17 @@ class Estimator:
                 return None
             pose_ns, poses, grip = self.poses
             samples, jumped = [(pose_ns, poses, grip)], False  # jumped: stop the rope after the step
-            if not self.message_clock and self.timeline is None and self.history:  # the newest pose:
-                jumped = pose_ns - self.history[-1].pose_ns > RESET_S * NS  # far on (the first tick)
             if self.timeline is not None:
                 samples = [(t, p, grips_from_poses(p, self.cfg.grippers)) for t, p in self.timeline.next()]
                 self.stats.count("pose_catch_up_steps", len(samples) - 1)
                 jumped = self.timeline.jumped
             elif self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
                 while self.grid_ticks and self.grid_ticks[0][0] <= stamp_ns:
-                    pose_ns, poses = self.grid_ticks.popleft()
-                    if pose_ns in self.grid_jumps:
-                        self.grid_jumps.discard(pose_ns)
-                        jumped = True
+                    pose_ns, poses, restarted = self.grid_ticks.popleft()
+                    jumped = jumped or restarted
                 samples = [(pose_ns, poses, grips_from_poses(poses, self.cfg.grippers))]
+            elif not self.message_clock and self.history:  # the newest pose each tick: far on?
+                jumped = pose_ns - self.history[-1].pose_ns > RESET_S * NS
             if self.message_clock:
                 self.clock_s = stamp_ns / NS
             for t, _, g in samples:

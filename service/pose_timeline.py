@@ -99,7 +99,7 @@ class PoseTimeline:
         ahead = self.tau + self.dt_ns
         gap = target - ahead
         if RESET_S * NS < gap <= CATCH_UP_S * NS:
-            count = max(round((target - self.tau) / self.dt_ns), 1)
+            count = round((target - self.tau) / self.dt_ns)  # at least 1: the gap exceeds RESET_S
             taus = [self.tau + round(j * (target - self.tau) / count) for j in range(1, count + 1)]
         elif abs(gap) > RESET_S * NS:
             taus, self.jumped = [target], True
