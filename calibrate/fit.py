@@ -146,6 +146,7 @@ def start_model(
     )
     with torch.no_grad():
         model.nominal_rest.copy_(torch.as_tensor(rest, dtype=model.nominal_rest.dtype))
+    model.choose_bending_scheme()  # a short or stiff rope's bending stepped implicitly (deform.rod.implicit)
     return model.eval()
 
 
@@ -408,6 +409,9 @@ def identified(model: DeformModel, start: DeformModel) -> dict:
             "drag_per_m": float(m.drag.detach()),
             "extra_mass_kg": float(extra.sum()),
             "residual_network": bool(m.options.residual),
+            # the stiffest bending mode's turn per step and whether the bending is stepped implicitly
+            "bending_step_ratio": round(m.bending_step_ratio(), 3),
+            "implicit_bending": bool(m.cfg.implicit_bending),
         }
 
     return {

@@ -231,6 +231,12 @@ def _markdown(data: dict, plots: list[str]) -> str:
             + ".",
             "",
         ]
+        if "implicit_bending" in f:  # reports written before the scheme was chosen lack it
+            lines += [
+                f"Bending stepped {'implicitly' if f['implicit_bending'] else 'explicitly'}: the stiffest "
+                f"bending mode turns {f['bending_step_ratio']:.2f} rad per step (implicit above 1).",
+                "",
+            ]
         damping = data["identified"].get("damping_set")
         if damping:
             span = " .. ".join("open" if v is None else f"{v:.3g}" for v in damping["told_within_per_s"])

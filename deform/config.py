@@ -33,6 +33,9 @@ class RodConfig(BaseModel):
     n_vertices: int = Field(default=12, ge=5)
     marker_mass_kg: float = Field(default=0.0004, ge=0)
     dt: float = Field(default=0.01, gt=0)
+    # the bending forces stepped linearly implicitly (deform.rod.implicit): a stiff light cable's
+    # bending modes are then stable at the 10 ms step. Off for the shipped models, trained explicit
+    implicit_bending: bool = False
     # initial guesses of the material parameters (system identification refines them); left out,
     # they follow from the length and mass (BEND_PER_LINEAR_DENSITY, TWIST_OVER_BEND)
     bend_stiffness: float = Field(default=None, gt=0, description="EI [N m^2]")

@@ -185,6 +185,7 @@ def rollout_loss(
 
 COARSE_STIFFNESS = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)  # bending stiffness grid [N m^2]
 COARSE_SOFTER = (3e-5, 1e-5, 3e-6)  # tried in turn while the softest so far is the best
+COARSE_STIFFER = (1e-1, 3e-1)  # tried in turn while the stiffest so far is the best (a cable)
 COARSE_DAMPING = (0.3, 1.0, 3.0)  # [1/s]
 
 
@@ -200,7 +201,9 @@ def coarse_identification(
     Stiffness of real cables spans orders of magnitude and the open-loop loss is far from convex in
     it; a coarse log-grid on a few recordings puts gradient descent in the right basin (seconds).
     When the softest grid point is the best, the grid goes on below it half a decade at a time (down
-    to 3e-6 N m^2) while the softest stays the best.
+    to 3e-6 N m^2) while the softest stays the best; likewise above the stiffest (up to 0.3 N m^2).
+    Each point is scored with the bending scheme it would be stepped with
+    (:meth:`deform.model.DeformModel.choose_bending_scheme`); the best point's is kept.
 
     Args:
         model: the model, changed in place (stiffness scale and damping).
@@ -229,26 +232,34 @@ def coarse_identification(
                 model.log_beta.copy_(base_beta - shift0 + log_ei)
                 model.log_gamma.copy_(base_gamma - shift0 + log_ei)
                 model.log_damping.fill_(log_c)
+            model.choose_bending_scheme()  # a stiff point is scored as the model will step it
             err = validation_l1(model, recs, steps)
             if err < best[0]:
                 best = (err, log_ei, log_c)
 
     scored(COARSE_STIFFNESS)
-    # a rope softer than the grid (a string, a yarn): while the softest so far is the best, the next
-    # half decade below. The shipped ropes span 1e-4..1.3e-2 N m^2; past ~3e-2 the 10 ms step of a
-    # 20-100 g rope at 12 vertices is unstable, so the grid does not go stiffer.
-    edge = COARSE_STIFFNESS[0]
-    for ei in COARSE_SOFTER:
-        if not math.isclose(math.exp(best[1]), edge, rel_tol=1e-9):
-            break
-        scored([ei])
-        edge = ei
+    # a rope softer than the grid (a string, a yarn) or stiffer (a cable): while the grid's edge is
+    # the best, the next half decade beyond it. The shipped ropes span 1e-4..1.3e-2 N m^2; stiff
+    # points are stepped implicitly (choose_bending_scheme), without which the 10 ms step of a
+    # 20-100 g rope at 12 vertices rang from 0.003-0.01 N m^2 on.
+    for edge, beyond in ((COARSE_STIFFNESS[0], COARSE_SOFTER), (COARSE_STIFFNESS[-1], COARSE_STIFFER)):
+        for ei in beyond:
+            if not math.isclose(math.exp(best[1]), edge, rel_tol=1e-9):
+                break
+            scored([ei])
+            edge = ei
     with torch.no_grad():
         model.log_beta.copy_(base_beta - shift0 + best[1])
         model.log_gamma.copy_(base_gamma - shift0 + best[1])
         model.log_damping.fill_(best[2])
     model.options.residual = options
-    return {"l1_m": best[0], "bend_stiffness": math.exp(best[1]), "damping": math.exp(best[2])}
+    model.choose_bending_scheme()  # kept through the descent that follows (one scheme per model)
+    return {
+        "l1_m": best[0],
+        "bend_stiffness": math.exp(best[1]),
+        "damping": math.exp(best[2]),
+        "implicit_bending": model.cfg.implicit_bending,
+    }
 
 
 def parameter_groups(model: DeformModel, cfg: TrainConfig) -> list[dict]:

@@ -64,6 +64,24 @@ def test_coarse_identification_goes_past_the_grid_for_a_softer_rope():
     assert 5e-6 <= found["bend_stiffness"] <= 3e-5
 
 
+@pytest.mark.slow
+def test_coarse_identification_goes_past_the_grid_for_a_stiff_cable_and_steps_it_implicitly():
+    """A cable five times stiffer than the grid's stiffest point (3e-2 N m^2), generated with the
+    implicit bending it needs: the grid goes on above its edge, lands on the truth's half decade and
+    keeps the implicit scheme for it (explicitly, a 65 g rope rings from about 0.01 N m^2)."""
+    cfg = load_rod_config("DLO2")
+    truth = DeformModel(
+        cfg.model_copy(
+            update={"bend_stiffness": 0.15, "twist_stiffness": 0.1, "damping": 1.0, "implicit_bending": True}
+        )
+    )
+    recs = [generate_recording(truth, n_frames=80, seed=s) for s in range(2)]
+    model = DeformModel(cfg.model_copy(update={"bend_stiffness": 1e-3, "twist_stiffness": 7e-4}))
+    found = coarse_identification(model, recs, steps=60, progress=False)
+    assert 0.1 <= found["bend_stiffness"] <= 0.3
+    assert found["implicit_bending"] and model.cfg.implicit_bending
+
+
 def test_training_windows_start_in_the_frames_evaluation_carries():
     """A window cut at frame s starts with the reference directors a rollout from the recording's
     first frame carries there: at s = 0 exactly evaluation's start, later perpendicular to the edges
