@@ -27,6 +27,7 @@ from results_model import (
     render_accuracy,
     render_baselines,
     render_batched_throughput,
+    render_bending_stability,
     render_float32,
     render_predict_planning,
     render_roofline,
@@ -73,6 +74,10 @@ KNOWN = {
         "Service: the live service's tracking, start after start",
         'python benchmarks/service_latency.py --modes "stamp, steady poses" --latency-ms 0 100 --run-s 20 '
         "--repeats 8 --json benchmarks/results/service_latency.json",
+    ),
+    "bending_stability.json": (
+        "Stiff and short ropes bent and held: explicit and implicit bending",
+        "python benchmarks/bending_stability.py",
     ),
     "baselines.json": ("Baselines beside DEFORM", "python benchmarks/baselines.py"),
     "ablations.json": ("Ablations", "python benchmarks/ablations.py"),
@@ -151,6 +156,7 @@ RENDER = {
     "service_soak.json": render_service,
     "service_timing.json": render_service_timing,
     "service_latency.json": render_service_latency,
+    "bending_stability.json": render_bending_stability,
     "baselines.json": render_baselines,
     "ablations.json": render_ablations,
     "diagnose.json": render_diagnose,

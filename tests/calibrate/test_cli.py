@@ -80,6 +80,11 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     )
     assert {t["gripper_poses_frame"] for t in report["tracks"]} == {"world"}
     assert {"report.md", "coverage.png", "fit.png"} <= {p.name for p in (out_dir / "rope_report").iterdir()}
+    # the bending scheme the model steps with is the one reported, with the model's step ratio
+    scheme = report["identified"]["found"]
+    assert scheme["implicit_bending"] == model.cfg.implicit_bending
+    assert scheme["bending_step_ratio"] == pytest.approx(model.bending_step_ratio(), abs=1e-3)
+    assert f"Bending stepped {'implicitly' if scheme['implicit_bending'] else 'explicitly'}" in md
 
 
 @pytest.mark.zenoh
