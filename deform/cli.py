@@ -83,6 +83,7 @@ def cmd_train(args) -> int:
         lr_physics=args.lr_physics,
         lr_network=args.lr_network,
         coarse_sysid=not args.init,  # a given starting model is already identified
+        bending=args.bending,
         drag=not args.no_drag,
         terms=tuple(args.term),
         without=tuple(args.without),
@@ -281,6 +282,13 @@ def build_parser() -> argparse.ArgumentParser:
         "rest_curvature, point_mass) or an added term the starting model carries",
     )
     t.add_argument("--init", help="start from this model (.pt or rod name); skips the coarse identification")
+    t.add_argument(
+        "--bending",
+        choices=("auto", "explicit", "implicit"),
+        default="auto",
+        help="how the bending is stepped (docs/model.md): auto, the coarse identification chooses by the "
+        "stiffest mode's turn per step (with --init, the starting model's scheme); or fixed",
+    )
     t.add_argument("--lr-physics", type=number(positive=True), default=2e-2)
     t.add_argument("--lr-network", type=number(positive=True), default=1e-3)
     t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")

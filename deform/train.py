@@ -44,6 +44,9 @@ class TrainConfig:
     lr_final_fraction: float = 0.1  # cosine decay of the learning rates
     rest_curvature_lr_scale: float = 0.05
     coarse_sysid: bool = True
+    # the bending scheme (deform.rod.implicit): "auto" lets the coarse identification choose it by the
+    # step ratio (without one, the starting model's stays); "explicit" / "implicit" fix it
+    bending: str = "auto"
     drag: bool = True  # False: no quadratic air drag (fixed at its floor), linear damping only
     transported_frames: bool = (
         True  # windows start in the reference frames evaluation carries (sample_windows)
@@ -195,6 +198,7 @@ def coarse_identification(
     steps: int = 200,
     max_recordings: int = 8,
     progress: bool = True,
+    choose_scheme: bool = True,
 ) -> dict:
     """Grid search of one stiffness scale and the damping before gradient descent.
 
@@ -203,7 +207,8 @@ def coarse_identification(
     When the softest grid point is the best, the grid goes on below it half a decade at a time (down
     to 3e-6 N m^2) while the softest stays the best; likewise above the stiffest (up to 0.3 N m^2).
     Each point is scored with the bending scheme it would be stepped with
-    (:meth:`deform.model.DeformModel.choose_bending_scheme`); the best point's is kept.
+    (:meth:`deform.model.DeformModel.choose_bending_scheme`); the best point's is kept
+    (``choose_scheme=False``: the model's own scheme throughout).
 
     Args:
         model: the model, changed in place (stiffness scale and damping).
@@ -211,9 +216,10 @@ def coarse_identification(
         steps: open-loop steps scored per recording.
         max_recordings: recordings used at most.
         progress: progress bar.
+        choose_scheme: choose the bending scheme per point by the step ratio.
 
     Returns:
-        ``{"l1_m", "bend_stiffness", "damping"}`` of the best grid point.
+        ``{"l1_m", "bend_stiffness", "damping", "implicit_bending"}`` of the best grid point.
     """
     recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
     base_beta, base_gamma = model.log_beta.detach().clone(), model.log_gamma.detach().clone()
@@ -232,7 +238,8 @@ def coarse_identification(
                 model.log_beta.copy_(base_beta - shift0 + log_ei)
                 model.log_gamma.copy_(base_gamma - shift0 + log_ei)
                 model.log_damping.fill_(log_c)
-            model.choose_bending_scheme()  # a stiff point is scored as the model will step it
+            if choose_scheme:
+                model.choose_bending_scheme()  # a stiff point is scored as the model will step it
             err = validation_l1(model, recs, steps)
             if err < best[0]:
                 best = (err, log_ei, log_c)
@@ -253,7 +260,8 @@ def coarse_identification(
         model.log_gamma.copy_(base_gamma - shift0 + best[1])
         model.log_damping.fill_(best[2])
     model.options.residual = options
-    model.choose_bending_scheme()  # kept through the descent that follows (one scheme per model)
+    if choose_scheme:
+        model.choose_bending_scheme()  # kept through the descent that follows (one scheme per model)
     return {
         "l1_m": best[0],
         "bend_stiffness": math.exp(best[1]),
@@ -534,6 +542,10 @@ def train(
     attach(model, cfg.terms, train_recs)
     without(model, cfg.without)
     model.options.residual = cfg.residual
+    if cfg.bending not in ("auto", "explicit", "implicit"):
+        raise ValueError(f"bending={cfg.bending!r}: choose one of auto, explicit, implicit")
+    if cfg.bending != "auto":
+        model.cfg.implicit_bending = cfg.bending == "implicit"
     torch.manual_seed(cfg.seed)
     rng = random.Random(cfg.seed)
     opt, scheduler = make_optimizer(model, cfg)
@@ -542,7 +554,9 @@ def train(
     start = state.iteration
     coarse = None
     if start == 0 and cfg.sysid and cfg.coarse_sysid:
-        coarse = coarse_identification(model, train_recs, progress=progress)
+        coarse = coarse_identification(
+            model, train_recs, progress=progress, choose_scheme=cfg.bending == "auto"
+        )
         tie(model, cfg.without)
     term_starts = coarse_start(model, cfg.terms, train_recs) if start == 0 and cfg.terms else None
     val_steps = min(cfg.horizon * 5, min(r.n_frames for r in val_recs) - 2) if val_recs else 0

@@ -144,6 +144,16 @@ def test_train_fills_a_short_marker_gap_and_says_so(tmp_path, monkeypatch, capsy
     assert "5 marker-frame(s) filled" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("bending", ["implicit", "explicit"])
+def test_train_steps_the_bending_as_told(tmp_path, synthetic_dir, bending):
+    """`--bending` fixes the scheme for the whole run, the coarse identification included (a 65 g
+    rope at the grid's stiff points would otherwise switch), and the model file keeps it."""
+    out = tmp_path / "run"
+    args = ["train", "--rod", "DLO2", "--recordings", str(synthetic_dir), "--out", str(out)]
+    main([*args, "--bending", bending, "--iterations", "1", "--batch", "2", "--horizon", "5"])
+    assert DeformModel.load(out / "best.pt").cfg.implicit_bending == (bending == "implicit")
+
+
 @pytest.mark.parametrize(
     "args",
     [
@@ -156,6 +166,7 @@ def test_train_fills_a_short_marker_gap_and_says_so(tmp_path, monkeypatch, capsy
         ["train", "--time-limit", "-1"],
         ["train", "--lr-physics", "nan"],
         ["train", "--max-gap", "-0.1"],
+        ["train", "--bending", "sideways"],
         ["eval", "--steps", "0"],
         ["diagnose", "--rod", "r.json", "--fit", "f", "--check", "c", "--out", "o", "--max-gap", "inf"],
     ],
