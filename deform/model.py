@@ -200,7 +200,8 @@ class ModelOptions:
 class DeformModel(nn.Module):
     def __init__(self, cfg: RodConfig, options: ModelOptions | None = None):
         super().__init__()
-        self.cfg = cfg
+        # its own copy: the bending scheme is set on it (choose_bending_scheme), not on the caller's
+        self.cfg = cfg.model_copy()
         self.options = options or ModelOptions()
         n = cfg.n_vertices
         self.n = n

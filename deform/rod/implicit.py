@@ -59,6 +59,16 @@ def bending_operator(beta: Tensor, rest: Tensor) -> Tensor:
     return full.transpose(-1, -2) @ (weight.unsqueeze(-1) * full)
 
 
+def _blocks(
+    beta: Tensor, rest: Tensor, mass: Tensor, dtype: torch.dtype, held: list[int]
+) -> tuple[list[int], Tensor, Tensor, Tensor]:
+    """``(free, K_ff (B, f, f), K_fg (B, f, h), m_f (B, f))``: the operator split into the free and held
+    vertices' blocks, and the free vertices' masses."""
+    free = [i for i in range(mass.shape[0]) if i not in set(held)]
+    K_f = bending_operator(beta, rest).to(dtype)[:, free]
+    return free, K_f[:, :, free], K_f[:, :, held], mass[free].T.to(dtype)
+
+
 def implicit_filter(
     beta: Tensor, rest: Tensor, mass: Tensor, dt: float, held: list[int]
 ) -> tuple[Tensor, Tensor]:
@@ -76,13 +86,9 @@ def implicit_filter(
         ``(S, C)``: (B, f, f) :math:`(M_f + dt^2 K_{ff})^{-1} M_f` and (B, f, h)
         :math:`dt^2 (M_f + dt^2 K_{ff})^{-1} K_{fg}`, so that ``v_f = S v_hat_f - C v_g``.
     """
-    n = mass.shape[0]
-    free = [i for i in range(n) if i not in set(held)]
-    K = bending_operator(beta, rest).to(mass.dtype)  # (B, n, n)
-    K_f = K[:, free]
-    m_f = mass[free].T  # (B, f)
-    inverse = torch.linalg.inv(torch.diag_embed(m_f) + (dt * dt) * K_f[:, :, free])
-    return inverse * m_f.unsqueeze(-2), (dt * dt) * (inverse @ K_f[:, :, held])
+    _, K_ff, K_fg, m_f = _blocks(beta, rest, mass, mass.dtype, held)
+    inverse = torch.linalg.inv(torch.diag_embed(m_f) + (dt * dt) * K_ff)
+    return inverse * m_f.unsqueeze(-2), (dt * dt) * (inverse @ K_fg)
 
 
 def apply_implicit_filter(
@@ -174,15 +180,10 @@ def implicit_bending_velocity(
     Returns:
         (n, 3, B).
     """
-    n = v_explicit.shape[0]
-    free = [i for i in range(n) if i not in set(held)]
-    K = bending_operator(beta, rest).to(v_explicit.dtype)
-    K_f = K[:, free]
-    m_f = mass[free].T.to(v_explicit.dtype)
-    system = torch.diag_embed(m_f) + (dt * dt) * K_f[:, :, free]
-    rhs = m_f.unsqueeze(-1) * v_explicit[free].permute(2, 0, 1) - (dt * dt) * (
-        K_f[:, :, held] @ v_held.permute(2, 0, 1)
-    )
+    free, K_ff, K_fg, m_f = _blocks(beta, rest, mass, v_explicit.dtype, held)
+    system = torch.diag_embed(m_f) + (dt * dt) * K_ff
+    rhs = m_f.unsqueeze(-1) * v_explicit[free].permute(2, 0, 1) - (dt * dt) * (K_fg @ v_held.permute(2, 0, 1))
+
     out = v_explicit.clone()
     out[free] = solve_band2_pd(system, rhs).permute(1, 2, 0)
     return out
@@ -203,9 +204,7 @@ def step_ratio(beta: Tensor, rest: Tensor, mass: Tensor, dt: float, held: list[i
     Returns:
         (B,) the ratio.
     """
-    n = mass.shape[0]
-    free = [i for i in range(n) if i not in set(held)]
-    K = bending_operator(beta, rest).to(mass.dtype)[:, free][:, :, free]
-    scale = mass[free].T.rsqrt()  # (B, f): M^(-1/2) K M^(-1/2) is symmetric with the same spectrum
-    lam = torch.linalg.eigvalsh(scale.unsqueeze(-1) * K * scale.unsqueeze(-2))[..., -1]
+    _, K_ff, _, m_f = _blocks(beta, rest, mass, mass.dtype, held)
+    scale = m_f.rsqrt()  # (B, f): M^(-1/2) K M^(-1/2) is symmetric with the same spectrum
+    lam = torch.linalg.eigvalsh(scale.unsqueeze(-1) * K_ff * scale.unsqueeze(-2))[..., -1]
     return lam.clamp_min(0.0).sqrt() * dt
