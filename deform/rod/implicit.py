@@ -59,12 +59,17 @@ def bending_operator(beta: Tensor, rest: Tensor) -> Tensor:
     return full.transpose(-1, -2) @ (weight.unsqueeze(-1) * full)
 
 
+def _free(n: int, held: list[int]) -> list[int]:
+    """The vertices not held, in order."""
+    return [i for i in range(n) if i not in set(held)]
+
+
 def _blocks(
     beta: Tensor, rest: Tensor, mass: Tensor, dtype: torch.dtype, held: list[int]
 ) -> tuple[list[int], Tensor, Tensor, Tensor]:
     """``(free, K_ff (B, f, f), K_fg (B, f, h), m_f (B, f))``: the operator split into the free and held
     vertices' blocks, and the free vertices' masses."""
-    free = [i for i in range(mass.shape[0]) if i not in set(held)]
+    free = _free(mass.shape[0], held)
     K_f = bending_operator(beta, rest).to(dtype)[:, free]
     return free, K_f[:, :, free], K_f[:, :, held], mass[free].T.to(dtype)
 
@@ -106,8 +111,7 @@ def apply_implicit_filter(
         (n, 3, B): ``v_explicit`` with the free vertices' rows replaced (the held rows unchanged).
     """
     S, C = (m.to(v_explicit.dtype) for m in matrices)
-    n = v_explicit.shape[0]
-    free = [i for i in range(n) if i not in set(held)]
+    free = _free(v_explicit.shape[0], held)
     v_free = S @ v_explicit[free].permute(2, 0, 1) - C @ v_held.permute(2, 0, 1)  # (B, f, 3)
     out = v_explicit.clone()
     out[free] = v_free.permute(1, 2, 0)
