@@ -2,13 +2,14 @@
 
 Each rope (12 vertices, straight at first) has its grippers brought 30 % of its length closer over
 0.5 s, a little sideways, and held for 2.5 s; the row gives the top vertex speed over the last 0.5 s
-with the bending stepped explicitly (the shipped models' scheme) and implicitly
-(``deform.rod.implicit``), and the explicit step's margin ``omega_max dt`` (``step_ratio``: the model
-steps implicitly above 1 when its stiffness is being chosen). A rope at rest is below a few cm/s; one
+with the bending stepped explicitly, implicitly (``deform.rod.implicit``) at one step a frame, and as
+the model steps it (``chosen``: a shipped model's own scheme; for the others what a model whose
+stiffness is being chosen gets, implicit above a step ratio of 1 and in substeps above
+``IMPLICIT_RATIO_MAX``), and the explicit step's margin ``omega_max dt`` per frame (``step_ratio``). A rope at rest is below a few cm/s; one
 that rings keeps metres a second. Ropes: the five shipped models as they are (their residual network
 included), the generic DER (``deform.generic_model``) of 0.3-1.5 m, and 1 m ropes of 20-100 g at
-stiffnesses from 0.001 to 0.1 N m^2 (cables). Also the cost of one step, eager and compiled, implicit
-over explicit (medians over many steps, the same run).
+stiffnesses from 0.001 to 0.1 N m^2 (cables). Also the cost of one frame, eager and compiled, implicit
+and in two substeps over explicit (medians over many steps, the same run).
 
     python benchmarks/bending_stability.py   -> benchmarks/results/bending_stability.json
 """
@@ -32,7 +33,6 @@ from benchmarks.provenance import provenance
 from deform import DeformModel, ModelOptions, generic_model, load_model
 from deform.compiled import CompiledStep
 from deform.config import generic_rod
-from deform.model import IMPLICIT_ABOVE
 from deform.step_graph import rod_at_rest
 
 OUT = Path(__file__).resolve().parent / "results"
@@ -57,22 +57,36 @@ def top_speed_after_bend(model: DeformModel) -> float:
     return top
 
 
-def both_schemes(model: DeformModel) -> dict:
+def schemes(model: DeformModel, choose: bool) -> dict:
+    """The top speed stepped explicitly, implicitly (one step a frame), and as the model steps it:
+    its own scheme (``choose=False``: a shipped model) or what :meth:`choose_bending_scheme` gives a
+    model whose stiffness is being chosen (implicit above a ratio of 1, in substeps above
+    ``IMPLICIT_RATIO_MAX``)."""
     ratio = model.bending_step_ratio()
-    out = {"step_ratio": ratio, "chosen_implicit": ratio > IMPLICIT_ABOVE}
+    if choose:
+        model.choose_bending_scheme()
+    chosen = (model.cfg.implicit_bending, model.cfg.substeps)
+    out = {"step_ratio": ratio, "chosen_implicit": chosen[0], "chosen_substeps": chosen[1]}
     for implicit in (False, True):
-        model.cfg.implicit_bending = implicit
+        model.cfg.implicit_bending, model.cfg.substeps = implicit, 1
         out["implicit_m_per_s" if implicit else "explicit_m_per_s"] = top_speed_after_bend(model)
+    model.cfg.implicit_bending, model.cfg.substeps = chosen
+    same = "implicit_m_per_s" if chosen[0] else "explicit_m_per_s"
+    out["chosen_m_per_s"] = out[same] if chosen[1] == 1 else top_speed_after_bend(model)
     return out
 
 
+SCHEMES = {"explicit": (False, 1), "implicit": (True, 1), "substeps2": (True, 2)}  # (implicit, substeps)
+
+
 def step_cost(steps: int = 2000) -> dict:
-    """Median and p99 of one step [ms], eager and compiled (branch-free, ahead of time as the
-    service runs it), for a 1 m 50 g generic rope with each scheme."""
+    """Median and p99 of one frame's step [ms], eager and compiled (branch-free, ahead of time as
+    the service runs it), for a 1 m 50 g generic rope stepped explicitly, implicitly and implicitly
+    in two substeps."""
     out = {}
-    for implicit in (False, True):
+    for scheme, (implicit, substeps) in SCHEMES.items():
         model = generic_model(1.0, 0.05)
-        model.cfg.implicit_bending = implicit
+        model.cfg.implicit_bending, model.cfg.substeps = implicit, substeps
         model.options.residual = True  # the service's models carry the network
         for mode in ("eager", "compiled"):
             step = (
@@ -90,10 +104,11 @@ def step_cost(steps: int = 2000) -> dict:
                     state = step(state, g)
                     times.append(time.perf_counter() - t0)
             t = np.array(times[200:]) * 1e3
-            key = f"{mode}_{'implicit' if implicit else 'explicit'}"
-            out[key] = {"p50_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99))}
+            out[f"{mode}_{scheme}"] = {"p50_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99))}
     for mode in ("eager", "compiled"):
-        out[f"{mode}_ratio_p50"] = out[f"{mode}_implicit"]["p50_ms"] / out[f"{mode}_explicit"]["p50_ms"]
+        for scheme in ("implicit", "substeps2"):
+            ratio = out[f"{mode}_{scheme}"]["p50_ms"] / out[f"{mode}_explicit"]["p50_ms"]
+            out[f"{mode}_{'ratio' if scheme == 'implicit' else 'substeps2_ratio'}_p50"] = ratio
     return out
 
 
@@ -131,14 +146,15 @@ def main(argv=None) -> int:
             )
     rows = []
     for name, spec, build in tqdm(cases, desc="ropes bent and held"):
-        rows.append({"rope": name, **spec, **both_schemes(build())})
+        rows.append({"rope": name, **spec, **schemes(build(), choose=not spec.get("rod"))})
     cost = step_cost()
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({**provenance(argv), "rows": rows, "step_cost": cost}, indent=2) + "\n")
     for r in rows:
         print(
             f"{r['rope']:28s} ratio {r['step_ratio']:5.2f}  explicit {r['explicit_m_per_s']:8.3f}  "
-            f"implicit {r['implicit_m_per_s']:8.3f} m/s"
+            f"implicit {r['implicit_m_per_s']:8.3f}  chosen {r['chosen_m_per_s']:8.3f} m/s "
+            f"({'implicit' if r['chosen_implicit'] else 'explicit'}, {r['chosen_substeps']} substeps)"
         )
     print(json.dumps(cost, indent=1))
     return 0

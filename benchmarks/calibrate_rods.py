@@ -290,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         "service",
         "benchmarks/calibration/clips.py",
         "benchmarks/calibration/score.py",
+        *(f"deform/models/{rod}.pt" for rod in RODS),  # the shipped column (a retrained model: --rescore-from)
         *(
             ["benchmarks/calibration/foreign_lab.py", "benchmarks/calibration/foreign_session.py"]
             if args.setup in FOREIGN_LABS

@@ -412,6 +412,7 @@ def identified(model: DeformModel, start: DeformModel) -> dict:
             # the stiffest bending mode's turn per step and whether the bending is stepped implicitly
             "bending_step_ratio": round(m.bending_step_ratio(), 3),
             "implicit_bending": bool(m.cfg.implicit_bending),
+            "substeps": int(m.cfg.substeps),
         }
 
     return {

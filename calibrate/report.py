@@ -234,7 +234,8 @@ def _markdown(data: dict, plots: list[str]) -> str:
         if "implicit_bending" in f:  # reports written before the scheme was chosen lack it
             lines += [
                 f"Bending stepped {'implicitly' if f['implicit_bending'] else 'explicitly'}: the stiffest "
-                f"bending mode turns {f['bending_step_ratio']:.2f} rad per step (implicit above 1).",
+                f"bending mode turns {f['bending_step_ratio']:.2f} rad per frame (implicit above 1)"
+                + (f", stepped in {f['substeps']} substeps a frame." if f.get("substeps", 1) > 1 else "."),
                 "",
             ]
         damping = data["identified"].get("damping_set")

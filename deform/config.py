@@ -36,6 +36,9 @@ class RodConfig(BaseModel):
     # the bending forces stepped linearly implicitly (deform.rod.implicit): a stiff light cable's
     # bending modes are then stable at the 10 ms step. Off for the shipped models, trained explicit
     implicit_bending: bool = False
+    # steps of dt / substeps per frame (grippers moved linearly between frames): for the stiffest
+    # light cables, where even the implicit bending rings at one step a frame. 1 for the shipped models
+    substeps: int = Field(default=1, ge=1, le=64)
     # initial guesses of the material parameters (system identification refines them); left out,
     # they follow from the length and mass (BEND_PER_LINEAR_DENSITY, TWIST_OVER_BEND)
     bend_stiffness: float = Field(default=None, gt=0, description="EI [N m^2]")

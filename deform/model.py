@@ -12,6 +12,9 @@ One step (semi-implicit Euler, ``dt``), for positions ``x`` and velocities ``v``
 5. PBD projects edges to their rest lengths, gripped vertices being infinitely heavy;
 6. ``v = (x_new - x) / dt`` and reference frames are parallel-transported in time.
 
+With ``substeps`` N in the rod's config (the stiffest light cables) a frame is N such steps of
+``dt / N``, the grippers moved linearly between frames and ``r`` added in the first only.
+
 Parameters identified from data: per-vertex bending and twisting stiffness (log scale), rest
 material curvature, extra point masses per vertex, linear damping and quadratic air drag.
 """
@@ -29,7 +32,7 @@ from torch import Tensor, nn
 from deform.config import RodConfig, generic_rod, load_rod_config
 from deform.nn.residual import ResidualGNN
 from deform.rod import geometry as G
-from deform.rod.convergence import ConvergenceReport
+from deform.rod.convergence import ConvergenceReport, merge_reports
 from deform.rod.energy import (
     ElasticParams,
     curvature_projections,
@@ -58,6 +61,10 @@ MODEL_DIR = Path(__file__).resolve().parent / "models"
 # shipped ropes' ratios are 0.33-1.78, so DLO2 and DLO3 (1.67, 1.78) are stepped implicitly when
 # calibrated again, DLO1, DLO4, DLO5 are not.
 IMPLICIT_ABOVE = 1.0
+# The same margin per substep that the implicit step keeps: bent and held, implicit rods came to rest
+# up to a ratio of 3.64 and rang from 4.70 (bending_stability.json), so a model whose ratio per frame
+# is above it takes ceil(ratio / IMPLICIT_RATIO_MAX) substeps a frame.
+IMPLICIT_RATIO_MAX = 3.5
 
 
 def gripped_indices(n: int) -> list[int]:
@@ -282,20 +289,30 @@ class DeformModel(nn.Module):
 
     def choose_bending_scheme(self) -> bool:
         """Step the bending implicitly where the explicit step would ring (a stiff light cable, a
-        short rope at 12 vertices): sets and returns ``cfg.implicit_bending``. For models whose
-        stiffness is being chosen (system identification, a rope known by length and mass)."""
-        self.cfg.implicit_bending = self.bending_step_ratio() > IMPLICIT_ABOVE
+        short rope at 12 vertices), and in substeps where even that would (ratio above
+        :data:`IMPLICIT_RATIO_MAX`): sets ``cfg.implicit_bending`` and ``cfg.substeps``, returns the
+        former. For models whose stiffness is being chosen (system identification, a rope known by
+        length and mass)."""
+        ratio = self.bending_step_ratio()
+        self.cfg.implicit_bending = ratio > IMPLICIT_ABOVE
+        self.cfg.substeps = max(1, math.ceil(ratio / IMPLICIT_RATIO_MAX)) if self.cfg.implicit_bending else 1
         return self.cfg.implicit_bending
+
+    @property
+    def substep_dt(self) -> float:
+        """The time one substep advances: ``dt / cfg.substeps``."""
+        return self.dt / self.cfg.substeps
 
     def _implicit_filter(self, params: ElasticParams, mass: Tensor, rest: Tensor) -> tuple[Tensor, Tensor]:
         """The implicit bending filter's matrices (:func:`deform.rod.implicit.implicit_filter`) for
         these parameters, kept while :meth:`_physical` hands out the same (cached) parameters: a
         rollout inverts once, not at every step."""
+        dt = self.substep_dt
         cached = getattr(self, "_implicit_cache", None)
-        if cached is not None and cached[0] is params and cached[1] is mass:
-            return cached[2]
-        matrices = implicit_filter(params.beta, rest, mass, self.dt, gripped_indices(self.n))
-        self._implicit_cache = (params, mass, matrices)
+        if cached is not None and cached[0] is params and cached[1] is mass and cached[2] == dt:
+            return cached[3]
+        matrices = implicit_filter(params.beta, rest, mass, dt, gripped_indices(self.n))
+        self._implicit_cache = (params, mass, dt, matrices)
         return matrices
 
     def vertex_mass(self, rest: Tensor) -> Tensor:
@@ -565,8 +582,50 @@ class DeformModel(nn.Module):
         batch is that many equal runs of consecutive rods whose solvers each iterate until their own
         rods converge (several models in one batch, each stepped as if alone: deform.diagnose.stack);
         the first ``closed_form_groups`` of them take the twist angles in closed form (no rest
-        curvature), the others the iterative solve (:func:`deform.rod.twist_solver.solve_theta`)."""
-        dt = self.dt
+        curvature), the others the iterative solve (:func:`deform.rod.twist_solver.solve_theta`).
+
+        With ``cfg.substeps`` N > 1 the frame is N steps of ``dt / N``, the grippers moved linearly
+        from where they hold the rod to ``grip_next``; the residual network's velocity correction,
+        learnt per frame, is added once, in the first. ``report`` then holds the worst of them."""
+        r = None
+        if self.options.residual:  # the network is batch-first
+            r = self.residual(
+                state.x.movedim(-1, 0).to(torch.float32),
+                state.v.movedim(-1, 0).to(torch.float32),
+                network_dtype,
+            ).movedim(0, -1)
+        solver = (theta_ends, create_graph, branch_free, groups, closed_form_groups)
+        substeps = self.cfg.substeps
+        if substeps == 1:
+            return self._substep(state, grip_next, self.dt, r, report, *solver)
+        start = None if grip_next is None else state.x[gripped_indices(self.n)]
+        reports = []
+        for k in range(1, substeps + 1):
+            grip = grip_next
+            if grip_next is not None and k < substeps:
+                grip = start + (grip_next.to(start.dtype) - start) * (k / substeps)
+            sub = None if report is None else ConvergenceReport()
+            state = self._substep(state, grip, self.substep_dt, r if k == 1 else None, sub, *solver)
+            reports.append(sub)
+        if report is not None:
+            merge_reports(report, reports)
+        return state
+
+    def _substep(
+        self,
+        state: VertexMajorState,
+        grip_next: Tensor | None,
+        dt: float,
+        residual: Tensor | None,
+        report: ConvergenceReport | None,
+        theta_ends: Tensor | None,
+        create_graph: bool,
+        branch_free: tuple[int, int],
+        groups: int,
+        closed_form_groups: int,
+    ) -> VertexMajorState:
+        """One step of ``dt`` (the module docstring's steps 1-6); ``residual`` (n, 3, B) or None: the
+        network's velocity correction."""
         x, v = state.x, state.v
         params, mass = self._physical(state.rest, create_graph)
         force, theta, t_old = self._forces(
@@ -587,11 +646,8 @@ class DeformModel(nn.Module):
                 v_pred = apply_implicit_filter(
                     v_pred, v_held, self._implicit_filter(params, mass, state.rest), held
                 )
-        if self.options.residual:  # the network is batch-first
-            r = self.residual(
-                x.movedim(-1, 0).to(torch.float32), v.movedim(-1, 0).to(torch.float32), network_dtype
-            )
-            v_pred = v_pred + r.movedim(0, -1).to(x.dtype)
+        if residual is not None:
+            v_pred = v_pred + residual.to(x.dtype)
         x_pred = x + dt * v_pred
         if grip_next is not None:
             x_pred = x_pred.clone()
@@ -629,7 +685,10 @@ class DeformModel(nn.Module):
         lengths outside the solver tolerances: one more Newton step on theta would exceed
         ``sqrt(theta_tol)`` rad (the solver's own stopping rule), or an edge that can move is off its
         rest length by more than ``pbd_tol``. Compiled steps, which cannot loop on data, use it to
-        verify their fixed iteration counts (``held``: the grippers held vertices 0, 1, n-2, n-1)."""
+        verify their fixed iteration counts (``held``: the grippers held vertices 0, 1, n-2, n-1).
+        With substeps the angles were solved at the last substep's positions, which ``before`` does
+        not hold: only the lengths are checked (the solvers' report checks both,
+        :meth:`unconverged_from_report`)."""
         before, after = before.vertex_major(), after.vertex_major()
         params, mass = self._physical(before.rest, False)
         geo = rod_geometry(before.x, before.d1)
@@ -642,7 +701,7 @@ class DeformModel(nn.Module):
         inv_mass = self._projection_inv_mass(mass, held)  # only which vertices can move matters here
         rest = rest_within_reach(before.rest, after.x[gripped_indices(self.n)]) if held else before.rest
         length_bad = ~(max_relative_error(after.x, rest, inv_mass, per_rod=True) < self.options.pbd_tol)
-        if self.options.theta_solver == ThetaSolver.THESEUS:
+        if self.options.theta_solver == ThetaSolver.THESEUS or self.cfg.substeps > 1:
             twist_bad = torch.zeros_like(twist_bad)
         return twist_bad | length_bad
 

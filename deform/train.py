@@ -219,7 +219,7 @@ def coarse_identification(
         choose_scheme: choose the bending scheme per point by the step ratio.
 
     Returns:
-        ``{"l1_m", "bend_stiffness", "damping", "implicit_bending"}`` of the best grid point.
+        ``{"l1_m", "bend_stiffness", "damping", "implicit_bending", "substeps"}`` of the best grid point.
     """
     recs = recordings[:: max(1, len(recordings) // max_recordings)][:max_recordings]
     base_beta, base_gamma = model.log_beta.detach().clone(), model.log_gamma.detach().clone()
@@ -267,6 +267,7 @@ def coarse_identification(
         "bend_stiffness": math.exp(best[1]),
         "damping": math.exp(best[2]),
         "implicit_bending": model.cfg.implicit_bending,
+        "substeps": model.cfg.substeps,
     }
 
 
@@ -571,7 +572,8 @@ def train(
         unit="it",
     )
     last = {}
-    with (out_dir / "log.jsonl").open("a") as log:
+    # resumed, the log goes on; started afresh (--fresh), a discarded run's lines would read as this one's
+    with (out_dir / "log.jsonl").open("a" if start else "w") as log:
         for it in bar:
             t0 = time.perf_counter()
             horizon = horizon_at(it, cfg)

@@ -7,6 +7,7 @@ rods that did not converge without evaluating anything twice (:meth:`DeformModel
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -93,3 +94,14 @@ def masked_loop(body: Callable, carry: tuple[Tensor, ...], active: Tensor, count
     )
     out = while_loop(cond, step, start)
     return tuple(f.reshape(s) for f, s in zip(out[2:], shapes)), out[1].reshape(batch)
+
+
+def merge_reports(into: ConvergenceReport, reports: list[ConvergenceReport]) -> None:
+    """Fill ``into`` with the worst of several steps' reports (a frame stepped in substeps): the
+    largest length error per rod (NaN kept) and every rod any step left with unconverged angles."""
+    lengths = [r.length_error for r in reports if r.length_error is not None]
+    if lengths:
+        into.length_error = functools.reduce(torch.maximum, lengths)
+    twists = [r.twist_unconverged for r in reports if r.twist_unconverged is not None]
+    if twists:
+        into.twist_unconverged = functools.reduce(torch.logical_or, twists)

@@ -56,3 +56,23 @@ def test_exported_step_does_not_grow_with_the_iteration_counts():
 
     assert size((2, 1), True) == size((8, 4), True)
     assert size((2, 1), False) < size((8, 4), False)  # unrolled (large batches, deform.aot.exports_loops)
+
+
+def test_merged_reports_keep_the_worst_substep_per_rod():
+    """A frame in substeps is as unconverged as its worst substep: largest length error (NaN kept),
+    any unconverged twist."""
+    from deform.rod.convergence import ConvergenceReport, merge_reports
+
+    first = ConvergenceReport(
+        torch.tensor([1e-9, 5e-3, 0.0], dtype=torch.float64), torch.tensor([False, False, True])
+    )
+    second = ConvergenceReport(
+        torch.tensor([2e-9, 1e-9, float("nan")], dtype=torch.float64), torch.tensor([True, False, False])
+    )
+    merged = ConvergenceReport()
+    merge_reports(merged, [first, second])
+    assert merged.length_error[:2].tolist() == [2e-9, 5e-3] and merged.length_error[2].isnan()
+    assert merged.twist_unconverged.tolist() == [True, False, True]
+    untouched = ConvergenceReport()
+    merge_reports(untouched, [ConvergenceReport(), ConvergenceReport()])  # solvers that did not report
+    assert untouched.length_error is None and untouched.twist_unconverged is None

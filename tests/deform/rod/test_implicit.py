@@ -155,3 +155,41 @@ def test_the_implicit_step_is_differentiable_in_the_stiffness():
     numeric = (float(end_height(h, False)) - float(end_height(-h, False))) / (2 * h)
     assert analytic == pytest.approx(numeric, rel=1e-2)  # the solvers stop at their tolerances
     assert abs(numeric) > 1e-7  # the check sees the stiffness at all
+
+
+def test_substeps_are_steps_of_a_fraction_of_the_frame_with_the_grippers_in_between():
+    """A frame in 3 substeps equals 3 steps of a model whose frame is a third as long, the grippers
+    moved a third of the way each time (no residual: it is added once a frame)."""
+    cfg = generic_rod(0.5, 0.05, N).model_copy(update=dict(implicit_bending=True))
+    whole = DeformModel(cfg.model_copy(update=dict(substeps=3)), ModelOptions(residual=False)).eval()
+    third = DeformModel(cfg.model_copy(update=dict(dt=cfg.dt / 3)), ModelOptions(residual=False)).eval()
+    third.load_state_dict(whole.state_dict())
+    state, grip = rod_at_rest(whole, 2, torch.float64)
+    move = torch.zeros_like(grip)
+    move[:, 2:, 0] = -0.02
+    move[1, :, 2] = 0.01
+    with torch.no_grad():
+        a = whole.step(state, grip + move)
+        b = state
+        for k in (1, 2, 3):
+            b = third.step(b, grip + move * (k / 3))
+    assert torch.allclose(a.x, b.x, atol=1e-12) and torch.allclose(a.v, b.v, atol=1e-10)
+    one = DeformModel(cfg, ModelOptions(residual=False)).eval()  # the frame in one step: not the same
+    one.load_state_dict(whole.state_dict())
+    with torch.no_grad():
+        assert (one.step(state, grip + move).x - a.x).abs().max() > 1e-6
+
+
+def test_the_stiffest_light_cable_takes_substeps_and_comes_to_rest():
+    """1 m, 20 g at EI 0.1 N m^2 (step ratio about 10): one implicit step a frame still rings after a
+    bend; the substeps chosen keep each under IMPLICIT_RATIO_MAX and bring it to rest."""
+    from deform.model import IMPLICIT_RATIO_MAX
+
+    cfg = generic_rod(1.0, 0.02, N).model_copy(update=dict(bend_stiffness=0.1, twist_stiffness=0.07))
+    model = DeformModel(cfg, ModelOptions(residual=False)).eval()
+    assert model.choose_bending_scheme()
+    ratio = model.bending_step_ratio()
+    assert model.cfg.substeps == math.ceil(ratio / IMPLICIT_RATIO_MAX) > 1
+    assert _top_speed_after_bend_and_hold(model) < 0.1
+    model.cfg.substeps = 1
+    assert _top_speed_after_bend_and_hold(model) > 1.0
