@@ -83,6 +83,7 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     # the bending scheme the model steps with is the one reported, with the model's step ratio
     scheme = report["identified"]["found"]
     assert scheme["implicit_bending"] == model.cfg.implicit_bending
+    assert scheme["substeps"] == model.cfg.substeps
     assert scheme["bending_step_ratio"] == pytest.approx(model.bending_step_ratio(), abs=1e-3)
     assert f"Bending stepped {'implicitly' if scheme['implicit_bending'] else 'explicitly'}" in md
 

@@ -73,7 +73,7 @@ def test_coarse_identification_goes_past_the_grid_for_a_softer_rope():
 def test_coarse_identification_goes_past_the_grid_for_a_stiff_cable_and_steps_it_implicitly():
     """A cable five times stiffer than the grid's stiffest point (3e-2 N m^2), generated with the
     implicit bending it needs: the grid goes on above its edge, lands on the truth's half decade and
-    keeps the implicit scheme for it (explicitly, a 65 g rope rings from about 0.01 N m^2)."""
+    keeps the implicit scheme, in substeps, for it (explicitly, a 65 g rope rings from about 0.01 N m^2)."""
     cfg = load_rod_config("DLO2")
     truth = DeformModel(
         cfg.model_copy(update={"bend_stiffness": 0.15, "twist_stiffness": 0.1, "damping": 1.0})
@@ -84,6 +84,7 @@ def test_coarse_identification_goes_past_the_grid_for_a_stiff_cable_and_steps_it
     found = coarse_identification(model, recs, steps=60, progress=False)
     assert 0.1 <= found["bend_stiffness"] <= 0.3
     assert found["implicit_bending"] and model.cfg.implicit_bending
+    assert found["substeps"] == model.cfg.substeps > 1  # its step ratio is above IMPLICIT_RATIO_MAX
 
 
 def test_training_windows_start_in_the_frames_evaluation_carries():
