@@ -34,7 +34,7 @@ class RodConfig(BaseModel):
     marker_mass_kg: float = Field(default=0.0004, ge=0)
     dt: float = Field(default=0.01, gt=0)
     # the bending forces stepped linearly implicitly (deform.rod.implicit): a stiff light cable's
-    # bending modes are then stable at the 10 ms step. Off for the shipped models, trained explicit
+    # bending modes are then stable at the 10 ms step. On for the shipped DLO2 and DLO3
     implicit_bending: bool = False
     # steps of dt / substeps per frame (grippers moved linearly between frames): for the stiffest
     # light cables, where even the implicit bending rings at one step a frame. 1 for the shipped models

@@ -57,9 +57,8 @@ MODEL_DIR = Path(__file__).resolve().parent / "models"
 
 # The explicit step's bending margin (omega_max dt, deform.rod.implicit.step_ratio) above which a model
 # whose stiffness is being chosen steps its bending implicitly. Bent by 30 % and held (1 m, 12
-# vertices), rods came to rest at ratios up to 1.05 and rang from 1.49 (shipped DLO3: 1.78); the
-# shipped ropes' ratios are 0.33-1.78, so DLO2 and DLO3 (1.67, 1.78) are stepped implicitly when
-# calibrated again, DLO1, DLO4, DLO5 are not.
+# vertices), rods came to rest at ratios up to 1.05 and rang from 1.49 (DLO3's explicit model: 1.78);
+# of the DEFORM ropes DLO2 and DLO3 are above it (shipped trained implicitly), DLO1, DLO4, DLO5 below.
 IMPLICIT_ABOVE = 1.0
 # The same margin per substep that the implicit step keeps: bent and held, implicit rods came to rest
 # up to a ratio of 3.64 and rang from 4.70 (bending_stability.json), so a model whose ratio per frame

@@ -3,8 +3,9 @@ r"""Linearly implicit bending: the explicit step's velocity filtered through the
 Why: the model steps the bending forces explicitly, which is stable only while the stiffest bending
 mode turns less than about two radians per step (:math:`\omega_{max} dt < 2`). A rope of 1 m at 12
 vertices and 10 ms passes that between about 0.003 and 0.03 N m^2 depending on its mass: a stiff
-light cable, bent and held, rings at metres a second (and the shipped DLO3 model, 97 g at
-0.013 N m^2, rings at 5 m/s when bent by 30 % and held). Smaller steps alone did not cure it.
+light cable, bent and held, rings at metres a second (DLO3 trained explicitly, 97 g at
+0.013 N m^2, rang at 5 m/s when bent by 30 % and held). Smaller steps alone did not cure it; with
+this filter they do where it alone does not (``RodConfig.substeps``).
 
 The bending energy of a nearly straight stretch is quadratic in the displacements ``u`` of each axis,
 :math:`E \approx \tfrac12 u^T K u` with
