@@ -290,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
         "service",
         "benchmarks/calibration/clips.py",
         "benchmarks/calibration/score.py",
-        *(f"deform/models/{rod}.pt" for rod in RODS),  # the shipped column (a retrained model: --rescore-from)
+        # the shipped models, scored beside the calibrated ones (a retrained one: --rescore-from)
+        *(f"deform/models/{rod}.pt" for rod in RODS),
         *(
             ["benchmarks/calibration/foreign_lab.py", "benchmarks/calibration/foreign_session.py"]
             if args.setup in FOREIGN_LABS
