@@ -58,6 +58,7 @@ def build(cal: Calibration, clips: list[Clip], inputs: dict) -> dict:
                 "held_out_tracking_fit_m": r.tracking_fit_m,
                 "kept": r.kept,
                 "seconds": round(r.seconds, 1),
+                "train_seconds": round(r.train_s, 1),
                 "train": r.train,
                 "cut_by_time_limit": r.cut_by_time_limit,
             }

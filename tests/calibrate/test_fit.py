@@ -81,10 +81,36 @@ def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
         assert "round 2 not started" in cal.time_limit_notes[1]
 
 
-def test_a_later_round_is_projected_from_the_last_ones_time_per_iteration():
-    """500 iterations took 600 s besides a 50 s tracking pass: 200 take 240 s, 288 with the spare."""
-    previous = Round(1, 0.01, 0.005, True, seconds=650.0, train={"iterations": 500})
-    assert projected_round_s(previous, track_s=50.0, iterations=200) == pytest.approx(1.2 * 240 + 50)
+def test_a_later_round_is_projected_from_the_last_ones_training_and_the_rest_of_it():
+    """500 iterations trained in 500 s of a 650 s round: 200 take 200 s, 240 with the spare, and the
+    150 s of damping search, tracking and scoring come again whole."""
+    previous = Round(1, 0.01, 0.005, True, seconds=650.0, train={"iterations": 500}, train_s=500.0)
+    assert projected_round_s(previous, iterations=200) == pytest.approx(1.2 * 200 + 150)
+
+
+def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
+    """With 1000 s left at every round's start, round 1 trains for at most 1000 s less a tracking
+    pass and the reserve, round 2 less what round 1 did besides training (its damping search,
+    tracking and scoring), so that the round ends within the limit."""
+    monkeypatch.setattr(fit, "MIN_GAIN", -1.0)  # every round kept
+    monkeypatch.setattr(fit, "_time_left", lambda *a: 1000.0)
+    limits = []
+    train = fit._train
+
+    def recording_train(*args):
+        limits.append(args[-1])
+        return train(*args)
+
+    monkeypatch.setattr(fit, "_train", recording_train)
+    budget = Budget(
+        iterations=3, refine_iterations=2, rounds=2, horizon=20, batch=2, curriculum=(), damping_horizon=40
+    )
+    cal = _calibrate(clips, budget)
+    r0, r1, r2 = cal.rounds
+    assert 0.0 < r1.train_s < r1.seconds and 0.0 < r2.train_s < r2.seconds
+    assert limits == pytest.approx(
+        [1000.0 - r0.seconds - fit.RESERVE_S, 1000.0 - (r1.seconds - r1.train_s) - fit.RESERVE_S]
+    )
 
 
 def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
