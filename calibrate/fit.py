@@ -96,9 +96,14 @@ class Round:
     train: dict | None = None
     # the time limit cut this round's training short (Budget.time_limit_s)
     cut_by_time_limit: bool = False
-    # of ``seconds``, those spent training; the rest (damping search, tracking again, scoring) is
-    # what the next round needs besides its training (:func:`projected_round_s`)
+    # of ``seconds``, those spent training (round 0: none)
     train_s: float = 0.0
+
+    @property
+    def after_training_s(self) -> float:
+        """The round's time besides training: the damping search, tracking again and scoring (round
+        0: its tracking pass), which the next round needs whole besides its own training."""
+        return max(self.seconds - self.train_s, 0.0)
 
 
 @dataclass
@@ -323,7 +328,6 @@ def calibrate(
     best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
     out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
     best = model
-    track_s = out.rounds[0].seconds  # a tracking pass and its scoring: what a round adds to training
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
         left = _time_left(budget, t_start)
@@ -335,8 +339,8 @@ def calibrate(
                 f"were left, round {r} would take about {need:.0f} s"
             )
             break
-        # what the round does after training (round 1: at least a tracking pass; later: the last one's)
-        after_training_s = track_s if r == 1 else out.rounds[-1].seconds - out.rounds[-1].train_s
+        # leave the round's work after training the time the last round's took (round 1: a tracking pass)
+        after_training_s = out.rounds[-1].after_training_s
         train_limit = None if left is None else max(left - after_training_s - RESERVE_S, 1e-3)  # 0: no limit
         usable = [t for t in train_t if t.n_frames >= budget.horizon + 2] or train_t
         t_train = time.perf_counter()
@@ -390,7 +394,7 @@ def projected_round_s(previous: Round, iterations: int) -> float:
     too had a later round of DLO1's foreign-lab clips projected at 373 s; it took 482 and ended the
     calibration 67 s past the 20 minutes."""
     done = max((previous.train or {}).get("iterations") or 1, 1)
-    return 1.2 * previous.train_s * iterations / done + max(previous.seconds - previous.train_s, 0.0)
+    return 1.2 * previous.train_s * iterations / done + previous.after_training_s
 
 
 def _time_left(budget: Budget, t_start: float) -> float | None:
