@@ -73,7 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--config", metavar="FILE", help="service config: gripper convention, world frame, camera pose"
     )
     p.add_argument(
-        "--vertices", type=_count(5), default=12, metavar="N", help="vertices of the model (default 12)"
+        "--vertices",
+        type=_count(5),
+        metavar="N",
+        help="vertices of the model (default: edges of at most about 9 cm, 12..14 vertices)",
     )
     p.add_argument(
         "--out", default="calibrated.pt", metavar="MODEL.pt", help="model file (default calibrated.pt)"
@@ -161,7 +164,7 @@ def run(args) -> int:
 
     from calibrate import report
     from calibrate.bags import Topics, read_clip
-    from calibrate.fit import Budget, calibrate
+    from calibrate.fit import Budget, calibrate, default_vertices
     from calibrate.latency import cloud_delay
 
     started = time.perf_counter()
@@ -197,13 +200,14 @@ def run(args) -> int:
     budget = replace(Budget(seed=args.seed, time_limit_s=60.0 * args.time_limit - spent), **given)
     if args.horizon is not None:
         budget = replace(budget, curriculum=tuple(h for h in budget.curriculum if h < args.horizon))
+    n_vertices = args.vertices or default_vertices(args.length)
     cal = calibrate(
         clips,
         args.length,
         args.mass,
         cfg.grippers,
         perception,
-        n_vertices=args.vertices,
+        n_vertices=n_vertices,
         budget=budget,
         name=out.stem,
         prior=prior,
@@ -213,7 +217,7 @@ def run(args) -> int:
         "length_m": args.length,
         "mass_kg": args.mass,
         "diameter_m": args.diameter,
-        "vertices": args.vertices,
+        "vertices": n_vertices,
         "stiffness_prior": {"without": list(args.prior_without), "bend_per_linear_density": prior},
         "perception": args.perception or cfg.perception,
         "config": args.config,

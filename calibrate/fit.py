@@ -52,6 +52,8 @@ from service.config import Grippers
 CAP_M = 0.05  # a point's error is capped here (a stray point costs no more than a missed rope)
 RESERVE_S = 30.0  # kept from the time limit for the parameter ranges and the report after the rounds
 MIN_GAIN = 0.01  # a round is kept when it improves the held-out fit by at least this share
+EDGE_M = 0.09  # the default vertex count keeps the rope's edges at most about this long ...
+VERTICES = (12, 14)  # ... within these counts (default_vertices)
 
 
 @dataclass(frozen=True)
@@ -124,6 +126,23 @@ class Calibration:
     parameter_ranges: dict = field(default_factory=dict)
     # what Budget.time_limit_s left undone (empty: nothing)
     time_limit_notes: list[str] = field(default_factory=list)
+
+
+def default_vertices(length_m: float) -> int:
+    r"""The model's vertex count when the user gives none: :math:`n = \lceil L / h \rceil + 1` for
+    edges of at most :math:`h` = 9 cm on average, within 12..14.
+
+    Why: a fixed count coarsens a long rope (a 12-vertex model of DLO1's 1.03 m between the grippers
+    scores 0.13 cm against its 13 markers even when its shape is exact); the motion-capture ropes,
+    markers about 10 cm apart, are modelled at about that spacing. Why no more than 14: a training
+    iteration costs 1.8x at 16 vertices what it costs at 12, and at 16 the first round of a
+    calibration no longer fits its time limit (``calibrate_rods.v16``). Why at least 12: a short rope
+    still needs the shape resolution (and 12 is what the tool was measured at on the 0.92-0.97 m
+    ropes)."""
+    if not length_m > 0:
+        raise CalibrationError(f"the rope's length must be positive, not {length_m:g} m")
+    low, high = VERTICES
+    return int(min(high, max(low, math.ceil(length_m / EDGE_M - 1e-9) + 1)))
 
 
 def rest_lengths(length_m: float, n_vertices: int, grippers: Grippers) -> np.ndarray:
@@ -272,7 +291,7 @@ def calibrate(
     mass_kg: float,
     grippers: Grippers,
     perception,
-    n_vertices: int = 12,
+    n_vertices: int | None = None,
     budget: Budget | None = None,
     name: str = "calibrated",
     progress: bool = True,
@@ -286,7 +305,7 @@ def calibrate(
         mass_kg: its mass [kg].
         grippers: the gripper convention (service config).
         perception: perception settings (:class:`perception.PerceptionConfig`).
-        n_vertices: vertices of the model.
+        n_vertices: vertices of the model (None: :func:`default_vertices` of ``length_m``).
         budget: how much work (default :class:`Budget`).
         name: the model's name.
         progress: progress bars.
@@ -302,6 +321,7 @@ def calibrate(
             clip has clouds within its poses' time span.
     """
     budget = budget or Budget()
+    n_vertices = n_vertices or default_vertices(length_m)
     t_start = time.perf_counter()
     torch.manual_seed(budget.seed)
     rest = rest_lengths(length_m, n_vertices, grippers)

@@ -1,5 +1,5 @@
 """Which tracked motion trains and which is held out (calibrate.fit.split); the time limit cuts
-work short and says so (calibrate.fit.calibrate)."""
+work short and says so (calibrate.fit.calibrate); the default vertex count follows the length."""
 
 import json
 
@@ -8,7 +8,8 @@ import pytest
 
 from calibrate import fit, report
 from calibrate.bags import read_clip
-from calibrate.fit import Budget, Round, calibrate, projected_round_s, split
+from calibrate.errors import CalibrationError
+from calibrate.fit import Budget, Round, calibrate, default_vertices, projected_round_s, split
 from calibrate.tracks import Track
 from perception import PerceptionConfig
 from service.config import ServiceConfig
@@ -64,6 +65,16 @@ def _calibrate(clips, budget: Budget):
     return calibrate(
         clip_list, LENGTH, MASS, cfg.grippers, PerceptionConfig(), n_vertices=N, budget=budget, progress=False
     )
+
+
+def test_the_default_vertex_count_keeps_edges_near_9_cm_within_12_to_14():
+    assert default_vertices(0.3) == 12  # a short rope keeps the shape resolution
+    assert default_vertices(0.973) == 12  # 11 edges of 8.8 cm
+    assert default_vertices(0.99) == 12  # exactly 11 edges of 9 cm: no float rounding up
+    assert default_vertices(1.032) == 13  # DLO1 between its grippers
+    assert default_vertices(5.0) == 14  # a long cable: training time caps it
+    with pytest.raises(CalibrationError, match="positive"):
+        default_vertices(0.0)
 
 
 def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
