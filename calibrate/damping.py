@@ -28,6 +28,7 @@ from deform import DeformModel
 
 COARSE = tuple(2 ** (k / 2) for k in range(-4, 5))  # 1/4 .. 4, half octaves
 FINE = (2**-0.25, 2**0.25)  # then a quarter octave either side of the best
+MAX_FITS = len(COARSE) + len(FINE)  # rollouts the search makes at most (the trained value is in COARSE)
 
 
 def settle_damping(

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from calibrate.bags import Clip
 from calibrate.checks import check_length, check_rope_seen, motion_problem
-from calibrate.damping import settle_damping
+from calibrate.damping import MAX_FITS, settle_damping
 from calibrate.errors import CalibrationError
 from calibrate.identifiability import parameter_ranges
 from calibrate.points import polyline_distances
@@ -66,7 +66,8 @@ class Budget:
     ``time_limit_s`` keeps the promise of a model within 20 minutes on a slow or crowded machine:
     a later round is not started when its projected time (:func:`projected_round_s`) would pass it,
     and training stops early where the rest of the round (the previous round's time besides
-    training; round 1: a tracking pass) would otherwise pass it (the report says which). The third round
+    training; round 1: a tracking pass and the damping search's estimate) would otherwise pass it
+    (the report says which). The third round
     was kept in 12 of the 29 stored benchmark calibrations that ran it, gaining 1.4-3.5 % of
     held-out fit: what a slow machine mostly loses. Where the limit binds, results depend on the machine's
     speed."""
@@ -347,6 +348,8 @@ def calibrate(
         return out
     best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
     out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
+    # round 0 made no damping search: round 1 reserves an estimate of it besides round 0's tracking pass
+    damping_s = 0.0 if budget.time_limit_s is None else damping_search_s(model, train_t, budget)
     best = model
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
@@ -359,10 +362,11 @@ def calibrate(
                 f"were left, round {r} would take about {need:.0f} s"
             )
             break
-        # leave the round's work after training the time the last round's took (round 1: a tracking pass)
-        after_training_s = out.rounds[-1].after_training_s
+        # leave the round's work after training the time the last round's took (round 1: a tracking
+        # pass and the damping search's estimate)
+        after_training_s = out.rounds[-1].after_training_s + (damping_s if r == 1 else 0.0)
         train_limit = None if left is None else max(left - after_training_s - RESERVE_S, 1e-3)  # 0: no limit
-        usable = [t for t in train_t if t.n_frames >= budget.horizon + 2] or train_t
+        usable = _trainable(train_t, budget)
         t_train = time.perf_counter()
         candidate, result = _train(copy.deepcopy(best), usable, held_t, budget, r == 1, progress, train_limit)
         train_s = time.perf_counter() - t_train
@@ -404,6 +408,25 @@ def calibrate(
     )
     out.seconds = time.perf_counter() - t_start
     return out
+
+
+def damping_search_s(model: DeformModel, tracks: list[Track], budget: Budget) -> float:
+    """About how long a damping search (:func:`calibrate.damping.settle_damping`) takes [s]: one of its
+    fits timed with ``model`` and the residual network on (as training leaves it), times the fits the
+    search makes at most. Why: the time limit reserves it for round 1, before any round has made one
+    (on 50 s of clips about 1-2 min, which a round 1 cut by the limit otherwise ran past it)."""
+    if budget.damping_horizon <= 0:
+        return 0.0
+    probe = copy.deepcopy(model)
+    probe.options.residual = True
+    t0 = time.perf_counter()
+    prediction_fit(probe, _trainable(tracks, budget), budget.damping_horizon, budget.score_every)
+    return MAX_FITS * (time.perf_counter() - t0)
+
+
+def _trainable(tracks: list[Track], budget: Budget) -> list[Track]:
+    """The tracks long enough for a training window (all of them when none is)."""
+    return [t for t in tracks if t.n_frames >= budget.horizon + 2] or tracks
 
 
 def projected_round_s(previous: Round, iterations: int) -> float:

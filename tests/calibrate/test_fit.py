@@ -2,6 +2,7 @@
 work short and says so (calibrate.fit.calibrate); the default vertex count follows the length."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -101,10 +102,11 @@ def test_a_later_round_is_projected_from_the_last_ones_training_and_the_rest_of_
 
 def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
     """With 1000 s left at every round's start, round 1 trains for at most 1000 s less a tracking
-    pass and the reserve, round 2 less what round 1 did besides training (its damping search,
-    tracking and scoring), so that the round ends within the limit."""
+    pass, the damping search's estimate and the reserve, round 2 less what round 1 did besides
+    training (its damping search, tracking and scoring), so that the round ends within the limit."""
     monkeypatch.setattr(fit, "MIN_GAIN", -1.0)  # every round kept
     monkeypatch.setattr(fit, "_time_left", lambda *a: 1000.0)
+    monkeypatch.setattr(fit, "damping_search_s", lambda *a: 100.0)
     limits = []
     train = fit._train
 
@@ -120,8 +122,28 @@ def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
     r0, r1, r2 = cal.rounds
     assert 0.0 < r1.train_s < r1.seconds and 0.0 < r2.train_s < r2.seconds
     assert limits == pytest.approx(
-        [1000.0 - r0.seconds - fit.RESERVE_S, 1000.0 - (r1.seconds - r1.train_s) - fit.RESERVE_S]
+        [1000.0 - r0.seconds - 100.0 - fit.RESERVE_S, 1000.0 - (r1.seconds - r1.train_s) - fit.RESERVE_S]
     )
+
+
+def test_the_damping_search_is_estimated_from_one_of_its_fits(clips, monkeypatch):
+    """The estimate is the search's fits at most (11) times one rollout over the damping horizon,
+    with the residual network on; no search, no time."""
+    fits, clock = [], [0.0]
+
+    def timed_fit(model, tracks, horizon, every):
+        fits.append((model.options.residual, horizon))
+        clock[0] += 2.0  # one rollout: 2 s on the module's clock
+        return 0.0
+
+    monkeypatch.setattr(fit, "prediction_fit", timed_fit)
+    monkeypatch.setattr(fit, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    model = fit.start_model(LENGTH, MASS, np.full(N - 1, LENGTH / (N - 1)), "rope")
+    tracks = [_track("a", 500)]
+    budget = Budget(damping_horizon=300)
+    assert fit.damping_search_s(model, tracks, budget) == 11 * 2.0
+    assert fits == [(True, 300)] and not model.options.residual  # a copy was switched on
+    assert fit.damping_search_s(model, tracks, Budget(damping_horizon=0)) == 0.0
 
 
 def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
