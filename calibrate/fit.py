@@ -348,8 +348,9 @@ def calibrate(
         return out
     best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
     out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
-    # round 0 made no damping search: round 1 reserves an estimate of it besides round 0's tracking pass
-    damping_s = 0.0 if budget.time_limit_s is None else damping_search_s(model, train_t, budget)
+    first_rest_s = (
+        0.0 if budget.time_limit_s is None else first_round_rest_s(out.rounds[0], model, train_t, budget)
+    )
     best = model
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
@@ -362,9 +363,8 @@ def calibrate(
                 f"were left, round {r} would take about {need:.0f} s"
             )
             break
-        # leave the round's work after training the time the last round's took (round 1: a tracking
-        # pass and the damping search's estimate)
-        after_training_s = out.rounds[-1].after_training_s + (damping_s if r == 1 else 0.0)
+        # leave the round's work after training the time the last round's took (round 1: an estimate)
+        after_training_s = first_rest_s if r == 1 else out.rounds[-1].after_training_s
         train_limit = None if left is None else max(left - after_training_s - RESERVE_S, 1e-3)  # 0: no limit
         usable = _trainable(train_t, budget)
         t_train = time.perf_counter()
@@ -410,18 +410,27 @@ def calibrate(
     return out
 
 
-def damping_search_s(model: DeformModel, tracks: list[Track], budget: Budget) -> float:
-    """About how long a damping search (:func:`calibrate.damping.settle_damping`) takes [s]: one of its
-    fits timed with ``model`` and the residual network on (as training leaves it), times the fits the
-    search makes at most. Why: the time limit reserves it for round 1, before any round has made one
-    (on 50 s of clips about 1-2 min, which a round 1 cut by the limit otherwise ran past it)."""
-    if budget.damping_horizon <= 0:
-        return 0.0
-    probe = copy.deepcopy(model)
-    probe.options.residual = True
-    t0 = time.perf_counter()
-    prediction_fit(probe, _trainable(tracks, budget), budget.damping_horizon, budget.score_every)
-    return MAX_FITS * (time.perf_counter() - t0)
+def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], budget: Budget) -> float:
+    """About how long round 1 takes besides training [s], before any round has trained: round 0's
+    tracking pass (``tracked``) slowed as the residual network slows a rollout, and the damping search
+    (:func:`calibrate.damping.settle_damping`, at most ``MAX_FITS`` rollouts over the damping horizon).
+    Both from one rollout of ``model`` over ``tracks`` timed with the network off and one with it on.
+
+    Why: the time limit reserves this for round 1. Reserving round 0's pass alone, a round 1 cut by
+    a 9-minute limit on DLO1's clips ended 3.2 min past it (its damping search, and tracking with the
+    network, took 281 s against 76 s); with the search alone estimated, 41 s past it."""
+    horizon = budget.damping_horizon or budget.score_horizon
+    usable = _trainable(tracks, budget)
+    seconds = []
+    for residual in (False, True):
+        probe = copy.deepcopy(model)
+        probe.options.residual = residual
+        t0 = time.perf_counter()
+        prediction_fit(probe, usable, horizon, budget.score_every)
+        seconds.append(time.perf_counter() - t0)
+    plain_s, learnt_s = seconds
+    search_s = MAX_FITS * learnt_s if budget.damping_horizon > 0 else 0.0
+    return tracked.after_training_s * learnt_s / max(plain_s, 1e-9) + search_s
 
 
 def _trainable(tracks: list[Track], budget: Budget) -> list[Track]:

@@ -101,12 +101,12 @@ def test_a_later_round_is_projected_from_the_last_ones_training_and_the_rest_of_
 
 
 def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
-    """With 1000 s left at every round's start, round 1 trains for at most 1000 s less a tracking
-    pass, the damping search's estimate and the reserve, round 2 less what round 1 did besides
+    """With 1000 s left at every round's start, round 1 trains for at most 1000 s less the estimate
+    of its rest (first_round_rest_s) and the reserve, round 2 less what round 1 did besides
     training (its damping search, tracking and scoring), so that the round ends within the limit."""
     monkeypatch.setattr(fit, "MIN_GAIN", -1.0)  # every round kept
     monkeypatch.setattr(fit, "_time_left", lambda *a: 1000.0)
-    monkeypatch.setattr(fit, "damping_search_s", lambda *a: 100.0)
+    monkeypatch.setattr(fit, "first_round_rest_s", lambda *a: 100.0)
     limits = []
     train = fit._train
 
@@ -119,31 +119,31 @@ def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
         iterations=3, refine_iterations=2, rounds=2, horizon=20, batch=2, curriculum=(), damping_horizon=40
     )
     cal = _calibrate(clips, budget)
-    r0, r1, r2 = cal.rounds
+    _, r1, r2 = cal.rounds
     assert 0.0 < r1.train_s < r1.seconds and 0.0 < r2.train_s < r2.seconds
     assert limits == pytest.approx(
-        [1000.0 - r0.seconds - 100.0 - fit.RESERVE_S, 1000.0 - (r1.seconds - r1.train_s) - fit.RESERVE_S]
+        [1000.0 - 100.0 - fit.RESERVE_S, 1000.0 - (r1.seconds - r1.train_s) - fit.RESERVE_S]
     )
 
 
-def test_the_damping_search_is_estimated_from_one_of_its_fits(clips, monkeypatch):
-    """The estimate is the search's fits at most (11) times one rollout over the damping horizon,
-    with the residual network on; no search, no time."""
+def test_round_ones_rest_is_round_zeros_pass_slowed_by_the_network_and_the_damping_search(monkeypatch):
+    """One rollout timed without the residual network (2 s) and one with it (3 s): round 0's 80 s
+    tracking pass becomes 120 s, and the damping search's 11 rollouts 33 s; no search, no 33 s."""
     fits, clock = [], [0.0]
 
     def timed_fit(model, tracks, horizon, every):
         fits.append((model.options.residual, horizon))
-        clock[0] += 2.0  # one rollout: 2 s on the module's clock
+        clock[0] += 3.0 if model.options.residual else 2.0
         return 0.0
 
     monkeypatch.setattr(fit, "prediction_fit", timed_fit)
     monkeypatch.setattr(fit, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
     model = fit.start_model(LENGTH, MASS, np.full(N - 1, LENGTH / (N - 1)), "rope")
+    round0 = Round(0, 0.01, 0.005, True, seconds=80.0)
     tracks = [_track("a", 500)]
-    budget = Budget(damping_horizon=300)
-    assert fit.damping_search_s(model, tracks, budget) == 11 * 2.0
-    assert fits == [(True, 300)] and not model.options.residual  # a copy was switched on
-    assert fit.damping_search_s(model, tracks, Budget(damping_horizon=0)) == 0.0
+    assert fit.first_round_rest_s(round0, model, tracks, Budget(damping_horizon=300)) == 120.0 + 11 * 3.0
+    assert fits == [(False, 300), (True, 300)] and not model.options.residual  # copies were switched
+    assert fit.first_round_rest_s(round0, model, tracks, Budget(damping_horizon=0)) == 120.0
 
 
 def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
