@@ -417,8 +417,8 @@ def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], 
     Both from one rollout of ``model`` over ``tracks`` timed with the network off and one with it on.
 
     Why: the time limit reserves this for round 1. Reserving round 0's pass alone, a round 1 cut by
-    a 9-minute limit on DLO1's clips ended 3.2 min past it (its damping search, and tracking with the
-    network, took 281 s against 76 s); with the search alone estimated, 41 s past it."""
+    a 9-minute limit on DLO1's clips ended the calibration 65 s past the limit (its rest took 116 s
+    against round 0's 41); estimated so, 9 s within it, with the same model."""
     horizon = budget.damping_horizon or budget.score_horizon
     usable = _trainable(tracks, budget)
     seconds = []
