@@ -164,7 +164,7 @@ def run(args) -> int:
 
     from calibrate import report
     from calibrate.bags import Topics, read_clip
-    from calibrate.fit import Budget, calibrate, default_vertices
+    from calibrate.fit import Budget, calibrate
     from calibrate.latency import cloud_delay
 
     started = time.perf_counter()
@@ -200,14 +200,13 @@ def run(args) -> int:
     budget = replace(Budget(seed=args.seed, time_limit_s=60.0 * args.time_limit - spent), **given)
     if args.horizon is not None:
         budget = replace(budget, curriculum=tuple(h for h in budget.curriculum if h < args.horizon))
-    n_vertices = args.vertices or default_vertices(args.length)
     cal = calibrate(
         clips,
         args.length,
         args.mass,
         cfg.grippers,
         perception,
-        n_vertices=n_vertices,
+        n_vertices=args.vertices,
         budget=budget,
         name=out.stem,
         prior=prior,
@@ -217,7 +216,7 @@ def run(args) -> int:
         "length_m": args.length,
         "mass_kg": args.mass,
         "diameter_m": args.diameter,
-        "vertices": n_vertices,
+        "vertices": cal.start.cfg.n_vertices,  # --vertices, or the default for the length
         "stiffness_prior": {"without": list(args.prior_without), "bend_per_linear_density": prior},
         "perception": args.perception or cfg.perception,
         "config": args.config,
