@@ -51,6 +51,10 @@ from service.config import Grippers
 
 CAP_M = 0.05  # a point's error is capped here (a stray point costs no more than a missed rope)
 RESERVE_S = 30.0  # kept from the time limit for the parameter ranges and the report after the rounds
+# a round's time is estimated from an earlier round's with this much to spare: on a shared machine the
+# same work took 0.82-1.19x as long from round 1 to round 2 (DLO1-4's clips, two calibrations side by
+# side); DLO3's second round ran 23 s past its estimate and the calibration 12 s past its 20 minutes
+SPARE = 1.2
 MIN_GAIN = 0.01  # a round is kept when it improves the held-out fit by at least this share
 EDGE_M = 0.09  # the default vertex count keeps the rope's edges at most about this long ...
 VERTICES = (12, 14)  # ... within these counts (default_vertices)
@@ -66,8 +70,8 @@ class Budget:
     ``time_limit_s`` keeps the promise of a model within 20 minutes on a slow or crowded machine:
     a later round is not started when its projected time (:func:`projected_round_s`) would pass it,
     and training stops early where the rest of the round (the previous round's time besides
-    training; round 1: :func:`first_round_rest_s`) would otherwise pass it (the report says
-    which). The third round was kept in 12 of the 29 stored benchmark calibrations that ran it,
+    training; round 1: :func:`first_round_rest_s`; each with :data:`SPARE`) would otherwise pass it
+    (the report says which). The third round was kept in 12 of the 29 stored benchmark calibrations that ran it,
     gaining 1.4-3.5 % of held-out fit: what a slow machine mostly loses. Where the limit binds, results depend on the machine's
     speed."""
 
@@ -363,7 +367,7 @@ def calibrate(
             )
             break
         # leave the round's work after training the time the last round's took (round 1: an estimate)
-        after_training_s = first_rest_s if r == 1 else out.rounds[-1].after_training_s
+        after_training_s = SPARE * (first_rest_s if r == 1 else out.rounds[-1].after_training_s)
         train_limit = None if left is None else max(left - after_training_s - RESERVE_S, 1e-3)  # 0: no limit
         usable = _trainable(train_t, budget)
         t_train = time.perf_counter()
@@ -439,13 +443,13 @@ def _trainable(tracks: list[Track], budget: Budget) -> list[Track]:
 
 def projected_round_s(previous: Round, iterations: int) -> float:
     """About how long a round of ``iterations`` training iterations takes [s]: the ``previous``
-    round's training time per iteration, with 20 % to spare (later rounds train on longer windows
-    from the start), plus what that round did besides training (the damping search, a tracking pass
-    and the held-out fit: as long again, whatever the iterations). Counting that part per iteration
-    too had a later round of DLO1's foreign-lab clips projected at 373 s; it took 482 and ended the
-    calibration 67 s past the 20 minutes."""
+    round's training time per iteration (later rounds train on longer windows from the start), plus
+    what that round did besides training (the damping search, a tracking pass and the held-out fit:
+    as long again, whatever the iterations), both with :data:`SPARE`. Counting that part per
+    iteration too had a later round of DLO1's foreign-lab clips projected at 373 s; it took 482 and
+    ended the calibration 67 s past the 20 minutes."""
     done = max((previous.train or {}).get("iterations") or 1, 1)
-    return 1.2 * previous.train_s * iterations / done + previous.after_training_s
+    return SPARE * (previous.train_s * iterations / done + previous.after_training_s)
 
 
 def _time_left(budget: Budget, t_start: float) -> float | None:

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from calibrate.cli import main
+from calibrate.cli import CLOCK_FROM_PARENT, main
 from deform import bend_per_linear_density, load_model
 from service.bag import write_messages
 
@@ -168,3 +168,45 @@ def test_clips_too_still_give_a_report_and_no_model(clips, still_bag, tmp_path, 
     report = json.loads((out / "rope_report" / "report.json").read_text())
     assert not report["model_written"] and "too still" in report["problem"]
     assert "No model was written" in (out / "rope_report" / "report.md").read_text()
+
+
+def test_the_time_limit_counts_from_the_commands_start():
+    """``--time-limit`` promises the whole command: the clock starts when the process did (Python's
+    start and the imports count), or when ``deform calibrate``, its parent, did. A parent that waited
+    1.5 s before starting the child is 1.5 s older than it."""
+    child = (
+        "import json, time; from calibrate.cli import command_age_s, process_started_at; "
+        "print(json.dumps([command_age_s(), time.time() - process_started_at()]))"
+    )
+    parent = (
+        "import os, subprocess, sys, time; time.sleep(1.5); "
+        f"env = {{k: v for k, v in os.environ.items() if k != {CLOCK_FROM_PARENT!r}}}; "
+        f"subprocess.run([sys.executable, '-c', {child!r}], env=env, check=True); "
+        f"subprocess.run([sys.executable, '-c', {child!r}], env=dict(env, {CLOCK_FROM_PARENT}='1'), check=True)"
+    )
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run(
+        [sys.executable, "-c", parent],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(root)),
+        timeout=120,
+        check=True,
+    )
+    (alone, own), (from_parent, own_too) = (json.loads(line) for line in out.stdout.splitlines())
+    assert 0.2 < own < 60.0 and alone == pytest.approx(own, abs=0.2)  # its own start, imports included
+    assert from_parent >= own_too + 1.4
+
+
+def test_deform_calibrate_tells_its_child_to_count_from_its_start(monkeypatch):
+    from deform import cli
+
+    seen = {}
+
+    def fake_call(cmd, env):
+        seen.update(cmd=cmd, env=env)
+        return 0
+
+    monkeypatch.setattr(subprocess, "call", fake_call)
+    assert cli.cmd_calibrate(["clip.mcap"]) == 0
+    assert seen["cmd"][1:] == ["-m", "calibrate", "clip.mcap"] and seen["env"][CLOCK_FROM_PARENT] == "1"

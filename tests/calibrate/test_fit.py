@@ -94,16 +94,18 @@ def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
 
 
 def test_a_later_round_is_projected_from_the_last_ones_training_and_the_rest_of_it():
-    """500 iterations trained in 500 s of a 650 s round: 200 take 200 s, 240 with the spare, and the
-    150 s of damping search, tracking and scoring come again whole."""
+    """500 iterations trained in 500 s of a 650 s round: 200 take 200 s, and the 150 s of damping
+    search, tracking and scoring come again whole; both with 20 % to spare."""
     previous = Round(1, 0.01, 0.005, True, seconds=650.0, train={"iterations": 500}, train_s=500.0)
-    assert projected_round_s(previous, iterations=200) == pytest.approx(1.2 * 200 + 150)
+    assert fit.SPARE == 1.2
+    assert projected_round_s(previous, iterations=200) == pytest.approx(1.2 * (200 + 150))
 
 
 def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
     """With 1000 s left at every round's start, round 1 trains for at most 1000 s less the estimate
     of its rest (first_round_rest_s) and the reserve, round 2 less what round 1 did besides
-    training (its damping search, tracking and scoring), so that the round ends within the limit."""
+    training (its damping search, tracking and scoring), each rest with 20 % to spare, so that the
+    round ends within the limit."""
     monkeypatch.setattr(fit, "MIN_GAIN", -1.0)  # every round kept
     monkeypatch.setattr(fit, "_time_left", lambda *a: 1000.0)
     monkeypatch.setattr(fit, "first_round_rest_s", lambda *a: 100.0)
@@ -122,7 +124,7 @@ def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
     _, r1, r2 = cal.rounds
     assert 0.0 < r1.train_s < r1.seconds and 0.0 < r2.train_s < r2.seconds
     assert limits == pytest.approx(
-        [1000.0 - 100.0 - fit.RESERVE_S, 1000.0 - (r1.seconds - r1.train_s) - fit.RESERVE_S]
+        [1000.0 - 1.2 * 100.0 - fit.RESERVE_S, 1000.0 - 1.2 * (r1.seconds - r1.train_s) - fit.RESERVE_S]
     )
 
 
