@@ -2,6 +2,6 @@
 
 import sys
 
-from calibrate.cli import main
+from calibrate.cli import command_age_s, main
 
-sys.exit(main())
+sys.exit(main(age_s=command_age_s()))  # the time limit counts from the process's start (or its parent's)

@@ -23,7 +23,7 @@ from calibrate.errors import CalibrationError
 PROG = "deform calibrate"
 # set by ``deform calibrate`` for its child: the time limit counts from the parent's start
 CLOCK_FROM_PARENT = "DEFORM_CALIBRATE_CLOCK_FROM_PARENT"
-MAX_START_AGE_S = 300.0  # an older start is not this command's (a long-lived parent): counted from now
+MAX_START_AGE_S = 300.0  # an older start is not this command's (a parent gone: the process is then init's)
 
 
 def process_started_at(pid: int | str = "self") -> float | None:
@@ -192,8 +192,8 @@ def _prior(leave_out: list[str]) -> float:
     return bend_per_linear_density(leave_out)
 
 
-def run(args) -> int:
-    started = time.perf_counter() - command_age_s()  # Python's start and the imports count too
+def run(args, age_s: float = 0.0) -> int:
+    started = time.perf_counter() - age_s  # the time limit counts from the command's start
     import torch
 
     from calibrate import report
@@ -280,11 +280,13 @@ def run(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, age_s: float = 0.0) -> int:
     """The command.
 
     Args:
         argv: arguments (None: ``sys.argv``).
+        age_s: how long ago the command started [s], counted in ``--time-limit``
+            (``python -m calibrate``: :func:`command_age_s`; a call from Python: 0, from now).
 
     Returns:
         0, or 2 for bad input (one line on stderr) or clips that identify nothing.
@@ -293,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     from deform import ConfigError
 
     try:
-        return run(args)
+        return run(args, age_s)
     except (CalibrationError, ConfigError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
