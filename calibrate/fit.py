@@ -72,9 +72,9 @@ class Budget:
     a later round is not started when its projected time (:func:`projected_round_s`) would pass it,
     and training stops early where the rest of the round (the previous round's time besides
     training; round 1: :func:`first_round_rest_s`; each with :data:`SPARE`) would otherwise pass it
-    (the report says which). The third round was kept in 12 of the 29 stored benchmark calibrations that ran it,
-    gaining 1.4-3.5 % of held-out fit: what a slow machine mostly loses. Where the limit binds, results depend on the machine's
-    speed."""
+    (the report says which). The third round was kept in 12 of the 29 stored benchmark calibrations
+    that ran it, gaining 1.4-3.5 % of held-out fit: what a slow machine mostly loses. Where the limit
+    binds, results depend on the machine's speed."""
 
     iterations: int = 500  # first round: coarse identification, then these training iterations
     refine_iterations: int = 200  # each later round, from the previous round's model
