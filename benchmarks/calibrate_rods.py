@@ -77,8 +77,10 @@ def calibrate_rod(
     runs: str,
     vertices: int | None = None,
     setup: str = "session",
+    clip_set: int = 0,
 ) -> dict:
-    """A task: clips of ``seconds`` of the rod's training motions filmed as the lab ``setup`` films
+    """A task: clips of ``seconds`` of the rod's training motions (``clip_set``:
+    benchmarks.calibration.clips.motions) filmed as the lab ``setup`` films
     (benchmarks/calibration/setups.py), `deform calibrate` on them (its default vertex count, or
     ``vertices``), and the three models scored on the held-out motions, filmed the same way."""
     import torch
@@ -87,12 +89,13 @@ def calibrate_rod(
     from benchmarks.calibration.score import score
     from deform import DeformModel
 
-    clips, held, lab, camera = _session(rod, seconds, quick, setup)
+    clips, held, lab, camera = _session(rod, seconds, quick, setup, clip_set)
     perception = _perception(setup, lab)
     name = (
         f"{rod}-{int(seconds)}s"
         + (f"-{vertices}v" if vertices else "")
         + (f"-{setup}" if setup != "session" else "")
+        + (f"-set{clip_set}" if clip_set else "")
     )
     out = repo_path(runs) / name
     out.mkdir(parents=True, exist_ok=True)
@@ -158,7 +161,7 @@ def calibrate_rod(
     )
 
 
-def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> tuple:
+def _session(rod: str, seconds: float, quick: bool, setup: str = "session", clip_set: int = 0) -> tuple:
     """``(clips, held_out, setup, camera)``: the rod's clip and held-out motions (2.5 s of two clips
     and one held-out motion in ``quick``), the lab's :class:`Setup` and the one camera that films the
     session."""
@@ -167,7 +170,7 @@ def _session(rod: str, seconds: float, quick: bool, setup: str = "session") -> t
     from benchmarks.calibration.clips import motions
     from benchmarks.calibration.setups import SETUPS, session_camera
 
-    clips, held = motions(rod, seconds)
+    clips, held = motions(rod, seconds, clip_set=clip_set)
     if quick:
         clips = [dc_replace(c, positions=c.positions[:QUICK_FRAMES]) for c in clips[:2]]
         held = [dc_replace(h, positions=h.positions[:QUICK_FRAMES]) for h in held[:1]]
@@ -236,7 +239,8 @@ def rescore_rod(rod: str, seconds: float, tracked: int, old: dict) -> dict:
     from deform import DeformModel
 
     setup = old.get("config", {}).get("setup", "session")
-    clips, held, lab, camera = _session(rod, seconds, quick=False, setup=setup)
+    clip_set = old.get("config", {}).get("clip_set", 0)
+    clips, held, lab, camera = _session(rod, seconds, quick=False, setup=setup, clip_set=clip_set)
     length_m, mass_kg = held_length_and_mass(rod, clips)
     torch.set_num_threads(1)
     calibrated = DeformModel.load(repo_path(old["model"]))
@@ -279,6 +283,13 @@ def main(argv: list[str] | None = None) -> int:
         "'foreign': a lab whose renderer and bag writer share no code with ours "
         "(benchmarks/calibration/foreign_lab.py)",
     )
+    ap.add_argument(
+        "--clip-set",
+        type=int,
+        default=0,
+        help="another set of training motions of the same size and spread (0: the usual one; k: each "
+        "clip the k-th recording after it): how much a calibration depends on the motions filmed",
+    )
     ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
     ap.add_argument("--out", type=Path, default=RESULTS)
     add_arguments(ap)
@@ -303,6 +314,8 @@ def main(argv: list[str] | None = None) -> int:
         config["vertices"] = args.vertices
     if args.setup != "session":  # rows of the default lab keep their keys
         config["setup"] = args.setup
+    if args.clip_set:  # ... and of the usual clips
+        config["clip_set"] = args.clip_set
     store = RunStore(args.out / f"{args.stem}.runs")
     done = store.load(config)
     keys = {f"{rod}-{int(s)}s": (rod, s) for s in args.seconds for rod in args.rods}
@@ -318,7 +331,17 @@ def main(argv: list[str] | None = None) -> int:
         }
     else:
         tasks = {
-            key: call(calibrate_rod, rod, s, args.tracked, args.quick, args.runs, args.vertices, args.setup)
+            key: call(
+                calibrate_rod,
+                rod,
+                s,
+                args.tracked,
+                args.quick,
+                args.runs,
+                args.vertices,
+                args.setup,
+                args.clip_set,
+            )
             for key, (rod, s) in keys.items()
             if key not in done
         }
@@ -348,6 +371,7 @@ def main(argv: list[str] | None = None) -> int:
             quick=args.quick,
             vertices=args.vertices,
             setup=args.setup,
+            clip_set=args.clip_set,
         ),
         "wall_s": round(time.time() - t0, 1),
         "complete": not failures,

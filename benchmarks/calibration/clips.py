@@ -50,21 +50,35 @@ def split_files(root: Path, rod: str) -> tuple[list[Path], list[Path]]:
     return train, held
 
 
-def motions(rod: str, seconds: float, root: Path | None = None) -> tuple[list[Recording], list[Recording]]:
+def motions(
+    rod: str, seconds: float, root: Path | None = None, clip_set: int = 0
+) -> tuple[list[Recording], list[Recording]]:
     """``(clips, held_out)``: enough training recordings for ``seconds`` of clips (spread over the
     training set, 5 s each; all of them when there are fewer), and the held-out recordings.
 
+    ``clip_set`` k > 0 takes, for each clip of set 0, the k-th training recording after it (before
+    it, for one near the end): another set of the same size and spread, disjoint from set 0 while 2k
+    is below the spacing of its picks (6 recordings for 50 s of DLO1's 56), to see how much a
+    calibration depends on which motions were filmed. The held-out recordings do not change.
+
     Without the dataset: simulated motions of the rod's shipped model, the held-out ones with other
-    seeds."""
+    seeds (set k: the clips' seeds shifted by 1000 k)."""
+    if clip_set < 0:
+        raise ValueError(f"clip_set must be >= 0, got {clip_set}")
     want = max(round(seconds / CLIP_S), 1)
     root = root or find_data_root()
     if root is None:
         model = load_model(rod)
-        clips = [generate_recording(model, 500, seed=2 * s, name=f"sim{s}") for s in range(want)]
+        shift = 1000 * clip_set
+        clips = [
+            generate_recording(model, 500, seed=2 * s + shift, name=f"sim{s + shift}") for s in range(want)
+        ]
         held = [generate_recording(model, 500, seed=2 * s + 1, name=f"simheld{s}") for s in range(2)]
         return clips, held
     train, held = split_files(root, rod)
     pick = np.unique(np.linspace(0, len(train) - 1, min(want, len(train))).round().astype(int))
+    shifted = pick + clip_set
+    pick = np.unique(np.where(shifted < len(train), shifted, pick - clip_set))
     return [load_recording(train[i]) for i in pick], [load_recording(p) for p in held]
 
 

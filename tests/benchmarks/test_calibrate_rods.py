@@ -30,6 +30,20 @@ def test_clips_are_training_motions_and_never_held_out_ones(tmp_path):
     assert len(clips) == 20 and [h.name for h in held] == ["0", "1", "2"]
 
 
+def test_another_clip_set_is_as_large_disjoint_and_still_never_held_out(tmp_path):
+    _dataset(tmp_path, "DLO4", train=60, held=0)  # 48 training recordings, 12 held out
+    usual, held = motions("DLO4", 50.0, root=tmp_path)
+    other, held_again = motions("DLO4", 50.0, root=tmp_path, clip_set=1)
+    names = {c.name for c in other}
+    assert len(names) == len(usual) == 10
+    assert not names & {c.name for c in usual}  # disjoint: the picks are ~5 recordings apart
+    assert not names & {h.name for h in held}
+    assert [h.name for h in held_again] == [h.name for h in held]
+    assert [c.name for c in motions("DLO4", 50.0, root=tmp_path, clip_set=0)[0]] == [c.name for c in usual]
+    with pytest.raises(ValueError, match="clip_set"):
+        motions("DLO4", 50.0, root=tmp_path, clip_set=-1)
+
+
 def test_the_user_gives_the_length_and_mass_between_the_grippers():
     from deform import Recording, load_rod_config
 
