@@ -38,9 +38,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m service.demo
 
-# one worker per core, each test file on one worker (its module fixtures built once)
+# one worker per core, each test file on one worker (its module fixtures built once); the 15
+# slowest tests listed at the end, to keep the suite well under 15 minutes
 test: $(STAMP)
-	$(PY) -m pytest -q -x -n auto --dist loadfile tests
+	$(PY) -m pytest -q -x -n auto --dist loadfile --durations=15 tests
 
 # the quick loop (under a minute on two cores): no dataset, no compiling (DEFORM_COMPILE=0: the
 # discrepancy tool's fused pieces eager, deform/rod/fusion.py), nothing marked slow (markers:
