@@ -42,6 +42,7 @@ from calibrate.bags import Clip
 from calibrate.checks import check_length, check_rope_seen, motion_problem
 from calibrate.damping import MAX_FITS, settle_damping
 from calibrate.errors import CalibrationError
+from calibrate.identifiability import FITS as RANGE_FITS
 from calibrate.identifiability import parameter_ranges
 from calibrate.points import polyline_distances
 from calibrate.tracks import Track, cut, track_clip
@@ -50,7 +51,12 @@ from deform.train import TrainConfig, train
 from service.config import Grippers
 
 CAP_M = 0.05  # a point's error is capped here (a stray point costs no more than a missed rope)
-RESERVE_S = 30.0  # kept from the time limit for the parameter ranges and the report after the rounds
+RESERVE_S = 30.0  # kept from the time limit for the parameter ranges and the report after the rounds, at
+# least (more when the held-out fits they repeat take longer: end_reserve_s)
+DAMPING_TRACKS = 12  # the damping search rolls out at most this many training tracks (60 s of 5 s clips),
+# spread over them. On 280 s of clips it rolled out all 44: round 1's work besides training took 873 s
+# (round 0's tracking pass: 244 s) and, reserved for, left round 1 one of its 500 training iterations
+# (calibrate_rods.300s.implicit, DLO3)
 # the rest of a round (after training) is reserved as an earlier round's with this much to spare: the
 # same work took 0.82-1.19x as long from round 1 to round 2 on a shared machine (DLO1-4's clips, two
 # calibrations side by side); DLO3's second round ran 23 s past its estimate, the calibration 12 s past
@@ -105,6 +111,9 @@ class Round:
     cut_by_time_limit: bool = False
     # of ``seconds``, those spent training (round 0: none)
     train_s: float = 0.0
+    # one held-out prediction fit of the round's model (round 0: the start model with its network on,
+    # as the later models run), what each of the parameter ranges' fits costs
+    held_fit_s: float = 0.0
 
     @property
     def after_training_s(self) -> float:
@@ -352,15 +361,17 @@ def calibrate(
         return out
     best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
     out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
-    first_rest_s = (
-        0.0 if budget.time_limit_s is None else first_round_rest_s(out.rounds[0], model, train_t, budget)
-    )
+    first_rest_s = 0.0
+    if budget.time_limit_s is not None:
+        first_rest_s = first_round_rest_s(out.rounds[0], model, train_t, budget)
+        out.rounds[0].held_fit_s = _held_fit_seconds(model, held_t, budget)
     best = model
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
         left = _time_left(budget, t_start)
         need = projected_round_s(out.rounds[-1], budget.refine_iterations) if r > 1 else 0.0
-        if left is not None and r > 1 and left < need + RESERVE_S:
+        reserve_s = end_reserve_s(out.rounds[-1])
+        if left is not None and r > 1 and left < need + reserve_s:
             skipped = f"round {r}" if r == budget.rounds else f"rounds {r}..{budget.rounds}"
             out.time_limit_notes.append(
                 f"{skipped} not started: {left:.0f} s of the time limit ({budget.time_limit_s:.0f} s) "
@@ -369,7 +380,7 @@ def calibrate(
             break
         # leave the round's work after training the time the last round's took (round 1: an estimate)
         after_training_s = SPARE * (first_rest_s if r == 1 else out.rounds[-1].after_training_s)
-        train_limit = None if left is None else max(left - after_training_s - RESERVE_S, 1e-3)  # 0: no limit
+        train_limit = None if left is None else max(left - after_training_s - reserve_s, 1e-3)  # 0: no limit
         usable = _trainable(train_t, budget)
         t_train = time.perf_counter()
         candidate, result = _train(copy.deepcopy(best), usable, held_t, budget, r == 1, progress, train_limit)
@@ -379,14 +390,19 @@ def calibrate(
             candidate, damping = settle_damping(
                 candidate,
                 partial(
-                    prediction_fit, tracks=usable, horizon=budget.damping_horizon, every=budget.score_every
+                    prediction_fit,
+                    tracks=damping_tracks(usable),
+                    horizon=budget.damping_horizon,
+                    every=budget.score_every,
                 ),
                 tolerance=MIN_GAIN,
             )
             damping["horizon_s"] = budget.damping_horizon * candidate.dt
         new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
         new_train, new_held = split(new_tracks, budget.held_out_every, budget.score_horizon + 2)
+        t_fit = time.perf_counter()
         fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)
+        held_fit_s = time.perf_counter() - t_fit
         kept = bool(fit < best_fit * (1 - MIN_GAIN))
         summary = {
             k: result.get(k) for k in ("best_val_l1_m", "coarse_identification", "seconds_per_iteration_p50")
@@ -401,7 +417,17 @@ def calibrate(
                 f"({budget.time_limit_s:.0f} s) was near"
             )
         out.rounds.append(
-            Round(r, fit, tracking_fit(new_held), kept, time.perf_counter() - t0, summary, cut_short, train_s)
+            Round(
+                r,
+                fit,
+                tracking_fit(new_held),
+                kept,
+                time.perf_counter() - t0,
+                summary,
+                cut_short,
+                train_s,
+                held_fit_s,
+            )
         )
         if not kept:
             break
@@ -424,7 +450,7 @@ def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], 
     a 9-minute limit on DLO1's clips ended the calibration 65 s past the limit (its rest took 116 s
     against round 0's 41); estimated so, 9 s within it, with the same model."""
     horizon = budget.damping_horizon or budget.score_horizon
-    usable = _trainable(tracks, budget)
+    usable = damping_tracks(_trainable(tracks, budget))
     seconds = []
     for residual in (False, True):
         probe = copy.deepcopy(model)
@@ -435,6 +461,33 @@ def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], 
     plain_s, learnt_s = seconds
     search_s = MAX_FITS * learnt_s if budget.damping_horizon > 0 else 0.0
     return tracked.after_training_s * learnt_s / max(plain_s, 1e-9) + search_s
+
+
+def damping_tracks(tracks: list[Track]) -> list[Track]:
+    """At most :data:`DAMPING_TRACKS` of ``tracks``, spread evenly over them (all when fewer): what the
+    damping search rolls out. One value's 3 s fit needs a few clips, not every clip a long recording
+    gives."""
+    if len(tracks) <= DAMPING_TRACKS:
+        return tracks
+    return [tracks[i] for i in np.unique(np.linspace(0, len(tracks) - 1, DAMPING_TRACKS).round().astype(int))]
+
+
+def _held_fit_seconds(model: DeformModel, held: list[Track], budget: Budget) -> float:
+    """One held-out prediction fit of ``model`` with its residual network on, timed [s]."""
+    probe = copy.deepcopy(model)
+    probe.options.residual = True
+    t0 = time.perf_counter()
+    prediction_fit(probe, held, budget.score_horizon, budget.score_every)
+    return time.perf_counter() - t0
+
+
+def end_reserve_s(last: Round) -> float:
+    """What the time limit keeps for the work after the rounds [s]: the parameter ranges'
+    held-out fits (:data:`calibrate.identifiability.FITS`, each as long as the ``last`` round's, with
+    :data:`SPARE`) and the report, at least :data:`RESERVE_S`. On 280 s of clips (12 held-out clips)
+    the work outside the rounds (the ranges, round 1's time probe) took 155 s against the 30 s kept,
+    and the calibration ended 140 s past its limit."""
+    return max(RESERVE_S, SPARE * RANGE_FITS * last.held_fit_s)
 
 
 def _trainable(tracks: list[Track], budget: Budget) -> list[Track]:

@@ -31,6 +31,7 @@ PARAMETERS = {
     "damping_per_s": ("log_damping", "1/s"),
     "drag_per_m": ("log_drag", "1/m"),
 }
+FITS = 1 + len(PARAMETERS) * len(FACTORS)  # held-out fits parameter_ranges makes (for the time limit)
 
 
 def scaled(model: DeformModel, parameter: str, factor: float) -> DeformModel:

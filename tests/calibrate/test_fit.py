@@ -147,6 +147,37 @@ def test_round_ones_rest_is_round_zeros_pass_slowed_by_the_network_and_the_dampi
     assert fit.first_round_rest_s(round0, model, tracks, Budget(damping_horizon=0)) == 120.0
 
 
+def test_the_damping_search_rolls_out_a_bounded_spread_of_the_training_tracks(clips, monkeypatch):
+    """Many clips: the damping search (and round 1's time probe of it) rolls out at most
+    DAMPING_TRACKS of the training tracks, spread from the first to the last; few: all of them."""
+    tracks = [_track(f"clip{i}", 500) for i in range(44)]  # 280 s of clips less the held-out fifth
+    picked = fit.damping_tracks(tracks)
+    assert len(picked) == fit.DAMPING_TRACKS and picked[0] is tracks[0] and picked[-1] is tracks[-1]
+    assert len({t.name for t in picked}) == fit.DAMPING_TRACKS
+    assert fit.damping_tracks(tracks[:8]) == tracks[:8]  # 50 s of clips: as before
+    monkeypatch.setattr(fit, "DAMPING_TRACKS", 1)
+    seen, prediction_fit = [], fit.prediction_fit
+
+    def counting_fit(model, tracks, horizon, every):
+        seen.append((horizon, len(tracks)))
+        return prediction_fit(model, tracks, horizon, every)
+
+    monkeypatch.setattr(fit, "prediction_fit", counting_fit)
+    budget = Budget(iterations=1, rounds=1, horizon=20, batch=2, curriculum=(), damping_horizon=40)
+    cal = _calibrate(clips, budget)
+    assert len(cal.train_names) > 1
+    assert {n for h, n in seen if h == 40} == {1}  # the probe and every fit of the search: one track
+
+
+def test_the_work_after_the_rounds_is_reserved_as_long_as_its_held_out_fits_take():
+    """The parameter ranges repeat the held-out fit FITS times: 5 s fits keep 1.2 x 31 x 5 s; quick
+    fits keep the fixed reserve."""
+    assert fit.RANGE_FITS == 31
+    slow = Round(1, 0.01, 0.005, True, seconds=900.0, held_fit_s=5.0)
+    assert fit.end_reserve_s(slow) == pytest.approx(1.2 * 31 * 5.0)
+    assert fit.end_reserve_s(Round(1, 0.01, 0.005, True, seconds=900.0, held_fit_s=0.1)) == fit.RESERVE_S
+
+
 def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
     """Every round kept (MIN_GAIN below any change) and round 2 projected to take longer than the
     limit leaves: round 1 trains its whole budget, round 2 never starts, and the note says so."""
