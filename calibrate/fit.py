@@ -364,7 +364,7 @@ def calibrate(
     first_rest_s = 0.0
     if budget.time_limit_s is not None:
         first_rest_s = first_round_rest_s(out.rounds[0], model, train_t, budget)
-        out.rounds[0].held_fit_s = _held_fit_seconds(model, held_t, budget)
+        out.rounds[0].held_fit_s = _timed_fit(model, held_t, budget.score_horizon, budget.score_every, True)
     best = model
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
@@ -451,14 +451,9 @@ def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], 
     against round 0's 41); estimated so, 9 s within it, with the same model."""
     horizon = budget.damping_horizon or budget.score_horizon
     usable = damping_tracks(_trainable(tracks, budget))
-    seconds = []
-    for residual in (False, True):
-        probe = copy.deepcopy(model)
-        probe.options.residual = residual
-        t0 = time.perf_counter()
-        prediction_fit(probe, usable, horizon, budget.score_every)
-        seconds.append(time.perf_counter() - t0)
-    plain_s, learnt_s = seconds
+    plain_s, learnt_s = (
+        _timed_fit(model, usable, horizon, budget.score_every, residual) for residual in (False, True)
+    )
     search_s = MAX_FITS * learnt_s if budget.damping_horizon > 0 else 0.0
     return tracked.after_training_s * learnt_s / max(plain_s, 1e-9) + search_s
 
@@ -472,12 +467,13 @@ def damping_tracks(tracks: list[Track]) -> list[Track]:
     return [tracks[i] for i in np.unique(np.linspace(0, len(tracks) - 1, DAMPING_TRACKS).round().astype(int))]
 
 
-def _held_fit_seconds(model: DeformModel, held: list[Track], budget: Budget) -> float:
-    """One held-out prediction fit of ``model`` with its residual network on, timed [s]."""
+def _timed_fit(model: DeformModel, tracks: list[Track], horizon: int, every: int, residual: bool) -> float:
+    """How long one :func:`prediction_fit` of a copy of ``model`` takes with its residual network on or
+    off [s] (the fit itself is not needed: a probe of what later rollouts will cost)."""
     probe = copy.deepcopy(model)
-    probe.options.residual = True
+    probe.options.residual = residual
     t0 = time.perf_counter()
-    prediction_fit(probe, held, budget.score_horizon, budget.score_every)
+    prediction_fit(probe, tracks, horizon, every)
     return time.perf_counter() - t0
 
 
