@@ -80,6 +80,7 @@ def _identified(cal: Calibration) -> dict | None:
     params = ranges.get("parameters", {})
     out["told_within"] = {k: v["told_within"] for k, v in params.items()}
     out["held_out_fit_by_factor"] = {k: v["fit_by_factor"] for k, v in params.items()}
+    out["told_by_clips"] = ranges.get("held_out_clips", cal.held_out_names)
     for k, v in params.items():
         if not v["told"]:
             out["not_identifiable"].append(
@@ -209,7 +210,9 @@ def _markdown(data: dict, plots: list[str]) -> str:
             "Told within: each parameter scaled alone (1/8 to 8 times the value found, steps of 2^0.25), "
             "the nearest values on either side whose held-out prediction fit is over 1 % worse; every "
             "value the clips cannot tell from the one found lies between them (open: not bounded on "
-            "that side).",
+            "that side). Told by the held-out clips "
+            + ", ".join(data["identified"].get("told_by_clips", data["held_out_clips"]))
+            + ".",
             "",
             "| parameter | found | start (length and mass) | told within |",
             "|---|---:|---:|---|",

@@ -91,6 +91,9 @@ def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
     assert "round 1 trained 1 of 50 iterations" in cal.time_limit_notes[0]
     if cal.rounds[1].kept:  # a kept round would have been followed by round 2, had there been time
         assert "round 2 not started" in cal.time_limit_notes[1]
+    # no more held-out clips than the ranges' least: they tell the parameters past the limit too
+    assert len(cal.held_out_names) <= fit.RANGE_TRACKS
+    assert cal.parameter_ranges["held_out_clips"] == cal.held_out_names and cal.parameter_ranges["parameters"]
 
 
 def test_a_later_round_is_projected_from_the_last_ones_training_and_the_rest_of_it():
@@ -178,6 +181,22 @@ def test_the_work_after_the_rounds_is_reserved_as_long_as_its_held_out_fits_take
     assert fit.end_reserve_s(Round(1, 0.01, 0.005, True, seconds=900.0, held_fit_s=0.1)) == fit.RESERVE_S
 
 
+def test_the_parameter_ranges_use_the_held_out_tracks_the_time_left_affords():
+    """12 held-out clips whose fit takes 2.8 s: the ranges' 31 fits of all of them want 104 s with
+    the spare. 48 s left (10 kept for the report): 4 clips, spread from the first to the last; plenty
+    or no limit: all 12; nothing left: still RANGE_TRACKS, the least that tells a value."""
+    tracks = [_track(f"clip{i}", 500) for i in range(12)]
+    picked = fit.ranges_tracks(tracks, 2.8, 48.0)
+    assert len(picked) == 4 and picked[0] is tracks[0] and picked[-1] is tracks[-1]
+    assert 1.2 * 31 * 2.8 * 4 / 12 <= 48.0 - fit.REPORT_S < 1.2 * 31 * 2.8 * 5 / 12
+    assert fit.ranges_tracks(tracks, 2.8, 1000.0) == tracks
+    assert fit.ranges_tracks(tracks, 2.8, None) == tracks
+    assert fit.ranges_tracks(tracks, 0.0, 48.0) == tracks  # not timed (no limit when round 0 ran)
+    assert len(fit.ranges_tracks(tracks, 2.8, -5.0)) == fit.RANGE_TRACKS
+    long_first = [_track("long", 5000)] + tracks[1:]  # by frames, not by count: the long clip is dear
+    assert len(fit.ranges_tracks(long_first, 2.8, 48.0)) < 4
+
+
 def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
     """Every round kept (MIN_GAIN below any change) and round 2 projected to take longer than the
     limit leaves: round 1 trains its whole budget, round 2 never starts, and the note says so."""
@@ -209,3 +228,5 @@ def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatc
         cal.time_limit_notes == [cal.time_limit_notes[0]]
         and "rounds 2..3 not started" in cal.time_limit_notes[0]
     )
+    assert cal.parameter_ranges["held_out_clips"] == cal.held_out_names  # time for all of them
+    assert json.loads((out / "report.json").read_text())["identified"]["told_by_clips"] == cal.held_out_names
