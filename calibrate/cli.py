@@ -19,10 +19,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from calibrate.errors import CalibrationError
+from deform.cli import CALIBRATE_CLOCK_ENV as CLOCK_FROM_PARENT
 
 PROG = "deform calibrate"
-# set by ``deform calibrate`` for its child: the time limit counts from the parent's start
-CLOCK_FROM_PARENT = "DEFORM_CALIBRATE_CLOCK_FROM_PARENT"
 MAX_START_AGE_S = 300.0  # an older start is not this command's (a parent gone: the process is then init's)
 
 

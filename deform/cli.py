@@ -17,6 +17,10 @@ from deform.errors import CheckpointError, UsageError
 from deform.io.gaps import MAX_GAP_S
 from deform.io.recordings import RecordingError, find_data_root
 
+# set for the calibrate program ``deform calibrate`` starts: its --time-limit counts this process's
+# start too (read by calibrate.cli, which may import deform; deform may not import calibrate)
+CALIBRATE_CLOCK_ENV = "DEFORM_CALIBRATE_CLOCK_FROM_PARENT"
+
 
 def _data_dir(rod: str, split: str, explicit: str | None) -> Path:
     if explicit:
@@ -217,7 +221,7 @@ def cmd_calibrate(argv: list[str]) -> int:
     env = dict(os.environ)
     root = str(Path(spec.origin).resolve().parent.parent)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-    env["DEFORM_CALIBRATE_CLOCK_FROM_PARENT"] = "1"  # its --time-limit counts this process's start too
+    env[CALIBRATE_CLOCK_ENV] = "1"
     return subprocess.call([sys.executable, "-m", "calibrate", *argv], env=env)
 
 
