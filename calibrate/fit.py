@@ -436,11 +436,12 @@ def calibrate(
         best, best_fit, train_t, held_t, out.tracks = candidate, fit, new_train, new_held, new_tracks
         best_fit_s = held_fit_s
     out.model = best
-    ranges_t = ranges_tracks(held_t, best_fit_s, _time_left(budget, t_start))
+    left = _time_left(budget, t_start)
+    ranges_t = ranges_tracks(held_t, best_fit_s, left)
     if len(ranges_t) < len(held_t):
         out.time_limit_notes.append(
             f"the parameter ranges were measured on {len(ranges_t)} of the {len(held_t)} held-out clips: "
-            f"{_time_left(budget, t_start):.0f} s of the time limit ({budget.time_limit_s:.0f} s) were left"
+            f"{left:.0f} s of the time limit ({budget.time_limit_s:.0f} s) were left"
         )
     out.parameter_ranges = parameter_ranges(
         best, lambda m: prediction_fit(m, ranges_t, budget.score_horizon, budget.score_every), MIN_GAIN

@@ -210,9 +210,7 @@ def _markdown(data: dict, plots: list[str]) -> str:
             "Told within: each parameter scaled alone (1/8 to 8 times the value found, steps of 2^0.25), "
             "the nearest values on either side whose held-out prediction fit is over 1 % worse; every "
             "value the clips cannot tell from the one found lies between them (open: not bounded on "
-            "that side). Told by the held-out clips "
-            + ", ".join(data["identified"].get("told_by_clips", data["held_out_clips"]))
-            + ".",
+            "that side). Told by the held-out clips " + ", ".join(data["identified"]["told_by_clips"]) + ".",
             "",
             "| parameter | found | start (length and mass) | told within |",
             "|---|---:|---:|---|",
