@@ -151,6 +151,13 @@ def build_parser() -> argparse.ArgumentParser:
         "calibrated is one of them, it then has no part in its own prior",
     )
     p.add_argument("--threads", type=_count(1), default=1, help="torch threads (default 1)")
+    p.add_argument(
+        "--workers",
+        type=_count(1),
+        default=None,
+        help="processes that track the clips and roll out the held-out fits side by side, one torch "
+        "thread each (default: the cores this process may use; 1: none); the same model with any number",
+    )
     p.add_argument("--seed", type=int, default=0)
     return p
 
@@ -200,6 +207,7 @@ def run(args, age_s: float = 0.0) -> int:
     from calibrate.bags import Topics, read_clip
     from calibrate.fit import Budget, calibrate
     from calibrate.latency import cloud_delay
+    from calibrate.workers import available_cores
 
     torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -233,6 +241,7 @@ def run(args, age_s: float = 0.0) -> int:
     budget = replace(Budget(seed=args.seed, time_limit_s=60.0 * args.time_limit - spent), **given)
     if args.horizon is not None:
         budget = replace(budget, curriculum=tuple(h for h in budget.curriculum if h < args.horizon))
+    workers = args.workers or available_cores()
     cal = calibrate(
         clips,
         args.length,
@@ -243,6 +252,7 @@ def run(args, age_s: float = 0.0) -> int:
         budget=budget,
         name=out.stem,
         prior=prior,
+        workers=workers,
     )
     inputs = {
         "bags": [str(b) for b in args.bags],
@@ -256,6 +266,7 @@ def run(args, age_s: float = 0.0) -> int:
         "out": str(out),
         "budget": {k: v for k, v in vars(budget).items()},
         "cloud_delay": delay.as_dict(),
+        "workers": workers,
     }
     if cal.model is None:
         report.write(cal, clips, inputs, report_dir)

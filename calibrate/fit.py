@@ -36,7 +36,6 @@ from functools import partial
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from calibrate.bags import Clip
 from calibrate.checks import check_length, check_rope_seen, motion_problem
@@ -46,6 +45,7 @@ from calibrate.identifiability import FITS as RANGE_FITS
 from calibrate.identifiability import parameter_ranges
 from calibrate.points import polyline_distances
 from calibrate.tracks import Track, cut, track_clip
+from calibrate.workers import Workers
 from deform import DeformModel, ModelOptions, generic_rod
 from deform.train import TrainConfig, train
 from service.config import Grippers
@@ -224,7 +224,9 @@ def tracking_fit(tracks: list[Track]) -> float:
     return float(np.mean(errs)) if errs else math.nan
 
 
-def prediction_fit(model: DeformModel, tracks: list[Track], horizon: int, every: int) -> float:
+def prediction_fit(
+    model: DeformModel, tracks: list[Track], horizon: int, every: int, workers: Workers | None = None
+) -> float:
     """Open-loop prediction from the tracks scored against the clouds [m] (module docstring).
 
     Args:
@@ -232,43 +234,53 @@ def prediction_fit(model: DeformModel, tracks: list[Track], horizon: int, every:
         tracks: tracks to start from (their clouds are the reference).
         horizon: steps predicted from each start.
         every: steps between starts.
+        workers: the tracks rolled out side by side (None: one after another; the same number).
 
     Returns:
         The mean capped point error over every (start, cloud) pair, or NaN when there is none.
     """
-    errs = []
-    for t in tracks:
-        starts = list(range(1, t.n_frames - horizon, every))
-        if not starts:
-            continue
-        x = torch.as_tensor(t.positions, dtype=torch.float64)
-        g = torch.as_tensor(t.grips, dtype=torch.float64)
-        s = torch.as_tensor(starts)
-        steps = s[:, None] + 1 + torch.arange(horizon)[None]
-        with torch.no_grad():
-            state = model.initial_state(x[s - 1], x[s])
-            pred, _ = model.rollout(state, g[steps])
-        pred = pred.numpy()
-        for k, p in zip(t.cloud_steps, t.cloud_points):
-            if not len(p):
-                continue
-            for b, s0 in enumerate(starts):
-                if s0 < k <= s0 + horizon:
-                    xk = pred[b, k - s0 - 1]
-                    ok = np.all(np.isfinite(xk))
-                    errs.append(float(np.minimum(polyline_distances(p, xk), CAP_M).mean()) if ok else CAP_M)
+    per_track = (workers or Workers()).map(prediction_errors, tracks, model, horizon, every)
+    errs = [e for errors in per_track for e in errors]
     return float(np.mean(errs)) if errs else math.nan
 
 
-def _track_all(clips, model, grippers, perception, rest, progress, label) -> list[Track]:
-    tracks = []
-    for clip in tqdm(clips, desc=label, unit="clip", disable=None if progress else True):
-        t = track_clip(clip, model, grippers, perception, rest=rest)
-        if t is not None:
-            tracks.append(t)
+def prediction_errors(track: Track, model: DeformModel, horizon: int, every: int) -> list[float]:
+    """:func:`prediction_fit`'s capped point errors of one track, one per (start, cloud) pair."""
+    starts = list(range(1, track.n_frames - horizon, every))
+    if not starts:
+        return []
+    x = torch.as_tensor(track.positions, dtype=torch.float64)
+    g = torch.as_tensor(track.grips, dtype=torch.float64)
+    s = torch.as_tensor(starts)
+    steps = s[:, None] + 1 + torch.arange(horizon)[None]
+    with torch.no_grad():
+        state = model.initial_state(x[s - 1], x[s])
+        pred, _ = model.rollout(state, g[steps])
+    pred = pred.numpy()
+    errs = []
+    for k, p in zip(track.cloud_steps, track.cloud_points):
+        if not len(p):
+            continue
+        for b, s0 in enumerate(starts):
+            if s0 < k <= s0 + horizon:
+                xk = pred[b, k - s0 - 1]
+                ok = np.all(np.isfinite(xk))
+                errs.append(float(np.minimum(polyline_distances(p, xk), CAP_M).mean()) if ok else CAP_M)
+    return errs
+
+
+def _track_all(clips, model, grippers, perception, rest, progress, label, workers: Workers) -> list[Track]:
+    found = workers.map(
+        _track_one, clips, model, grippers, perception, rest, desc=label if progress else None, unit="clip"
+    )
+    tracks = [t for t in found if t is not None]
     if not tracks:
         raise CalibrationError("no clip has a cloud within the time span of its gripper poses")
     return tracks
+
+
+def _track_one(clip, model, grippers, perception, rest) -> Track | None:
+    return track_clip(clip, model, grippers, perception, rest=rest)
 
 
 def _train(
@@ -312,6 +324,7 @@ def calibrate(
     name: str = "calibrated",
     progress: bool = True,
     prior: float | None = None,
+    workers: int = 1,
 ) -> Calibration:
     """A model of the rope in ``clips`` from the camera and the grippers alone.
 
@@ -327,6 +340,8 @@ def calibrate(
         progress: progress bars.
         prior: bending stiffness per linear density of the start [N m^3/kg] (None: the shipped
             rods' median, :func:`deform.bend_per_linear_density`).
+        workers: processes for the work that splits by clip (tracking passes, held-out fits;
+            :mod:`calibrate.workers`); the same model with any number.
 
     Returns:
         A :class:`Calibration`; ``model`` None with ``problem`` set when the clips are too short or
@@ -336,6 +351,15 @@ def calibrate(
         CalibrationError: the colour range finds no rope, the length disagrees with the camera, no
             clip has clouds within its poses' time span.
     """
+    with Workers(workers) as pool:
+        return _calibrate(
+            clips, length_m, mass_kg, grippers, perception, n_vertices, budget, name, progress, prior, pool
+        )
+
+
+def _calibrate(
+    clips, length_m, mass_kg, grippers, perception, n_vertices, budget, name, progress, prior, pool
+):
     budget = budget or Budget()
     n_vertices = n_vertices or default_vertices(length_m)
     t_start = time.perf_counter()
@@ -343,7 +367,9 @@ def calibrate(
     rest = rest_lengths(length_m, n_vertices, grippers)
     model = start_model(length_m, mass_kg, rest, name, prior)
     t0 = time.perf_counter()
-    tracks = _track_all(clips, model, grippers, perception, rest, progress, "track (length and mass only)")
+    tracks = _track_all(
+        clips, model, grippers, perception, rest, progress, "track (length and mass only)", pool
+    )
     check_rope_seen(tracks, perception.segmentation)
     checks = {"length": check_length(tracks, length_m, float(rest[1:-1].sum()))}
     train_t, held_t = split(tracks, budget.held_out_every, budget.score_horizon + 2)
@@ -361,12 +387,14 @@ def calibrate(
     if out.problem is not None:
         out.seconds = time.perf_counter() - t_start
         return out
-    best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every)
+    best_fit = prediction_fit(model, held_t, budget.score_horizon, budget.score_every, workers=pool)
     out.rounds.append(Round(0, best_fit, tracking_fit(held_t), True, time.perf_counter() - t0))
     first_rest_s = 0.0
     if budget.time_limit_s is not None:
-        first_rest_s = first_round_rest_s(out.rounds[0], model, train_t, budget)
-        out.rounds[0].held_fit_s = _timed_fit(model, held_t, budget.score_horizon, budget.score_every, True)
+        first_rest_s = first_round_rest_s(out.rounds[0], model, train_t, budget, pool)
+        out.rounds[0].held_fit_s = _timed_fit(
+            model, held_t, budget.score_horizon, budget.score_every, True, pool
+        )
     best, best_fit_s = model, out.rounds[0].held_fit_s  # best_fit_s: how long a held-out fit of best takes
     for r in range(1, budget.rounds + 1):
         t0 = time.perf_counter()
@@ -396,14 +424,17 @@ def calibrate(
                     tracks=damping_tracks(usable),
                     horizon=budget.damping_horizon,
                     every=budget.score_every,
+                    workers=pool,
                 ),
                 tolerance=MIN_GAIN,
             )
             damping["horizon_s"] = budget.damping_horizon * candidate.dt
-        new_tracks = _track_all(clips, candidate, grippers, perception, rest, progress, f"track (round {r})")
+        new_tracks = _track_all(
+            clips, candidate, grippers, perception, rest, progress, f"track (round {r})", pool
+        )
         new_train, new_held = split(new_tracks, budget.held_out_every, budget.score_horizon + 2)
         t_fit = time.perf_counter()
-        fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every)
+        fit = prediction_fit(candidate, new_held, budget.score_horizon, budget.score_every, workers=pool)
         held_fit_s = time.perf_counter() - t_fit
         kept = bool(fit < best_fit * (1 - MIN_GAIN))
         summary = {
@@ -444,14 +475,18 @@ def calibrate(
             f"{left:.0f} s of the time limit ({budget.time_limit_s:.0f} s) were left"
         )
     out.parameter_ranges = parameter_ranges(
-        best, lambda m: prediction_fit(m, ranges_t, budget.score_horizon, budget.score_every), MIN_GAIN
+        best,
+        lambda m: prediction_fit(m, ranges_t, budget.score_horizon, budget.score_every, workers=pool),
+        MIN_GAIN,
     )
     out.parameter_ranges["held_out_clips"] = [t.name for t in ranges_t]
     out.seconds = time.perf_counter() - t_start
     return out
 
 
-def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], budget: Budget) -> float:
+def first_round_rest_s(
+    tracked: Round, model: DeformModel, tracks: list[Track], budget: Budget, workers: Workers | None = None
+) -> float:
     """About how long round 1 takes besides training [s], before any round has trained: round 0's
     tracking pass (``tracked``) slowed as the residual network slows a rollout, and the damping search
     (:func:`calibrate.damping.settle_damping`, at most ``MAX_FITS`` rollouts over the damping horizon).
@@ -463,7 +498,8 @@ def first_round_rest_s(tracked: Round, model: DeformModel, tracks: list[Track], 
     horizon = budget.damping_horizon or budget.score_horizon
     usable = damping_tracks(_trainable(tracks, budget))
     plain_s, learnt_s = (
-        _timed_fit(model, usable, horizon, budget.score_every, residual) for residual in (False, True)
+        _timed_fit(model, usable, horizon, budget.score_every, residual, workers)
+        for residual in (False, True)
     )
     search_s = MAX_FITS * learnt_s if budget.damping_horizon > 0 else 0.0
     return tracked.after_training_s * learnt_s / max(plain_s, 1e-9) + search_s
@@ -502,13 +538,15 @@ def ranges_tracks(tracks: list[Track], fit_s: float, left_s: float | None) -> li
     return spread(tracks, RANGE_TRACKS)
 
 
-def _timed_fit(model: DeformModel, tracks: list[Track], horizon: int, every: int, residual: bool) -> float:
+def _timed_fit(
+    model: DeformModel, tracks: list[Track], horizon: int, every: int, residual: bool, workers: Workers | None
+) -> float:
     """How long one :func:`prediction_fit` of a copy of ``model`` takes with its residual network on or
     off [s] (the fit itself is not needed: a probe of what later rollouts will cost)."""
     probe = copy.deepcopy(model)
     probe.options.residual = residual
     t0 = time.perf_counter()
-    prediction_fit(probe, tracks, horizon, every)
+    prediction_fit(probe, tracks, horizon, every, workers=workers)
     return time.perf_counter() - t0
 
 

@@ -135,7 +135,7 @@ def test_round_ones_rest_is_round_zeros_pass_slowed_by_the_network_and_the_dampi
     tracking pass becomes 120 s, and the damping search's 11 rollouts 33 s; no search, no 33 s."""
     fits, clock = [], [0.0]
 
-    def timed_fit(model, tracks, horizon, every):
+    def timed_fit(model, tracks, horizon, every, workers=None):
         fits.append((model.options.residual, horizon))
         clock[0] += 3.0 if model.options.residual else 2.0
         return 0.0
@@ -161,9 +161,9 @@ def test_the_damping_search_rolls_out_a_bounded_spread_of_the_training_tracks(cl
     monkeypatch.setattr(fit, "DAMPING_TRACKS", 1)
     seen, prediction_fit = [], fit.prediction_fit
 
-    def counting_fit(model, tracks, horizon, every):
+    def counting_fit(model, tracks, horizon, every, workers=None):
         seen.append((horizon, len(tracks)))
-        return prediction_fit(model, tracks, horizon, every)
+        return prediction_fit(model, tracks, horizon, every, workers=workers)
 
     monkeypatch.setattr(fit, "prediction_fit", counting_fit)
     budget = Budget(iterations=1, rounds=1, horizon=20, batch=2, curriculum=(), damping_horizon=40)
