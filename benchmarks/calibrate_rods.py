@@ -78,11 +78,13 @@ def calibrate_rod(
     vertices: int | None = None,
     setup: str = "session",
     clip_set: int = 0,
+    workers: int | None = None,
 ) -> dict:
     """A task: clips of ``seconds`` of the rod's training motions (``clip_set``:
     benchmarks.calibration.clips.motions) filmed as the lab ``setup`` films
     (benchmarks/calibration/setups.py), `deform calibrate` on them (its default vertex count, or
-    ``vertices``), and the three models scored on the held-out motions, filmed the same way."""
+    ``vertices``; ``workers``: its ``--workers``, else its default), and the three models scored on the
+    held-out motions, filmed the same way."""
     import torch
 
     from benchmarks.calibration.clips import write_session
@@ -96,6 +98,7 @@ def calibrate_rod(
         + (f"-{vertices}v" if vertices else "")
         + (f"-{setup}" if setup != "session" else "")
         + (f"-set{clip_set}" if clip_set else "")
+        + (f"-{workers}w" if workers else "")
     )
     out = repo_path(runs) / name
     out.mkdir(parents=True, exist_ok=True)
@@ -117,6 +120,7 @@ def calibrate_rod(
             *(["--perception", str(session.perception)] if session.perception else []),
             *(QUICK_BUDGET if quick else []),
             *(["--vertices", str(vertices)] if vertices else []),
+            *(["--workers", str(workers)] if workers else []),
         ]  # fmt: skip
         t0 = time.perf_counter()
         done = subprocess.run(cmd, cwd=repo_path("."), capture_output=True, text=True)
@@ -290,6 +294,14 @@ def main(argv: list[str] | None = None) -> int:
         help="another set of training motions of the same size and spread (0: the usual one; k: each "
         "clip the k-th recording after it): how much a calibration depends on the motions filmed",
     )
+    ap.add_argument(
+        "--calibrate-workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="deform calibrate --workers N (default: its own default, the cores available): one worker "
+        "beside the default in one run shows what the workers gain",
+    )
     ap.add_argument("--stem", default="calibrate_rods", help="results benchmarks/results/<stem>.{json,md}")
     ap.add_argument("--out", type=Path, default=RESULTS)
     add_arguments(ap)
@@ -316,6 +328,8 @@ def main(argv: list[str] | None = None) -> int:
         config["setup"] = args.setup
     if args.clip_set:  # ... and of the usual clips
         config["clip_set"] = args.clip_set
+    if args.calibrate_workers:  # ... and of deform calibrate's default workers
+        config["calibrate_workers"] = args.calibrate_workers
     store = RunStore(args.out / f"{args.stem}.runs")
     done = store.load(config)
     keys = {f"{rod}-{int(s)}s": (rod, s) for s in args.seconds for rod in args.rods}
@@ -341,6 +355,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.vertices,
                 args.setup,
                 args.clip_set,
+                args.calibrate_workers,
             )
             for key, (rod, s) in keys.items()
             if key not in done
