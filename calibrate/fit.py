@@ -72,8 +72,8 @@ VERTICES = (12, 14)  # ... within these counts (default_vertices)
 @dataclass(frozen=True)
 class Budget:
     """How much work calibration does: iteration counts, so that the same clips give the same model
-    on a fast machine and on a busy one. On 50 s of clips on one core: tracking about 40 s a pass, the
-    first round about 10 min, later rounds about 5 min each; ``rounds`` caps the
+    on a fast machine and on a busy one. On 50 s of clips on one core (one worker): tracking about 30 s
+    a pass, the first round about 7 min, later rounds about 4 min each; ``rounds`` caps the
     train-and-track-again rounds.
 
     ``time_limit_s`` keeps the promise of a model within 20 minutes on a slow or crowded machine:
