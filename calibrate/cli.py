@@ -139,8 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=20.0,
         metavar="MIN",
         help="skip the last rounds and stop training early rather than run longer than this "
-        "(default 20; with 50 s of clips on 2 cores it may leave out the third round, with 2 minutes "
-        "or more the second: more clips want more time)",
+        "(default 20; on a busy 2-core machine it may leave out the third round from 50 s of clips, "
+        "the second from 2 minutes or more: more clips want more time)",
     )
     p.add_argument(
         "--prior-without",
