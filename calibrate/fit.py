@@ -271,16 +271,12 @@ def prediction_errors(track: Track, model: DeformModel, horizon: int, every: int
 
 def _track_all(clips, model, grippers, perception, rest, progress, label, workers: Workers) -> list[Track]:
     found = workers.map(
-        _track_one, clips, model, grippers, perception, rest, desc=label if progress else None, unit="clip"
+        track_clip, clips, model, grippers, perception, rest, desc=label if progress else None, unit="clip"
     )
     tracks = [t for t in found if t is not None]
     if not tracks:
         raise CalibrationError("no clip has a cloud within the time span of its gripper poses")
     return tracks
-
-
-def _track_one(clip, model, grippers, perception, rest) -> Track | None:
-    return track_clip(clip, model, grippers, perception, rest=rest)
 
 
 def _train(
