@@ -148,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="ROD",
         help="shipped rods (DLO1..DLO5) left out of the starting stiffness prior: when the rope "
-        "calibrated is one of them, it then has no part in its own prior",
+        "calibrated is one of them, it then has no part in its own prior (the report lists the "
+        "rods the prior comes from)",
     )
     p.add_argument("--threads", type=_count(1), default=1, help="torch threads (default 1)")
     p.add_argument(
@@ -187,16 +188,18 @@ def _settings(args):
     return cfg, perception
 
 
-def _prior(leave_out: list[str]) -> float:
-    """The starting stiffness prior without ``leave_out``; an unknown rod name is one line."""
+def _prior(leave_out: list[str]) -> tuple[float, list[str]]:
+    """``(the starting stiffness prior, the shipped rods it comes from)``, without ``leave_out``. A
+    name that is not shipped here (a rod whose files were removed, as the acceptance removes the
+    calibrated rope's) has no part in the prior anyway: the report lists the rods that do."""
     from deform import available_rods, bend_per_linear_density
+    from deform.config import ConfigError
 
-    unknown = sorted(set(leave_out) - set(available_rods()))
-    if unknown:
-        raise CalibrationError(
-            f"--prior-without {' '.join(unknown)}: not a shipped rod ({', '.join(available_rods())})"
-        )
-    return bend_per_linear_density(leave_out)
+    try:
+        prior = bend_per_linear_density(leave_out)
+    except ConfigError as exc:
+        raise CalibrationError(f"--prior-without: {exc}") from None
+    return prior, [r for r in available_rods() if r not in set(leave_out)]
 
 
 def run(args, age_s: float = 0.0) -> int:
@@ -217,7 +220,7 @@ def run(args, age_s: float = 0.0) -> int:
         )
     report_dir = Path(args.report) if args.report else out.with_name(f"{out.stem}_report")
     cfg, perception = _settings(args)
-    prior = _prior(args.prior_without)
+    prior, prior_rods = _prior(args.prior_without)
     topics = Topics(args.topic_poses, args.topic_points, args.topic_camera_info, args.topic_camera_pose)
     clips = [read_clip(b, cfg, topics) for b in args.bags]
     names = [c.name for c in clips]
@@ -260,7 +263,11 @@ def run(args, age_s: float = 0.0) -> int:
         "mass_kg": args.mass,
         "diameter_m": args.diameter,
         "vertices": cal.start.cfg.n_vertices,  # --vertices, or the default for the length
-        "stiffness_prior": {"without": list(args.prior_without), "bend_per_linear_density": prior},
+        "stiffness_prior": {
+            "without": list(args.prior_without),
+            "from": prior_rods,
+            "bend_per_linear_density": prior,
+        },
         "perception": args.perception or cfg.perception,
         "config": args.config,
         "out": str(out),

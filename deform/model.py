@@ -755,6 +755,8 @@ class DeformModel(nn.Module):
             raise CheckpointError(f"{path}: no such model file")
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
+        except OSError as exc:  # there, but not readable (permissions): not a question of its contents
+            raise CheckpointError(f"{path}: cannot be read ({exc.strerror or type(exc).__name__})") from None
         except Exception as exc:  # torch raises several types for a file that is no checkpoint
             raise CheckpointError(f"{path}: not a DEFORM checkpoint ({type(exc).__name__})") from None
         if not isinstance(payload, dict) or not {"config", "options", "state_dict"} <= payload.keys():

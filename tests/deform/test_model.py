@@ -237,3 +237,16 @@ def test_a_bad_checkpoint_is_a_checkpoint_error_naming_the_file(tmp_path):
     torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match=r"other\.pt: not a DEFORM checkpoint"):
         load_model(str(tmp_path / "other.pt"))
+
+
+def test_an_unreadable_checkpoint_says_so_not_that_it_is_no_checkpoint(tmp_path, monkeypatch):
+    from deform.errors import CheckpointError
+
+    DeformModel(load_rod_config("DLO1")).save(tmp_path / "m.pt")
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(torch, "load", refuse)
+    with pytest.raises(CheckpointError, match=r"m\.pt: cannot be read \(Permission denied\)"):
+        DeformModel.load(tmp_path / "m.pt")
