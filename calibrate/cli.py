@@ -192,8 +192,7 @@ def _prior(leave_out: list[str]) -> tuple[float, list[str]]:
     """``(the starting stiffness prior, the shipped rods it comes from)``, without ``leave_out``. A
     name that is not shipped here (a rod whose files were removed, as the acceptance removes the
     calibrated rope's) has no part in the prior anyway: the report lists the rods that do."""
-    from deform import available_rods, bend_per_linear_density
-    from deform.config import ConfigError
+    from deform import ConfigError, available_rods, bend_per_linear_density
 
     try:
         prior = bend_per_linear_density(leave_out)
@@ -210,7 +209,7 @@ def run(args, age_s: float = 0.0) -> int:
     from calibrate.bags import Topics, read_clip
     from calibrate.fit import Budget, calibrate
     from calibrate.latency import cloud_delay
-    from calibrate.workers import available_cores
+    from deform.cores import available_cores
 
     torch.set_num_threads(args.threads)
     out = Path(args.out)

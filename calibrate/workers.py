@@ -17,7 +17,6 @@ user runs with no set-up (as :mod:`deform.diagnose.pool`).
 from __future__ import annotations
 
 import multiprocessing
-import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, TypeVar
@@ -25,14 +24,6 @@ from typing import Any, TypeVar
 from tqdm import tqdm
 
 T = TypeVar("T")
-
-
-def available_cores() -> int:
-    """The cores this process may run on (``deform calibrate --workers`` default)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def _start() -> None:

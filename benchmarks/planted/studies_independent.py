@@ -91,7 +91,7 @@ def full_size_timing(args) -> dict:
     import tempfile
 
     from benchmarks.planted.elastica import generate_elastica
-    from deform.diagnose.pool import default_workers
+    from deform.cores import available_cores
     from deform.io import save_recording
 
     kind, effect = args.rod_kinds[0], (args.effects or ["ground_contact"])[0]
@@ -166,7 +166,7 @@ def full_size_timing(args) -> dict:
         "inductor_cache": "empty at each run's start" if cold else "as left by earlier runs",
         "case": f"elastica {kind} {effect} seed 0, 8 + 4 recordings x 500 frames",
         "budget": "full (default)",
-        "workers_default": default_workers(),
+        "workers_default": available_cores(),
         "seconds_wall": d["seconds_wall"],
         "returncode": d["returncode"],
         "selected": d["selected"],

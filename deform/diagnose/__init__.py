@@ -77,9 +77,9 @@ def run_cli(args) -> int:
     clamp = given_clamp(getattr(args, "clamp", "fit"), inputs.spec)
     if clamp is not None:
         budget = dataclasses.replace(budget, fit_clamp=False, clamp_m=clamp)
-    from deform.diagnose.pool import default_workers
+    from deform.cores import available_cores
 
-    workers = getattr(args, "workers", None) or default_workers()
+    workers = getattr(args, "workers", None) or available_cores()
     diag = diagnose(inputs, budget, start_model=getattr(args, "model", None), workers=workers)
     tmp = Path(tempfile.mkdtemp(prefix=".diagnose-", dir=out.parent if out.parent.exists() else None))
     try:

@@ -13,7 +13,6 @@ Ray around whole ``deform diagnose`` runs.
 from __future__ import annotations
 
 import multiprocessing
-import os
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
@@ -25,14 +24,6 @@ from deform.diagnose.checked_fit import CheckErrors, fit_and_check_together, fit
 from deform.diagnose.spec import Inputs
 
 _INPUTS: Inputs | None = None  # a worker's recordings, set once by _start
-
-
-def default_workers() -> int:
-    """The cores this process may run on (``--workers`` default)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def _start(inputs: Inputs) -> None:
