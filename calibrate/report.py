@@ -226,6 +226,13 @@ def _markdown(data: dict, plots: list[str]) -> str:
             cell = "-" if span is None else " .. ".join("open" if v is None else f"{v:.3g}" for v in span)
             lines.append(f"| {k} | {f[k]:.4g} | {s[k]:.4g} | {cell} |")
         lo, hi = f["bend_stiffness_range_Nm2"]
+        prior = data["inputs"].get("stiffness_prior") or {}
+        if prior.get("from"):  # reports written before the prior's ropes were listed lack them
+            lines += [
+                "",
+                f"The start's bending stiffness: {prior['bend_per_linear_density']:.3g} N m^3/kg times the "
+                "mass per length, the median over the shipped ropes " + ", ".join(prior["from"]) + ".",
+            ]
         lines += [
             "",
             f"Bending stiffness varies along the rope within {lo:.3g}..{hi:.3g} N m². Not identifiable: "
