@@ -7,14 +7,13 @@ equal to the defaults)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-
-from deform.cores import available_cores
 
 
 class ServiceConfigError(ValueError):
@@ -144,8 +143,8 @@ def _shipped_rods_dir() -> Path | None:
 
 
 def predict_threads(workers: Workers) -> int:
-    """The predict worker's thread count: ``workers.predict_threads``, or every core it may run on."""
-    return workers.predict_threads or available_cores()
+    """The predict worker's thread count: ``workers.predict_threads``, or every core."""
+    return workers.predict_threads or os.cpu_count() or 1
 
 
 class ZenohSettings(_Strict):
