@@ -1,5 +1,6 @@
-"""The cores this process may run on: the default size of every pool of workers (the discrepancy
-tool's fits, the calibration's clips, the service's predict threads).
+"""The cores this process may run on: the default size of the pools of workers (the discrepancy
+tool's fits, the calibration's clips). Not the service's: importing ``deform`` imports torch, which
+``deform-service run`` defers until its workers have started.
 
 ``os.cpu_count()`` counts the machine's cores; a container or ``taskset`` may give the process fewer,
 and more workers than those only take turns. The affinity mask says how many it has.
