@@ -192,13 +192,14 @@ def _prior(leave_out: list[str]) -> tuple[float, list[str]]:
     """``(the starting stiffness prior, the shipped rods it comes from)``, without ``leave_out``. A
     name that is not shipped here (a rod whose files were removed, as the acceptance removes the
     calibrated rope's) has no part in the prior anyway: the report lists the rods that do."""
-    from deform import ConfigError, available_rods, bend_per_linear_density
+    from deform import ConfigError, bend_per_linear_density
+    from deform.config import prior_rods
 
     try:
         prior = bend_per_linear_density(leave_out)
     except ConfigError as exc:
         raise CalibrationError(f"--prior-without: {exc}") from None
-    return prior, [r for r in available_rods() if r not in set(leave_out)]
+    return prior, prior_rods(leave_out)
 
 
 def run(args, age_s: float = 0.0) -> int:

@@ -56,6 +56,12 @@ class RodConfig(BaseModel):
         return self
 
 
+def prior_rods(leave_out: tuple[str, ...] | list[str] = ()) -> list[str]:
+    """The shipped rods the stiffness prior (:func:`bend_per_linear_density`) is the median over:
+    every one not named in ``leave_out`` (a name not shipped here leaves nothing out)."""
+    return [name for name in available_rods() if name not in set(leave_out)]
+
+
 def bend_per_linear_density(leave_out: tuple[str, ...] | list[str] = ()) -> float:
     """The stiffness prior of a rod known by length and mass: the median of :math:`EI L / m` over the
     initial guesses of the shipped rods (``deform/rods/*.yaml``) not named in ``leave_out``. With
@@ -72,9 +78,7 @@ def bend_per_linear_density(leave_out: tuple[str, ...] | list[str] = ()) -> floa
         ConfigError: every shipped rod left out.
     """
     values = []
-    for name in available_rods():
-        if name in set(leave_out):
-            continue
+    for name in prior_rods(leave_out):
         cfg = load_rod_config(name)
         values.append(cfg.bend_stiffness * cfg.length_m / cfg.mass_kg)
     if not values:

@@ -2,6 +2,7 @@
 every other file opens as before."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -35,7 +36,7 @@ if __name__ == "__main__":
 def _probe(tmp_path, env) -> dict:
     script = tmp_path / "probe.py"
     script.write_text(PROBE)
-    env = dict(env, PYTHONPATH=f"{env.get('PYTHONPATH', '')}:{ROOT}".lstrip(":"))
+    env = dict(env, PYTHONPATH=os.pathsep.join(p for p in (env.get("PYTHONPATH"), str(ROOT)) if p))
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -50,8 +51,6 @@ def test_the_withheld_rods_files_cannot_be_opened_even_by_spawned_workers(tmp_pa
 
 
 def test_without_withholding_the_same_probe_loads_every_rod(tmp_path):
-    import os
-
     seen = _probe(tmp_path, dict(os.environ))
     assert seen == {"DLO3": "loaded", "DLO1": "loaded", "spawned DLO3": "loaded"}
 
