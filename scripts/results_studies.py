@@ -281,6 +281,9 @@ def render_calibrate_rods(d: dict) -> list[str]:
                 three(cell, "tracking_rope_mm", 1)
                 if get(cell, "tracking_rope_mm", "calibrated") is not None
                 else "-",
+                three(cell, "tracking_hidden_mm", 1)
+                if get(cell, "tracking_hidden_mm", "calibrated") is not None
+                else "-",
                 three(cell, "prediction_1s_mm", 1),
                 fmt(get(cell, "calibrate_s"), 1, 1 / 60),
                 f"{len(targets) - len(missed)}/{len(targets)}"
@@ -309,6 +312,7 @@ def render_calibrate_rods(d: dict) -> list[str]:
             f"distance through a quarter-rope occlusion [mm] ({get(d, 'args', 'tracked')} motions per rod), "
             "against the marker polyline and (rope) against the rope as rendered, on which the tracking targets "
             "are judged (against the markers only the shipped model, whose vertices are the markers, can score 0); "
+            "hidden: the markers the occluder hides, their distance to the curve through the estimate [mm]; "
             "1 s: mean marker distance of the prediction from the tracked state, 1 s ahead [mm].",
             "",
         ]
@@ -320,6 +324,7 @@ def render_calibrate_rods(d: dict) -> list[str]:
                 "paper DEFORM [cm]",
                 "tracking [mm]",
                 "tracking, rope [mm]",
+                "hidden part [mm]",
                 "1 s prediction [mm]",
                 "calibrate [min]",
                 "targets met",

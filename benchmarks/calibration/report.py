@@ -9,7 +9,13 @@ TRACK_RATIO = 1.2  # calibrated / shipped, tracking
 GENERIC_SHARE = 0.5  # calibrated / generic, every error
 TIME_LIMIT_S = 20 * 60  # deform calibrate, 50 s of clips, 2 cores
 
-METRICS = (("open_loop", "l1_cm"), ("tracking_mm",), ("tracking_rope_mm",), ("prediction_1s_mm",))
+METRICS = (
+    ("open_loop", "l1_cm"),
+    ("tracking_mm",),
+    ("tracking_rope_mm",),
+    ("tracking_hidden_mm",),  # shown, not judged: the issue's tracking error is the whole rope's
+    ("prediction_1s_mm",),
+)
 
 
 def _judged(cell: dict) -> tuple[str, str, str]:
@@ -139,14 +145,16 @@ def markdown(result: dict) -> str:
         "occluder in some clips); scored on its held-out motions. Open loop: the paper's 500-step "
         "metric [cm]; tracking: two-way distance through a quarter-rope occlusion [mm], against the marker "
         "polyline and (rope) against the rope as rendered, on which the tracking targets are judged (against "
-        "the markers only the shipped model, whose vertices are the markers, can score 0); 1 s: prediction "
+        "the markers only the shipped model, whose vertices are the markers, can score 0); hidden: where the "
+        "occluder hides the rope, the hidden markers' distance to the curve through the estimate [mm] (the "
+        "model's part of tracking: the camera corrects none of it); 1 s: prediction "
         "from the tracked state with the recorded gripper motion, mean marker distance 1 s ahead [mm]. "
         "Columns: calibrated / shipped (mocap-trained) / generic DER (length and mass).",
         "",
         "| rod | clips [s] | open loop [cm] | paper DEFORM | tracking [mm] | tracking, rope [mm] | "
-        "1 s prediction [mm] | 1 s vs shipped | tracking vs shipped (markers / rope) | vs generic (worst) | "
-        "calibrate [min] |",
-        "|---|---:|---|---:|---|---|---|---:|---:|---:|---:|",
+        "hidden part [mm] | 1 s prediction [mm] | 1 s vs shipped | tracking vs shipped (markers / rope) | "
+        "vs generic (worst; hidden) | calibrate [min] |",
+        "|---|---:|---|---:|---|---|---|---|---:|---:|---:|---:|",
     ]
     for cell in summ.values():
         worst = max((cell[f"{n}_vs_generic"] or 0) for n in _judged(cell))
@@ -154,9 +162,10 @@ def markdown(result: dict) -> str:
         lines.append(
             f"| {cell['rod']} | {cell['seconds']:.0f} | {_three(cell, 'open_loop', 2)} | {_f(cell['paper_deform_cm'])} | "
             f"{_three(cell, 'tracking_mm', 1)} | {_three(cell, 'tracking_rope_mm', 1)} | "
+            f"{_three(cell, 'tracking_hidden_mm', 1)} | "
             f"{_three(cell, 'prediction_1s_mm', 1)} | {_f(cell['prediction_1s_mm_vs_shipped'])}x | "
             f"{_f(cell['tracking_mm_vs_shipped'])}x / {_f(cell['tracking_rope_mm_vs_shipped'])}x | "
-            f"{worst:.2f}x | {cell['calibrate_s'] / 60:.1f} |"
+            f"{worst:.2f}x; {_f(cell['tracking_hidden_mm_vs_generic'])}x | {cell['calibrate_s'] / 60:.1f} |"
         )
     lines += ["", "Targets met (issue 49):", ""]
     for key, cell in summ.items():

@@ -9,7 +9,11 @@ r"""A model scored on held-out motions the three ways issue 49 asks, against the
   over clouds: against the marker polyline (``tracking_mm``) and against the rope as rendered
   (``tracking_rope_mm``, :func:`benchmarks.tracking.metric.rope_error`). The shipped model's
   vertices are the markers, the calibrated model's are spread evenly along the rope: against the
-  markers only the first can score 0, against the rendered rope neither;
+  markers only the first can score 0, against the rendered rope neither; and where the occluder
+  hides the rope (``tracking_hidden_mm``): per cloud that hides some free marker, the mean distance
+  of the hidden markers to the smooth curve through the estimate (the renderer's centreline,
+  whatever the vertex count), mean over those clouds. There the camera corrects nothing and the
+  estimate is the model's; over the whole rope the camera's correction of the visible part dominates;
 * **1 s prediction**: every 0.5 s from 1 s on, the tracked state is rolled out 100 steps with the
   recorded gripper motion (the service's ``predict`` with the recording as plan 0); the error is the
   mean distance between the prediction and the truth 1 s ahead, at the markers (arc length).
@@ -23,7 +27,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from benchmarks.tracking.metric import rope_error, two_way_error
+from benchmarks.tracking.metric import point_to_polyline, rope_error, two_way_error
 from deform import Recording, gripped_indices
 from deform.evaluate import CURVE, as_model_vertices, metrics, predict_recordings
 from deform.io.arc_length import edge_lengths, resample_vertices
@@ -43,9 +47,26 @@ def open_loop(model, held_out: list[Recording]) -> dict:
     )
 
 
+def hidden_error(estimate: np.ndarray, truth: np.ndarray, visible) -> float | None:
+    """The mean distance [m] of the free true markers a cloud does not show (``visible`` False) to the
+    smooth curve through ``estimate`` (k, 3); None when the cloud shows every free marker or says
+    nothing of visibility (``visible`` None). The two gripped markers at each end are left out: the
+    grippers place them."""
+    from perception import rope_centreline
+
+    if visible is None:
+        return None
+    hidden = ~np.asarray(visible, dtype=bool)
+    hidden[list(gripped_indices(len(truth)))] = False
+    if not hidden.any():
+        return None
+    return float(point_to_polyline(truth[hidden], rope_centreline(np.asarray(estimate, np.float64))).mean())
+
+
 def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
     """Track ``frames`` (rendered from ``truth`` (T, m, 3)) with ``model``; the tracking errors per
-    cloud [m] and the 1 s prediction errors [m]."""
+    cloud [m] (``tracking_hidden``: per cloud that hides some of the rope, :func:`hidden_error`) and
+    the 1 s prediction errors [m]."""
     from perception import Tracker
 
     own = as_model_vertices(Recording("truth", truth), model).positions  # its start and grippers
@@ -54,7 +75,7 @@ def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
     tracker = Tracker(model, config=perception)
     tracker.initialize_from_frames(own[0], own[1])
     by_step = {f.step: f for f in frames}
-    tracking, tracking_rope, ahead = [], [], []
+    tracking, tracking_rope, tracking_hidden, ahead = [], [], [], []
     for k in range(2, len(truth)):
         x, _ = tracker.step(own[k, gi])
         f = by_step.get(k)
@@ -62,6 +83,9 @@ def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
             x, _ = tracker.correct(f.xyz, f.rgb, f.camera)
             tracking.append(two_way_error(x, truth[k]))
             tracking_rope.append(rope_error(x, truth[k]))
+            hidden = hidden_error(x, truth[k], getattr(f, "visible", None))
+            if hidden is not None:
+                tracking_hidden.append(hidden)
         if k >= PREDICT_FROM and (k - PREDICT_FROM) % PREDICT_EVERY == 0 and k + AHEAD_STEPS < len(truth):
             state = tracker.state
             with torch.no_grad():
@@ -69,7 +93,7 @@ def track_and_predict(model, truth: np.ndarray, frames, perception) -> dict:
                     state = model.step(state, torch.as_tensor(own[j, gi], dtype=state.x.dtype).unsqueeze(0))
             pred = resample_vertices(state.x[0].double().numpy(), truth.shape[1], markers, curve=CURVE)
             ahead.append(float(np.linalg.norm(pred - truth[k + AHEAD_STEPS], axis=-1).mean()))
-    return dict(tracking=tracking, tracking_rope=tracking_rope, ahead=ahead)
+    return dict(tracking=tracking, tracking_rope=tracking_rope, tracking_hidden=tracking_hidden, ahead=ahead)
 
 
 def render_held_out(recording: Recording, camera, render_cfg, seed: int, fps: float = 30.0):
@@ -98,7 +122,8 @@ def score(
     another lab films them (default: perception's renderer with ``camera``).
 
     Returns:
-        ``{name: {open_loop: {...}, tracking_mm, tracking_rope_mm, prediction_1s_mm, per_recording: {...}}}``.
+        ``{name: {open_loop: {...}, tracking_mm, tracking_rope_mm, tracking_hidden_mm, prediction_1s_mm,
+        per_recording: {...}}}``.
     """
     out = {name: dict(open_loop=open_loop(m, held_out), per_recording={}) for name, m in models.items()}
     for i, rec in enumerate(held_out[:tracked]):
@@ -111,6 +136,8 @@ def score(
             out[name]["per_recording"][rec.name] = dict(
                 tracking_mm=round(1e3 * float(np.mean(r["tracking"])), 3),
                 tracking_rope_mm=round(1e3 * float(np.mean(r["tracking_rope"])), 3),
+                tracking_hidden_mm=_mean_mm(r["tracking_hidden"]),
+                hidden_clouds=len(r["tracking_hidden"]),
                 prediction_1s_mm=round(1e3 * float(np.mean(r["ahead"])), 3) if r["ahead"] else None,
             )
     for name in models:
@@ -118,7 +145,16 @@ def score(
         track = [r["tracking_mm"] for r in rows]
         rope = [r["tracking_rope_mm"] for r in rows]
         ahead = [r["prediction_1s_mm"] for r in rows if r["prediction_1s_mm"] is not None]
+        # over every cloud that hides some rope, as the motions' clouds weigh (not per motion)
+        hidden = [(r["tracking_hidden_mm"], r["hidden_clouds"]) for r in rows if r["hidden_clouds"]]
         out[name]["tracking_mm"] = round(float(np.mean(track)), 3) if track else None
         out[name]["tracking_rope_mm"] = round(float(np.mean(rope)), 3) if rope else None
         out[name]["prediction_1s_mm"] = round(float(np.mean(ahead)), 3) if ahead else None
+        out[name]["tracking_hidden_mm"] = (
+            round(sum(e * n for e, n in hidden) / sum(n for _, n in hidden), 3) if hidden else None
+        )
     return out
+
+
+def _mean_mm(errors: list[float]) -> float | None:
+    return round(1e3 * float(np.mean(errors)), 3) if errors else None

@@ -141,3 +141,36 @@ def test_another_labs_rope_is_found_by_its_own_colour_range_only(tmp_path):
     )  # the file holds the colour range, nothing of the renderer
     found = segment_rope(frame.xyz, frame.rgb, users.segmentation).sum()
     assert found > 100 and segment_rope(frame.xyz, frame.rgb, load_config(None).segmentation).sum() == 0
+
+
+def test_the_hidden_part_is_scored_on_the_markers_the_cloud_does_not_show():
+    from benchmarks.calibration.score import hidden_error
+
+    truth = np.zeros((12, 3))
+    truth[:, 0] = np.linspace(0.0, 1.1, 12)
+    visible = np.ones(12, dtype=bool)
+    assert hidden_error(truth, truth, visible) is None  # nothing hidden
+    assert hidden_error(truth, truth, None) is None  # a camera that says nothing of visibility
+    visible[[0, 1, 10, 11]] = False  # the grippers' markers: placed by the grippers, not scored
+    assert hidden_error(truth, truth, visible) is None
+    estimate = truth.copy()
+    estimate[4:7, 2] += 0.01  # the model bent three vertices 1 cm off
+    visible[5] = False
+    assert hidden_error(truth, truth, visible) == pytest.approx(0.0, abs=1e-12)
+    assert hidden_error(estimate, truth, visible) == pytest.approx(0.01, abs=1e-3)
+    visible[5], visible[8] = True, False  # a hidden marker the model got right
+    assert hidden_error(estimate, truth, visible) == pytest.approx(0.0, abs=1e-3)
+    fewer = truth[::2]  # another vertex count: the curve through it, not its chords
+    assert hidden_error(fewer, truth, visible) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_hidden_part_is_shown_beside_the_judged_errors_and_not_judged():
+    row = _row("DLO3-50s", (0.7, 2.5, 10.0, 2.1), (0.6, 2.2, 9.0, 2.0), (2.0, 5.5, 40.0, 5.0))
+    for m, hidden in (("calibrated", 4.0), ("shipped", 3.0), ("generic", 16.0)):
+        row["scores"][m]["tracking_hidden_mm"] = hidden
+    cell = summarize([row])["DLO3-50s"]
+    assert cell["tracking_hidden_mm_vs_generic"] == pytest.approx(0.25)
+    assert all(cell["targets"].values())  # 1.33x the shipped's hidden part judges nothing
+    assert "| 4.0 / 3.0 / 16.0 |" in markdown({"summary": summarize([row])})
+    old = _row("DLO3-50s", (0.7, 2.5, 10.0, 2.1), (0.6, 2.2, 9.0, 2.0), (2.0, 5.5, 40.0, 5.0))
+    assert "| - / - / - |" in markdown({"summary": summarize([old])})  # a row scored before it
