@@ -170,7 +170,9 @@ def _markdown(data: dict, plots: list[str]) -> str:
         lines += ["**No model was written**: " + data["problem"] + ".", ""]
     else:
         lines += [
-            f"Model: `{inp['out']}` (load with `deform.load_model`, run with `deform-service run --rod`).",
+            f"Model: `{inp['out']}` (load with `deform.load_model`, run with `deform-service run --rod "
+            f"{inp['out']}`; `deform-service prebuild --rod {inp['out']}` builds its compiled steps "
+            "beforehand, 1-2.5 min once, so that the first run starts warm).",
             "",
         ]
     if data["rounds"]:

@@ -82,6 +82,7 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     md = (out_dir / "rope_report" / "report.md").read_text()
     assert "| told within |" in md and "Gripper poses in: world." in md
     assert "the median over the shipped ropes DLO1, DLO2, DLO4, DLO5." in md
+    assert f"deform-service prebuild --rod {summary['model']}`" in md  # what to run next, with this model
     delay = report["inputs"]["cloud_delay"]  # our renderer's clouds are stamped when taken
     assert (
         delay["delay_s"] == 0.0 and delay["clouds"] > 0 and "Cloud stamps: on the gripper poses' clock" in md
