@@ -90,7 +90,10 @@ class TrackerConfig:
     length_bounds: tuple[float, float] = (0.8, 1.25)  # ... within these factors of the starting rest length
     coherence: float = 1.0  # share of the shift interpolated from the corrected neighbours that a visible
     # vertex the correction left alone takes (a vertex beyond the association radius of a rope the model
-    # lost hold of); hidden vertices keep the model's prediction (0: none)
+    # lost hold of; 0: none)
+    hidden_coherence: float = 0.0  # share of the same interpolated shift that a hidden free vertex takes:
+    # where the camera moved the rope on both sides of a hidden stretch, the model's error there is
+    # mostly the error it made beside it (0: hidden vertices keep the model's prediction)
     camera_residual: float = 1.0  # share of the correction across the rope at the observed vertices
     # that the estimate keeps beyond the state's projection onto the rest lengths (0: the model state;
     # 1: the camera across the rope, which beats the model there once bend_centroid takes its bias back)

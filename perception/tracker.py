@@ -310,14 +310,22 @@ class Tracker:
         return replace(cfg, occlusion_margin=margin) if margin > cfg.occlusion_margin else cfg
 
     def _corrected(self, x_pred: np.ndarray, pts: np.ndarray, depth: np.ndarray, camera: Camera, cfg):
-        """The camera's correction of ``x_pred`` (:func:`perception.estimate.correct_vertices`), and
-        at the visible free vertices it left alone, ``coherence`` of their corrected neighbours' shift
-        (``cfg``: the estimation settings for this cloud, :meth:`_estimation`)."""
+        """The camera's correction of ``x_pred`` (:func:`perception.estimate.correct_vertices`); at
+        the visible free vertices it left alone, ``coherence`` of their corrected neighbours' shift,
+        and at the hidden ones ``hidden_coherence`` of the shift of their nearest corrected (or so
+        filled) neighbours on each side (``cfg``: the estimation settings for this cloud,
+        :meth:`_estimation`)."""
         x_new, observed = correct_vertices(x_pred, pts, depth, camera, cfg, self.movable, self.gmm_backend)
-        share = self.config.tracker.coherence
-        if share > 0 and observed.any():
-            visible = self.movable & ~occluded_vertices(x_pred, depth, camera, cfg)
+        share, hidden_share = self.config.tracker.coherence, self.config.tracker.hidden_coherence
+        if not observed.any() or (share <= 0 and hidden_share <= 0):
+            return x_new, observed
+        visible = self.movable & ~occluded_vertices(x_pred, depth, camera, cfg)
+        if share > 0:
             x_new = x_new + share * coherent_shift(x_new - x_pred, observed, visible)
+        if hidden_share > 0:
+            known = observed | visible if share > 0 else observed
+            hidden = self.movable & ~visible & ~observed
+            x_new = x_new + hidden_share * coherent_shift(x_new - x_pred, known, hidden)
         return x_new, observed
 
     def _forget_camera(self) -> None:
