@@ -181,9 +181,12 @@ def track_clip(
     grips = grips_from_poses(interpolate_poses(clip.pose_stamps_ns, clip.poses, times), grippers)
     # the rope's length is the user's (checked against the camera by calibrate.checks): every clip
     # tracked at that one length, not at lengths the tracker took from the camera clip by clip; and
-    # the track is the model's state, shapes the fitted rod can take (no camera residual on top)
+    # the track is the model's state, shapes the fitted rod can take (no camera residual on top); hidden
+    # stretches stay the model's own (hidden_coherence: not yet measured on calibration, whose stored
+    # results were tracked without it)
     model_state = replace(
-        perception, tracker=replace(perception.tracker, length_gain=0.0, camera_residual=0.0)
+        perception,
+        tracker=replace(perception.tracker, length_gain=0.0, camera_residual=0.0, hidden_coherence=0.0),
     )
     tracker = Tracker(model, camera=clip.camera, config=model_state, rest=rest)
     seg = tracker.config.segmentation

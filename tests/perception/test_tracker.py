@@ -230,6 +230,9 @@ def test_uninitialised_tracker_does_not_raise(model, grip_idx):
 
 
 def test_real_recording_camera_tracking_beats_open_loop_and_baseline(data_root):
+    """The model corrected by the camera beats the model alone and the camera alone (the shape held
+    between clouds). The held shape's hidden vertices follow their corrected neighbours too
+    (``hidden_coherence``), which took its error from 6.1 to 3.3 mm here; the model's is 2.2."""
     path = sorted((data_root / "DLO1" / "eval").glob("*.pkl"))[0]
     p = load_recording(path).positions[:150]
     model = load_model("DLO1")
@@ -240,7 +243,7 @@ def test_real_recording_camera_tracking_beats_open_loop_and_baseline(data_root):
         t = Tracker(model, physics=physics)
         t.initialize_from_frames(p[0], p[1])
         errs[name] = _run(t, p, fr, gi)
-    assert errs["cam"] < errs["open"] and errs["cam"] < 0.5 * errs["hold"]
+    assert errs["cam"] < errs["open"] and errs["cam"] < 0.75 * errs["hold"]
 
 
 def _residual_config(share: float, bend_centroid: float | None = None):
@@ -349,6 +352,32 @@ def test_a_visible_vertex_beyond_the_association_radius_follows_its_corrected_ne
         assert not observed[mid] and observed.sum() >= 4
         errors[share] = np.linalg.norm(x[mid] - truth[mid])
     assert errors[1.0] < 0.6 * errors[0.0]
+
+
+def test_hidden_vertices_take_their_corrected_neighbours_shift_with_hidden_coherence(
+    model, recording, occluded_frames
+):
+    """The free rope predicted 4 cm in front of where it is (towards the camera), an occluder hiding
+    part of it: the camera moves the observed vertices back; with ``hidden_coherence`` the hidden
+    ones between them come along (their error falls by more than half), without it they keep the
+    model's prediction but for what the projection onto the rest lengths drags along."""
+    f = next(f for f in occluded_frames if f.occluded and (~f.visible[2:-2]).sum() >= 2)
+    p = recording.positions
+    truth = p[f.step]
+    toward = f.camera.position - truth[2:-2].mean(0)
+    off = truth.copy()
+    off[2:-2] += 0.04 * toward / np.linalg.norm(toward)
+    errors = {}
+    for share in (0.0, 1.0):
+        cfg = {"tracker": {"hidden_coherence": share, "refind_cost": 0.0, "lost_fraction": 1.0}}
+        t = Tracker(model, config=cfg)
+        t.initialize_from_frames(p[f.step - 1], p[f.step])
+        t.state = model.reposition(t.state, torch.as_tensor(off)[None])
+        x, observed = t.correct(f.xyz, f.rgb, f.camera)
+        hidden = ~f.visible & t.movable
+        assert hidden.any() and not (observed & hidden).any() and observed.sum() >= 3
+        errors[share] = np.linalg.norm(x[hidden] - truth[hidden], axis=1).mean()
+    assert errors[0.0] > 0.015 and errors[1.0] < 0.5 * errors[0.0]
 
 
 def _at_clouds(tracker, positions, frames, grip_idx) -> tuple[float, float]:
