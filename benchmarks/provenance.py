@@ -1,8 +1,8 @@
 """What every stored benchmark result names: the command that wrote it, the commit and the machine.
 
     {**provenance(), ...}  ->  {"command": "python benchmarks/x.py ARGS", "commit": "abc1234",
-                                "machine": {"host", "cpus", "platform", "processor", "python",
-                                            "torch", "torch_threads"}}
+                                "machine": {"host", "cpus", "cpu_model", "platform", "processor",
+                                            "python", "torch", "torch_threads"}}
 
 The command is this process's (``sys.argv``) in the form the docs give it, ``python
 benchmarks/NAME.py ARGS``, whether the script was run so or as ``python -m benchmarks.NAME``. The
@@ -48,6 +48,20 @@ def command_line(argv: list[str] | None = None, script: str | None = None) -> st
     return " ".join(["python", script, *args])
 
 
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name ("" where the system does not say): two VMs of the same size and platform
+    ran the same eager torch step 2.3x apart, so a stored time names the CPU it was taken on."""
+    try:
+        lines = cpuinfo.read_text().splitlines()
+    except OSError:
+        return platform.processor()
+    for line in lines:
+        key, _, value = line.partition(":")
+        if key.strip() == "model name":
+            return value.strip()
+    return platform.processor()
+
+
 def machine(threads: int | None = None, **extra) -> dict:
     """The machine a result was measured on; ``threads``: torch's intra-op threads of the measurement
     (default: this process's setting); ``extra``: more fields (e.g. ``native_bfloat16``)."""
@@ -56,6 +70,7 @@ def machine(threads: int | None = None, **extra) -> dict:
     return {
         "host": platform.node(),
         "cpus": os.cpu_count(),
+        "cpu_model": cpu_model(),
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
         "python": platform.python_version(),
@@ -71,7 +86,9 @@ def machine_text(m) -> str:
         return str(m)
     threads = m.get("torch_threads")
     return (
-        f"{m.get('host', '?')}: {m.get('cpus', '?')} CPU cores, {m.get('platform', '')}, "
+        f"{m.get('host', '?')}: {m.get('cpus', '?')} CPU cores"
+        + (f" ({m['cpu_model']})" if m.get("cpu_model") else "")
+        + f", {m.get('platform', '')}, "
         f"torch {m.get('torch', '')}"
         + (f" ({threads} thread{'s' if threads != 1 else ''})" if threads else "")
     )
