@@ -6,7 +6,8 @@
 4. one Gaussian mixture per group, a component per associated vertex, means initialised at the
    predictions (neighbours not associated are fixed components, so they take their share of points);
 5. observed vertices move to their component means, pushed back by the rope radius (the camera sees
-   the near surface); occluded ones keep the prediction;
+   the near surface); occluded ones keep the prediction here (the tracker then moves them with their
+   corrected neighbours, ``tracker.hidden_coherence``);
 6. when that moved a vertex farther than ``repeat_beyond``, or left hidden a vertex that only the
    model's error hid (:func:`hidden_only_by_the_model`: the surface in front of it is no closer than
    its seen neighbours, as when a model that knows no table puts it below one), steps 2-5 again from
