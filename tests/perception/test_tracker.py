@@ -327,6 +327,19 @@ def test_colour_spilled_off_the_rope_does_not_lose_it(model, recording, grip_idx
     assert status[0]["lost"] >= 1
 
 
+def _corrected_from(model, recording, frame, shape, **tracker_settings):
+    """One correction by ``frame`` of a tracker whose state was put at ``shape`` (positions at the
+    frame's step, the velocity of the recording's step before), never re-finding the rope (so that the
+    correction alone is tested); returns (estimate, observed, tracker)."""
+    p = recording.positions
+    cfg = {"tracker": {**tracker_settings, "refind_cost": 0.0, "lost_fraction": 1.0}}
+    t = Tracker(model, config=cfg)
+    t.initialize_from_frames(p[frame.step - 1], p[frame.step])
+    t.state = model.reposition(t.state, torch.as_tensor(shape)[None])
+    x, observed = t.correct(frame.xyz, frame.rgb, frame.camera)
+    return x, observed, t
+
+
 def test_a_visible_vertex_beyond_the_association_radius_follows_its_corrected_neighbours(
     model, recording, clear_frames
 ):
@@ -344,11 +357,7 @@ def test_a_visible_vertex_beyond_the_association_radius_follows_its_corrected_ne
     off[mid] += 0.025 * toward
     errors = {}
     for share in (0.0, 1.0):
-        cfg = {"tracker": {"coherence": share, "refind_cost": 0.0, "lost_fraction": 1.0}}
-        t = Tracker(model, config=cfg)
-        t.initialize_from_frames(p[f.step - 1], p[f.step])
-        t.state = model.reposition(t.state, torch.as_tensor(off)[None])
-        x, observed = t.correct(f.xyz, f.rgb, f.camera)
+        x, observed, _ = _corrected_from(model, recording, f, off, coherence=share)
         assert not observed[mid] and observed.sum() >= 4
         errors[share] = np.linalg.norm(x[mid] - truth[mid])
     assert errors[1.0] < 0.6 * errors[0.0]
@@ -369,11 +378,7 @@ def test_hidden_vertices_take_their_corrected_neighbours_shift_with_hidden_coher
     off[2:-2] += 0.04 * toward / np.linalg.norm(toward)
     errors = {}
     for share in (0.0, 1.0):
-        cfg = {"tracker": {"hidden_coherence": share, "refind_cost": 0.0, "lost_fraction": 1.0}}
-        t = Tracker(model, config=cfg)
-        t.initialize_from_frames(p[f.step - 1], p[f.step])
-        t.state = model.reposition(t.state, torch.as_tensor(off)[None])
-        x, observed = t.correct(f.xyz, f.rgb, f.camera)
+        x, observed, t = _corrected_from(model, recording, f, off, hidden_coherence=share)
         hidden = ~f.visible & t.movable
         assert hidden.any() and not (observed & hidden).any() and observed.sum() >= 3
         errors[share] = np.linalg.norm(x[hidden] - truth[hidden], axis=1).mean()
