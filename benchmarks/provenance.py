@@ -54,12 +54,12 @@ def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
     try:
         lines = cpuinfo.read_text().splitlines()
     except OSError:
-        return platform.processor()
+        return ""
     for line in lines:
         key, _, value = line.partition(":")
         if key.strip() == "model name":
             return value.strip()
-    return platform.processor()
+    return ""
 
 
 def machine(threads: int | None = None, **extra) -> dict:
