@@ -428,10 +428,11 @@ class DeformModel(nn.Module):
         rod's material frame by radians; solved here, the next step's solve starts converged
         instead of taking tens of iterations."""
         batch = state.x.shape[:-2]
-        vm = state.vertex_major()
+        vm = self._vertex_major(state)
         x = vertex_major(x.to(state.x.dtype), 2, batch)
         with torch.no_grad():
-            inv_mass = self._projection_inv_mass(self.vertex_mass(vm.rest), held=True)
+            params, mass = self._physical(vm.rest, False)
+            inv_mass = self._projection_inv_mass(mass, held=True)
             x = enforce_inextensibility(
                 x,
                 inv_mass,
@@ -444,9 +445,9 @@ class DeformModel(nn.Module):
         v = vm.v if v is None else vertex_major(v.to(state.x.dtype), 2, batch)
         moved = VertexMajorState(x=x, v=v, d1=d1, theta=vm.theta, rest=vm.rest)
         with torch.no_grad():
-            params, mass = self._physical(moved.rest, False)
-            _, theta, _ = self._forces(moved, params, mass, None, False)
-        return VertexMajorState(moved.x, moved.v, moved.d1, theta, moved.rest).batch_major()
+            theta = self._angles(x, moved, params, None)[3]
+        # the same rest-length tensor back, as a step hands it on: the parameters cached on it stay valid
+        return RodState(*(batch_major(t, batch) for t in (x, v, d1, theta)), state.rest)
 
     # ----- dynamics ---------------------------------------------------------------------------
     def forces(
@@ -479,6 +480,27 @@ class DeformModel(nn.Module):
     ):
         """(forces (n, 3, B), angles (m, B), tangents (m, 3, B)) of a vertex-major state."""
         x = state.x if create_graph else state.x.detach()
+        geo, a, b, theta = self._angles(
+            x, state, params, theta_ends, branch_free, report, groups, closed_form_groups
+        )
+        force = (fused_rod_forces if self.fused_pieces else rod_forces)(
+            x, geo, a, b, theta, params, mass
+        )
+        return force, theta, geo.t
+
+    def _angles(
+        self,
+        x: Tensor,
+        state: VertexMajorState,
+        params: ElasticParams,
+        theta_ends: Tensor | None,
+        branch_free: int = 0,
+        report: ConvergenceReport | None = None,
+        groups: int = 1,
+        closed_form_groups: int = 0,
+    ):
+        """(geometry, projections a and b, energy-minimising angles (m, B)) at positions ``x``: what
+        the forces need, and all a corrected shape needs (:meth:`reposition`)."""
         if theta_ends is None:
             theta_ends = state.theta[[0, -1]].detach()
         # the frame is carried along by parallel transport: identity at x, but it moves with x
@@ -487,8 +509,7 @@ class DeformModel(nn.Module):
         theta = self._solve_theta(
             a, b, geo.m_ref, theta_ends, params, state.theta, branch_free, report, groups, closed_form_groups
         )
-        force = (fused_rod_forces if fused else rod_forces)(x, geo, a, b, theta, params, mass)
-        return force, theta, geo.t
+        return geo, a, b, theta
 
     def _solve_theta(
         self,

@@ -155,6 +155,26 @@ def test_reposition_projects_a_correction_onto_the_rest_lengths(model, recording
     assert velocity_change(type(moved)(corrected, moved.v, moved.d1, moved.theta, moved.rest)) > bound
 
 
+def test_tracking_reuses_the_parameters_of_unchanged_rest_lengths(recording, monkeypatch):
+    """A tracker alternates steps and corrections on the same rest lengths: the elastic parameters
+    (a fifth of a step) are computed once, not again after every correction; a new rest length
+    (the tracker's length estimate moved) computes them again."""
+    model = DeformModel(load_rod_config("DLO2"))
+    X = torch.tensor(recording.positions[:3], dtype=torch.float64)
+    grip = gripped_indices(model.n)
+    computed = []
+    elastic_params = model.elastic_params
+    monkeypatch.setattr(model, "elastic_params", lambda rest: computed.append(1) or elastic_params(rest))
+    state = model.initial_state(X[0:1], X[1:2])
+    for _ in range(3):
+        state = model.step(state, X[2:3, grip])
+        state = model.reposition(state, X[2:3] + 1e-3, torch.zeros_like(X[2:3]))
+    assert len(computed) == 1
+    longer = type(state)(state.x, state.v, state.d1, state.theta, state.rest * 1.01)
+    model.step(model.reposition(longer, X[2:3]), X[2:3, grip])
+    assert len(computed) == 2
+
+
 def test_nominal_rest_lengths_come_from_training_recordings(tmp_path, recording):
     from deform.train import nominal_rest_lengths
 
