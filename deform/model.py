@@ -483,9 +483,7 @@ class DeformModel(nn.Module):
         geo, a, b, theta = self._angles(
             x, state, params, theta_ends, branch_free, report, groups, closed_form_groups
         )
-        force = (fused_rod_forces if self.fused_pieces else rod_forces)(
-            x, geo, a, b, theta, params, mass
-        )
+        force = (fused_rod_forces if self.fused_pieces else rod_forces)(x, geo, a, b, theta, params, mass)
         return force, theta, geo.t
 
     def _angles(
