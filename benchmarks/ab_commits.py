@@ -10,9 +10,13 @@ checkouts taking turns ``--rounds`` times. Measured, on one thread (what each pr
 * ``rollout_512``: ``benchmarks/predict_rollout.py --plans 512 --settings 2,2:aot`` of that
   checkout, the median rollout time [ms] over its start states;
 * ``loop_step``: the 100 Hz loop's step (one rod, float64, ahead of time) over a DLO1 recording,
-  p50 and p99 [ms].
+  p50 and p99 [ms];
+* ``tracker``: our tracker's camera update and model step as ``benchmarks/tracking_peers.py --quick
+  --methods ours --scenarios occlusion`` of that checkout times them (DLO1 and DLO3, 0-50 %
+  occluded), p50 and p99 [ms].
 
-    python benchmarks/ab_commits.py [--base 233b390] [--rounds 2] -> benchmarks/results/ab_commits.json
+    python benchmarks/ab_commits.py [--base 233b390] [--rounds 2] [--measure tracker ...]
+        -> benchmarks/results/ab_commits[.<measures>].json
 """
 
 from __future__ import annotations
@@ -98,13 +102,75 @@ def _rollout(root: Path) -> float:
     return json.loads([line for line in out.splitlines() if line.startswith("{")][-1])["median_ms"]
 
 
-def measure(root: Path) -> dict:
-    """One round of every measurement in the checkout at ``root``."""
-    return {
-        "predict_step_rod_steps_per_s": _run(_STEP.format(root=str(root)), root)["rod_steps_per_s"],
-        "rollout_512_median_ms": _rollout(root),
-        "loop_step": _run(_LOOP.format(root=str(root)), root),
-    }
+def _tracker(root: Path) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        subprocess.run(
+            [
+                sys.executable,
+                "benchmarks/tracking_peers.py",
+                "--quick",
+                "--methods",
+                "ours",
+                "--scenarios",
+                "occlusion",
+                "--out",
+                out,
+            ],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        timing = json.loads((Path(out) / "tracking_peers.json").read_text())["timing_ms"]["ours"]
+    return {"update": timing["update"], "step": timing["step"]}
+
+
+# name on the command line -> (key of its value in a round, the measurement)
+MEASURES = {
+    "predict_step": (
+        "predict_step_rod_steps_per_s",
+        lambda root: _run(_STEP.format(root=str(root)), root)["rod_steps_per_s"],
+    ),
+    "rollout_512": ("rollout_512_median_ms", _rollout),
+    "loop_step": ("loop_step", lambda root: _run(_LOOP.format(root=str(root)), root)),
+    "tracker": ("tracker", _tracker),
+}
+
+
+def measure(root: Path, names: list[str]) -> dict:
+    """One round of the named measurements in the checkout at ``root``."""
+    return {MEASURES[name][0]: MEASURES[name][1](root) for name in names}
+
+
+def speedups(rows: dict[str, list]) -> dict:
+    """Base over head (a time) or head over base (a rate), medians over the rounds, for what was
+    measured: above 1 where the head is faster."""
+
+    def med(name, *keys):
+        vals = []
+        for r in rows[name]:
+            for k in keys:
+                r = r[k]
+            vals.append(r)
+        return statistics.median(vals)
+
+    measured = rows["head"][0]
+    out = {}
+    if "predict_step_rod_steps_per_s" in measured:
+        out["predict_step_ratio"] = med("head", "predict_step_rod_steps_per_s") / med(
+            "base", "predict_step_rod_steps_per_s"
+        )
+    if "rollout_512_median_ms" in measured:
+        out["rollout_512_ratio"] = med("base", "rollout_512_median_ms") / med("head", "rollout_512_median_ms")
+    if "loop_step" in measured:
+        out["loop_step_p50_ratio"] = med("base", "loop_step", "p50_ms") / med("head", "loop_step", "p50_ms")
+    if "tracker" in measured:
+        for part in ("update", "step"):
+            for q in ("p50", "p99"):
+                out[f"tracker_{part}_{q}_ratio"] = med("base", "tracker", part, q) / med(
+                    "head", "tracker", part, q
+                )
+    return out
 
 
 def main() -> int:
@@ -113,8 +179,12 @@ def main() -> int:
         "--base", default="233b390", help="the earlier commit (default: before the vertex-major layout)"
     )
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--json", default=str(ROOT / "benchmarks/results/ab_commits.json"))
+    ap.add_argument("--measure", nargs="+", choices=list(MEASURES), default=list(MEASURES))
+    ap.add_argument("--json", default=None, help="default benchmarks/results/ab_commits[.<measures>].json")
     args = ap.parse_args()
+    every = args.measure == list(MEASURES)
+    stem = "ab_commits" if every else "ab_commits." + "_".join(args.measure)
+    path = Path(args.json) if args.json else ROOT / "benchmarks/results" / f"{stem}.json"
     from benchmarks.provenance import provenance
 
     rows: dict[str, list] = {"base": [], "head": []}
@@ -126,23 +196,14 @@ def main() -> int:
         try:
             for r in range(args.rounds):
                 for name, root in (("base", base), ("head", ROOT)):
-                    rows[name].append(measure(root))
+                    rows[name].append(measure(root, args.measure))
                     print(name, r, json.dumps(rows[name][-1]), flush=True)
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, check=False)
 
-    def med(name, key, sub=None):
-        vals = [r[key][sub] if sub else r[key] for r in rows[name]]
-        return statistics.median(vals)
-
-    summary = {
-        "predict_step_ratio": med("head", "predict_step_rod_steps_per_s")
-        / med("base", "predict_step_rod_steps_per_s"),
-        "rollout_512_ratio": med("base", "rollout_512_median_ms") / med("head", "rollout_512_median_ms"),
-        "loop_step_p50_ratio": med("base", "loop_step", "p50_ms") / med("head", "loop_step", "p50_ms"),
-    }
+    summary = speedups(rows)
     result = {**provenance(), "base": args.base, "rounds": rows, "speedup": summary}
-    Path(args.json).write_text(json.dumps(result, indent=2))
+    path.write_text(json.dumps(result, indent=2))
     print(json.dumps(summary, indent=2))
     return 0
 

@@ -173,6 +173,7 @@ def renderer(name: str):
         return render_diagnose
     for stem, render in (
         ("diagnose_ab.", render_diagnose_ab),
+        ("ab_commits.", render_ab_commits),
         ("tracking_peers.", render_tracking_peers),
         ("calibrate_rods.", render_calibrate_rods),
     ):

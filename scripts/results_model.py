@@ -418,23 +418,36 @@ def render_batched_throughput(d: dict) -> list[str]:
 
 def render_ab_commits(d: dict) -> list[str]:
     rounds = d.get("rounds", {})
+    measured = rounds.get("head", [{}])[0] if rounds.get("head") else {}
 
-    def med(name, key, sub=None):
-        vals = [r[key][sub] if sub else r[key] for r in rounds.get(name, [])]
+    def med(name, *keys):
+        vals = []
+        for r in rounds.get(name, []):
+            for k in keys:
+                r = r[k]
+            vals.append(r)
         return statistics.median(vals) if vals else None
 
     rows = [
-        ["predict's step, 1024 rods, float32, 1 thread [rod-steps/s]", "predict_step_rod_steps_per_s", None],
-        ["predict's rollout, 512 plans x 100 steps, 1 thread, median [ms]", "rollout_512_median_ms", None],
-        ["the 100 Hz loop's step, one rod, p50 [ms]", "loop_step", "p50_ms"],
-        ["the 100 Hz loop's step, one rod, p99 [ms]", "loop_step", "p99_ms"],
+        ["predict's step, 1024 rods, float32, 1 thread [rod-steps/s]", ("predict_step_rod_steps_per_s",)],
+        ["predict's rollout, 512 plans x 100 steps, 1 thread, median [ms]", ("rollout_512_median_ms",)],
+        ["the 100 Hz loop's step, one rod, p50 [ms]", ("loop_step", "p50_ms")],
+        ["the 100 Hz loop's step, one rod, p99 [ms]", ("loop_step", "p99_ms")],
+        ["the tracker's camera update, p50 [ms]", ("tracker", "update", "p50")],
+        ["the tracker's camera update, p99 [ms]", ("tracker", "update", "p99")],
+        ["the tracker's model step, p50 [ms]", ("tracker", "step", "p50")],
+        ["the tracker's model step, p99 [ms]", ("tracker", "step", "p99")],
     ]
-    body = [[label, fmt(med("base", key, sub), 3), fmt(med("head", key, sub), 3)] for label, key, sub in rows]
+    body = [
+        [label, fmt(med("base", *keys), 3), fmt(med("head", *keys), 3)]
+        for label, keys in rows
+        if keys[0] in measured
+    ]
     speed = d.get("speedup", {})
+    ratios = ", ".join(f"{key.removesuffix('_ratio')} {fmt(value)}x" for key, value in speed.items())
     return [
         f"Processes of both checkouts alternated, {len(rounds.get('head', []))} rounds; medians over rounds. "
-        f"Base: {d.get('base')}. Speed-up (base time / today's): step {fmt(speed.get('predict_step_ratio'))}x, "
-        f"rollout {fmt(speed.get('rollout_512_ratio'))}x, loop step {fmt(speed.get('loop_step_p50_ratio'))}x.",
+        f"Base: {d.get('base')}. Speed-up (base time / today's): {ratios}.",
         "",
     ] + table(["measure", "base", "today"], body)
 
