@@ -11,6 +11,8 @@ checkouts taking turns ``--rounds`` times. Measured, on one thread (what each pr
   checkout, the median rollout time [ms] over its start states;
 * ``loop_step``: the 100 Hz loop's step (one rod, float64, ahead of time) over a DLO1 recording,
   p50 and p99 [ms];
+* ``reposition``: a correction of the one-rod eager model (:meth:`DeformModel.reposition`, a 2 mm
+  shift of every vertex) after every third step, median [ms] of the correction and of the step;
 * ``tracker``: our tracker's camera update and model step as ``benchmarks/tracking_peers.py --quick
   --methods ours --scenarios occlusion`` of that checkout times them (DLO1 and DLO3, 0-50 %
   occluded), p50 and p99 [ms].
@@ -70,6 +72,33 @@ with torch.no_grad():
             if k >= 20:
                 seconds.append(time.perf_counter() - t)
 print(json.dumps(_percentiles(seconds)))
+"""
+
+_REPOSITION = """
+import json, statistics, sys, time, torch
+sys.path.insert(0, {root!r})
+torch.set_num_threads(1)
+from deform import load_model
+from deform.bench import _trajectory
+from deform.model import gripped_indices
+model = load_model("DLO1")
+pos = torch.tensor(_trajectory(model))
+idx = gripped_indices(model.n)
+noise = torch.Generator().manual_seed(0)
+correct, step = [], []
+with torch.no_grad():
+    for rep in range(3):
+        s = model.initial_state(pos[0:1], pos[1:2])
+        for k in range(len(pos) - 2):
+            t0 = time.perf_counter()
+            s = model.step(s, pos[2 + k : 3 + k, idx])
+            t1 = time.perf_counter()
+            step.append(t1 - t0)
+            if k % 3 == 0:
+                x = s.x + 0.002 * torch.randn(s.x.shape, generator=noise, dtype=s.x.dtype)
+                s = model.reposition(s, x, s.v)
+                correct.append(time.perf_counter() - t1)
+print(json.dumps({{"correct_p50_ms": 1e3 * statistics.median(correct), "step_p50_ms": 1e3 * statistics.median(step)}}))
 """
 
 
@@ -133,6 +162,7 @@ MEASURES = {
     ),
     "rollout_512": ("rollout_512_median_ms", _rollout),
     "loop_step": ("loop_step", lambda root: _run(_LOOP.format(root=str(root)), root)),
+    "reposition": ("reposition", lambda root: _run(_REPOSITION.format(root=str(root)), root)),
     "tracker": ("tracker", _tracker),
 }
 
@@ -164,6 +194,11 @@ def speedups(rows: dict[str, list]) -> dict:
         out["rollout_512_ratio"] = med("base", "rollout_512_median_ms") / med("head", "rollout_512_median_ms")
     if "loop_step" in measured:
         out["loop_step_p50_ratio"] = med("base", "loop_step", "p50_ms") / med("head", "loop_step", "p50_ms")
+    if "reposition" in measured:
+        for part in ("correct", "step"):
+            out[f"reposition_{part}_p50_ratio"] = med("base", "reposition", f"{part}_p50_ms") / med(
+                "head", "reposition", f"{part}_p50_ms"
+            )
     if "tracker" in measured:
         for part in ("update", "step"):
             for q in ("p50", "p99"):

@@ -433,6 +433,8 @@ def render_ab_commits(d: dict) -> list[str]:
         ["predict's rollout, 512 plans x 100 steps, 1 thread, median [ms]", ("rollout_512_median_ms",)],
         ["the 100 Hz loop's step, one rod, p50 [ms]", ("loop_step", "p50_ms")],
         ["the 100 Hz loop's step, one rod, p99 [ms]", ("loop_step", "p99_ms")],
+        ["a correction (reposition) of the eager one-rod model, p50 [ms]", ("reposition", "correct_p50_ms")],
+        ["the eager one-rod model's step among corrections, p50 [ms]", ("reposition", "step_p50_ms")],
         ["the tracker's camera update, p50 [ms]", ("tracker", "update", "p50")],
         ["the tracker's camera update, p99 [ms]", ("tracker", "update", "p99")],
         ["the tracker's model step, p50 [ms]", ("tracker", "step", "p50")],
