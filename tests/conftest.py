@@ -35,6 +35,25 @@ def _private_deform_cache(tmp_path_factory):
         yield
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _fused_pieces_eager():
+    """The discrepancy tool's fused pieces (``deform.rod.fusion``) run eagerly (``DEFORM_COMPILE=0``)
+    but in tests marked ``compile``: on a fresh machine each traced variant compiles C++ for
+    seconds (a tiny diagnosis, 30 s eager, took two minutes compiled), and the compiled pieces'
+    values and gradients are tested against eager where marked (tests/deform/rod/test_fusion.py: a
+    model with fused pieces steps and differentiates as eager). Set in ``os.environ`` so that worker
+    processes inherit it."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("DEFORM_COMPILE", "0")
+        yield
+
+
+@pytest.fixture(autouse=True)
+def _fused_pieces_where_marked(request, monkeypatch):
+    if request.node.get_closest_marker("compile"):
+        monkeypatch.delenv("DEFORM_COMPILE", raising=False)  # the default: fused pieces compiled
+
+
 @pytest.fixture(scope="session")
 def data_root():
     """The DEFORM recordings (``../shared/data/deform`` or ``$DEFORM_DATA``); tests using it are

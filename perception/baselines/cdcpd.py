@@ -168,7 +168,7 @@ def project_constraints(
             max_iter=10000,
             polishing=True,
         )
-        res = solver.solve()
+        res = solver.solve(raise_error=False)  # a failed QP is read from its status below
         status = str(res.info.status).lower()
         if res.x is None or not np.all(np.isfinite(res.x)) or "solved" not in status or "inacc" in status:
             _qp_failed(str(res.info.status))

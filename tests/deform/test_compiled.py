@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from deform import generate_recording, gripped_indices, load_model, overstretched
-from deform.compiled import LOOP_BRANCH_FREE, CompiledStep, RolloutStep, bucket_size, rollout
+from deform.compiled import (
+    LOOP_BRANCH_FREE,
+    PREDICT_BRANCH_FREE,
+    CompiledStep,
+    RolloutStep,
+    bucket_size,
+    rollout,
+)
 from deform.model import RodState
 from deform.rod.inextensibility import max_relative_error
 from deform.rod.layout import vertex_major
@@ -86,7 +93,7 @@ def test_sudden_jump_is_redone_eagerly(model, start):
     """A grip that jumps 5 cm in one step needs more projection sweeps than the compiled step
     makes: that rod is stepped again by the checked eager loop and the result stays within tol."""
     state, grips = start
-    step = CompiledStep(model, branch_free=(2, 1))
+    step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE)  # the graph predict compiles (fewer to build)
     state = model.step(state, grips[:, 0])  # the twist angles solved (the start has none)
     state = step(state, grips[:, 1])
     assert step.redone == 0
@@ -203,7 +210,7 @@ def test_solver_flags_agree_with_a_recomputed_check(model, start):
     jump[1, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
     for g, expected in ((grips[:, 1], [False, False, False]), (jump, [False, True, False])):
         flags = [
-            CompiledStep(model, branch_free=(2, 1), check=c).attempt(state, g)[1].tolist()
+            CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, check=c).attempt(state, g)[1].tolist()
             for c in ("report", "recompute")
         ]
         assert flags[0] == flags[1] == expected

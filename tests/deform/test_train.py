@@ -52,7 +52,7 @@ def test_coarse_identification_finds_the_stiffness_decade():
     model = DeformModel(cfg.model_copy(update={"bend_stiffness": 1e-4, "twist_stiffness": 7e-5}))
     found = coarse_identification(model, recs, steps=60, progress=False)
     assert 3e-3 <= found["bend_stiffness"] <= 3e-2
-    assert abs(float(model.log_beta.exp().mean()) - found["bend_stiffness"]) < 1e-6 * found["bend_stiffness"]
+    assert abs(model.log_beta.exp().mean().item() - found["bend_stiffness"]) < 1e-6 * found["bend_stiffness"]
 
 
 @pytest.mark.slow

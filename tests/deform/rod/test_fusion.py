@@ -99,6 +99,7 @@ def _compile_that_fails(monkeypatch):
 
 
 def test_a_failed_compile_steps_eagerly_after_one_warning(monkeypatch, caplog):
+    monkeypatch.delenv("DEFORM_COMPILE", raising=False)  # the default (tests/conftest.py sets 0)
     _compile_that_fails(monkeypatch)
     piece = fusion.Fused(lambda a, b: a * b + 1)
     with caplog.at_level(logging.WARNING, logger="deform.fusion"):
@@ -111,6 +112,7 @@ def test_a_failed_compile_steps_eagerly_after_one_warning(monkeypatch, caplog):
 
 
 def test_deform_compile_0_and_steps_without_gradients_stay_eager(monkeypatch):
+    monkeypatch.delenv("DEFORM_COMPILE", raising=False)  # the default (tests/conftest.py sets 0)
     _compile_that_fails(monkeypatch)
     piece = fusion.Fused(lambda a: a + 1)
     with torch.no_grad():

@@ -76,9 +76,9 @@ def test_ablation_keeps_stiffness_uniform_and_drag_at_its_floor(tmp_path):
     )
     result = train(model, recs[:1], recs[1:], tcfg, tmp_path, progress=False)
     assert result["without"] == ["stiffness_variation", "aerodynamic_drag"]
-    assert float(model.log_beta.max() - model.log_beta.min()) == 0.0
-    assert float(model.log_gamma.max() - model.log_gamma.min()) == 0.0
-    assert math.isclose(float(model.log_drag), math.log(1e-4), rel_tol=1e-6)
+    assert (model.log_beta.max() - model.log_beta.min()).item() == 0.0
+    assert (model.log_gamma.max() - model.log_gamma.min()).item() == 0.0
+    assert math.isclose(model.log_drag.item(), math.log(1e-4), rel_tol=1e-6)
     assert not model.log_drag.requires_grad
     with pytest.raises(UsageError, match="not part of this model"):
         without(DeformModel(cfg), ["external_force"])
