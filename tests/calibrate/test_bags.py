@@ -109,3 +109,40 @@ def test_an_unorganized_cloud_is_read_on_its_camera_info_grid(clips, tmp_path):
     write_messages(only_output, "deform/rod1", vertices)
     with pytest.raises(CalibrationError, match=r"no camera's clouds.*rgb"):
         read_clip(only_output, cfg)
+
+
+@pytest.mark.parametrize(
+    ("storage", "mode"),
+    [("SQLITE3", "FILE"), ("SQLITE3", "MESSAGE"), ("MCAP", "MESSAGE"), ("MCAP", "STORAGE")],
+)
+def test_a_compressed_rosbag2_reads_as_the_plain_clip(clips, tmp_path, storage, mode):
+    """`ros2 bag record --compression-mode file|message --compression-format zstd`, in either
+    storage, and MCAP's own chunk compression: the same poses, stamps and clouds as the clip's
+    plain MCAP file."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    from service import messages as M
+    from service.bag import TYPES
+
+    path = tmp_path / f"{storage}_{mode}".lower()
+    writer = Writer(path, version=8, storage_plugin=StoragePlugin[storage])
+    writer.set_compression(CompressionMode[mode], CompressionFormat.ZSTD)
+    writer.open()
+    connections = {}
+    for m in clips.messages:
+        if m.name not in connections:
+            connections[m.name] = writer.add_connection(
+                f"/deform/rod1/{m.name}", TYPES[m.name], typestore=M.TYPESTORE
+            )
+        writer.write(connections[m.name], m.log_time, m.data)
+    writer.close()
+
+    cfg = ServiceConfig(grippers=clips.grippers)
+    plain, packed = read_clip(clips.bags[0], cfg), read_clip(path, cfg)
+    assert packed.n_clouds == plain.n_clouds == 15
+    np.testing.assert_array_equal(packed.pose_stamps_ns, plain.pose_stamps_ns)
+    np.testing.assert_array_equal(packed.poses, plain.poses)
+    for (ta, pa, ca), (tb, pb, cb) in zip(plain.clouds(), packed.clouds(), strict=True):
+        assert ta == tb
+        np.testing.assert_array_equal(pa, pb)
+        np.testing.assert_array_equal(ca, cb)
