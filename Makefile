@@ -43,11 +43,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -x -n auto --dist loadfile --durations=15 tests
 
-# the quick loop (under a minute on two cores): no dataset, no compiling (DEFORM_COMPILE=0: the
-# discrepancy tool's fused pieces eager, deform/rod/fusion.py), nothing marked slow (markers:
+# the quick loop (under a minute on two cores): no dataset, no compiling (tests not marked compile
+# run the discrepancy tool's fused pieces eagerly, tests/conftest.py), nothing marked slow (markers:
 # pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
 test-fast: $(STAMP)
-	DEFORM_COMPILE=0 $(PY) -m pytest -q -x -m "not slow and not compile and not needs_data" tests
+	$(PY) -m pytest -q -x -m "not slow and not compile and not needs_data" tests
 
 # the layer contracts (import-linter, pyproject.toml [tool.importlinter]) and ruff ([tool.ruff]);
 # CI runs `make lint` before the tests
