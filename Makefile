@@ -43,11 +43,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -x -n auto --dist loadfile --durations=15 tests
 
-# the quick loop (under a minute on two cores): no dataset, no compiling (tests not marked compile
+# the quick loop (83 s of tests on two cores, a worker per core): no dataset, no compiling (tests not marked compile
 # run the discrepancy tool's fused pieces eagerly, tests/conftest.py), nothing marked slow (markers:
 # pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -x -m "not slow and not compile and not needs_data" tests
+	$(PY) -m pytest -q -x -n auto --dist loadfile -m "not slow and not compile and not needs_data" tests
 
 # the layer contracts (import-linter, pyproject.toml [tool.importlinter]) and ruff ([tool.ruff]);
 # CI runs `make lint` before the tests

@@ -338,6 +338,7 @@ def test_a_hand_holding_the_rope_along_its_y_axis(tmp_path):
     assert np.abs(grips_from_poses(clip.poses, as_x) - markers).max() > 0.01
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay_s", [0.0, 0.05])
 def test_the_clouds_stamp_delay_is_found_and_taken_out(tmp_path, delay_s):
     """A driver that stamps its clouds 50 ms after capture: calibrate finds the delay from where the

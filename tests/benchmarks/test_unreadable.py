@@ -42,6 +42,7 @@ def _probe(tmp_path, env) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_the_withheld_rods_files_cannot_be_opened_even_by_spawned_workers(tmp_path):
     with withheld(shipped_files("DLO3")) as env:
         seen = _probe(tmp_path, env)
@@ -50,6 +51,7 @@ def test_the_withheld_rods_files_cannot_be_opened_even_by_spawned_workers(tmp_pa
     assert seen["DLO1"] == "loaded"
 
 
+@pytest.mark.slow
 def test_without_withholding_the_same_probe_loads_every_rod(tmp_path):
     seen = _probe(tmp_path, dict(os.environ))
     assert seen == {"DLO3": "loaded", "DLO1": "loaded", "spawned DLO3": "loaded"}

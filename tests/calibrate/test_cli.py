@@ -59,6 +59,7 @@ def calibrated(clips, tmp_path_factory) -> tuple[dict, Path]:
     return json.loads(out.stdout.strip().splitlines()[-1]), out_dir
 
 
+@pytest.mark.slow  # a whole calibration: tens of seconds
 def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     summary, out_dir = calibrated
     model = load_model(summary["model"])
@@ -97,6 +98,7 @@ def test_calibrate_writes_a_model_that_load_model_loads(calibrated):
     assert f"Bending stepped {'implicitly' if scheme['implicit_bending'] else 'explicitly'}" in md
 
 
+@pytest.mark.slow  # a whole calibration: tens of seconds
 @pytest.mark.zenoh
 def test_the_service_serves_a_calibrated_model(calibrated):
     """``deform-service run --rod MODEL.pt`` with the file calibrate wrote: the service starts on it,
@@ -186,6 +188,7 @@ def test_clips_too_still_give_a_report_and_no_model(clips, still_bag, tmp_path, 
     assert "No model was written" in (out / "rope_report" / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_the_time_limit_counts_from_the_commands_start():
     """``--time-limit`` promises the whole command: the clock starts when the process did (Python's
     start and the imports count), or when ``deform calibrate``, its parent, did. A parent that waited

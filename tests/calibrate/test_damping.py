@@ -55,6 +55,7 @@ def _fit(tracks):
     return lambda m: prediction_fit(m, tracks, HORIZON, 25)
 
 
+@pytest.mark.slow
 def test_a_damping_left_four_times_too_low_is_found_again(truth_and_tracks):
     truth, tracks = truth_and_tracks
     low = scaled(truth, "damping_per_s", 0.25)
@@ -65,6 +66,7 @@ def test_a_damping_left_four_times_too_low_is_found_again(truth_and_tracks):
     assert search["fits"]["4"] < search["fits"]["1"]
 
 
+@pytest.mark.slow
 def test_the_true_damping_is_kept(truth_and_tracks):
     truth, tracks = truth_and_tracks
     found, search = settle_damping(truth, _fit(tracks))

@@ -78,6 +78,7 @@ def test_the_default_vertex_count_keeps_edges_near_9_cm_within_12_to_14():
         default_vertices(0.0)
 
 
+@pytest.mark.slow
 def test_a_time_limit_cuts_training_short_skips_later_rounds_and_says_so(clips):
     """A limit already spent when training starts: round 1 trains one iteration of 50 (a model is
     still written, from what there was time for) and no later round runs; the notes say so."""
@@ -103,6 +104,7 @@ def test_a_later_round_is_projected_from_the_last_ones_training_and_the_rest_of_
     assert projected_round_s(previous, iterations=200) == pytest.approx(1.2 * 200 + 150)
 
 
+@pytest.mark.slow  # a whole calibration: tens of seconds
 def test_training_leaves_time_for_the_rest_of_its_round(clips, monkeypatch):
     """With 1000 s left at every round's start, round 1 trains for at most 1000 s less the estimate
     of its rest (first_round_rest_s) and the reserve, round 2 less what round 1 did besides
@@ -150,6 +152,7 @@ def test_round_ones_rest_is_round_zeros_pass_slowed_by_the_network_and_the_dampi
     assert fit.first_round_rest_s(round0, model, tracks, Budget(damping_horizon=0)) == 120.0
 
 
+@pytest.mark.slow
 def test_the_damping_search_rolls_out_a_bounded_spread_of_the_training_tracks(clips, monkeypatch):
     """Many clips: the damping search (and round 1's time probe of it) rolls out at most
     DAMPING_TRACKS of the training tracks, spread from the first to the last; few: all of them."""
@@ -197,6 +200,7 @@ def test_the_parameter_ranges_use_the_held_out_tracks_the_time_left_affords():
     assert len(fit.ranges_tracks(long_first, 2.8, 48.0)) < 4
 
 
+@pytest.mark.slow
 def test_a_round_that_would_pass_the_time_limit_is_not_started(clips, monkeypatch, tmp_path):
     """Every round kept (MIN_GAIN below any change) and round 2 projected to take longer than the
     limit leaves: round 1 trains its whole budget, round 2 never starts, and the note says so."""

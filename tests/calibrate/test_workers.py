@@ -16,6 +16,7 @@ from service.config import ServiceConfig
 from .conftest import LENGTH, MASS, N
 
 
+@pytest.mark.slow
 def test_jobs_come_back_in_their_order_and_a_jobs_error_is_raised_in_the_caller():
     items = [8.0, 4.0, 2.0, 1.0, 0.5]
     with Workers(2) as pool:
@@ -28,6 +29,7 @@ def test_jobs_come_back_in_their_order_and_a_jobs_error_is_raised_in_the_caller(
         Workers(0)
 
 
+@pytest.mark.slow  # a whole calibration: tens of seconds
 def test_a_calibration_with_two_workers_is_the_calibration_without(clips):
     """Two rounds (tracking passes, the damping search, held-out fits, the parameter ranges all
     through the workers): the same tracks, fits and model, exactly."""

@@ -4,7 +4,10 @@ imports it; ``from perception import render_recording`` still works."""
 import subprocess
 import sys
 
+import pytest
 
+
+@pytest.mark.slow
 def test_the_service_starts_without_importing_open3d():
     code = "import sys, service.node; print('open3d' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -3,6 +3,7 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from deform import gripped_indices, load_model, load_recording
@@ -397,6 +398,7 @@ def _at_clouds(tracker, positions, frames, grip_idx) -> tuple[float, float]:
     return float(np.mean(counts)), float(np.mean(errors))
 
 
+@pytest.mark.slow
 def test_a_rope_a_pixel_or_two_wide_keeps_its_pixels(model, recording, grip_idx):
     """A full-resolution cloud from a camera 1.6 m away, where the rope is a line two or three pixels
     wide: with the default settings the tracker segments it whole and tracks it nearer the truth

@@ -54,6 +54,7 @@ def test_a_given_clamp_is_held_by_the_fit(sources):
     assert sim.nominal.params()["bend_stiffness_Nm2"] != ei
 
 
+@pytest.mark.slow
 def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end_kept(sources, monkeypatch):
     """A second start from a longer clamp runs when the first ends under CLAMP_RESTART_M (forced
     here by raising it), and the simulator keeps the second end only when it scores lower on the
@@ -88,6 +89,7 @@ def test_a_nominal_fit_ending_at_the_clamp_bound_is_restarted_and_the_better_end
     assert now == pytest.approx(min(info["held_out_loss_m"].values()), rel=1e-9)
 
 
+@pytest.mark.slow
 def test_nominal_fits_at_two_model_steps_together_end_as_alone(sources, monkeypatch):
     """The tool's two nominal fits (the candidates' model step and the slow terms' finer one) are
     stepped as one batch, restarts included: each ends where it ends alone."""

@@ -91,6 +91,7 @@ def _fitted(name: str, recs, grid: bool) -> dict:
     return term.params()
 
 
+@pytest.mark.slow
 def test_a_strong_wind_is_fitted_from_the_grid_within_the_quick_budget(sources):
     # a wind of 3.2 m/s^2 at 144 degrees: fitted in Cartesian components from no wind (tools before
     # v10), Adam's steps times the iterations capped the wind at about 0.75 m/s^2 per axis
@@ -106,6 +107,7 @@ def test_a_strong_wind_is_fitted_from_the_grid_within_the_quick_budget(sources):
     assert np.linalg.norm(plain - truth) > 0.2 * np.linalg.norm(truth)
 
 
+@pytest.mark.slow
 def test_a_heavy_clip_is_fitted_from_the_grid_within_the_quick_budget(sources):
     # 25 g at 0.35 of the rope: fitted on a softplus of the mass (tools before v10), the fits
     # stopped at about 10.5 g; from the default start (2.5 g) the log alone does not get there

@@ -137,6 +137,7 @@ def test_training_with_an_added_term_finds_a_planted_wind(tmp_path):
     assert results["with"]["best_val_l1_m"] < 0.95 * results["without"]["best_val_l1_m"]
 
 
+@pytest.mark.slow
 def test_cli_refuses_a_bad_term_in_one_line_before_reading_data():
     out = subprocess.run(
         [sys.executable, "-m", "deform.cli", "train", "--rod", "DLO2", "--term", "actuation_delay"],
@@ -194,6 +195,7 @@ class _Step(torch.nn.Module):
         return new.x
 
 
+@pytest.mark.slow
 def test_a_model_with_internal_damping_exports_its_step(tmp_path):
     """The service runs a trained model's step ahead of time (torch.export): a term must not need
     Python state per call (a cache keyed on a tensor's address broke the export)."""
