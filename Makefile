@@ -43,9 +43,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -x -n auto --dist loadfile --durations=15 tests
 
-# the quick loop (83 s of tests on two cores, a worker per core): no dataset, no compiling (tests not marked compile
-# run the discrepancy tool's fused pieces eagerly, tests/conftest.py), nothing marked slow (markers:
-# pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
+# the quick loop (a worker per core; 83 s of tests on two cores): no dataset, no compiling (tests
+# not marked compile run the discrepancy tool's fused pieces eagerly, tests/conftest.py), nothing
+# marked slow (markers: pyproject.toml [tool.pytest.ini_options]); `make test` runs everything
 test-fast: $(STAMP)
 	$(PY) -m pytest -q -x -n auto --dist loadfile -m "not slow and not compile and not needs_data" tests
 

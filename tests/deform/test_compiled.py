@@ -254,7 +254,7 @@ def test_rollout_step_network_precision_reaches_every_path(model, start, monkeyp
 def test_one_graph_step_of_a_model_in_substeps_matches_eager():
     """A 30 cm rope known by length and mass takes implicit bending in substeps; the one-graph step
     (substeps unrolled, their reports merged) gives the eager step's values. Predict's iterations:
-    the loop's (6, 3) unroll the same way in a graph that takes 1.6x as long to compile."""
+    the loop's (6, 3) unroll the same way, in a larger graph that is slower to compile."""
     from deform.model import generic_model
 
     model = generic_model(0.3, 0.05)
