@@ -14,7 +14,6 @@ never uses this path (it needs second-order autograd through the step).
 
 from __future__ import annotations
 
-import enum
 import logging
 import threading
 
@@ -88,14 +87,6 @@ def _with_rods(state, rods: Tensor, part):
     return out
 
 
-class ConvergenceCheck(str, enum.Enum):
-    """How a branch-free step is verified: by the solvers' own flags (cheaper), or by
-    :meth:`DeformModel.unconverged` (a second evaluation of the twist Hessian)."""
-
-    REPORT = "report"
-    RECOMPUTE = "recompute"
-
-
 class CompiledStep:
     """Callable like ``model.step(state, grip_next)`` (inference only, no gradients).
 
@@ -105,10 +96,10 @@ class CompiledStep:
     ``branch_free=None`` (batches, e.g. predict): the step keeps its convergence-checked loops,
     each iteration a graph of its own. ``branch_free=(twist, sweeps)`` (a real-time loop, B = 1):
     the whole step is one graph with that many masked iterations, which cuts the per-call cost
-    about 3x; rods it leaves unconverged (by the solvers' own flags, ``check="report"``, or by
-    ``model.unconverged``, ``check="recompute"``) are stepped again eagerly. ``network_dtype``: the
-    residual network's arithmetic in every path from :data:`deform.nn.precision.BFLOAT16_MIN_BATCH`
-    rods per step on (None, and below that: float32; :mod:`deform.nn.precision`).
+    about 3x; rods it leaves unconverged (by the solvers' own per-rod flags) are stepped again
+    eagerly. ``network_dtype``: the residual network's arithmetic in every path from
+    :data:`deform.nn.precision.BFLOAT16_MIN_BATCH` rods per step on (None, and below that:
+    float32; :mod:`deform.nn.precision`).
     ``compile_fallback=False``: where the ahead-of-time step cannot be had, the eager step instead
     of torch.compile (for a graph too large to compile unrolled, see :data:`RESCUE_BRANCH_FREE`).
     ``buckets``: the batch sizes compiled, a batch padded to the smallest that holds it.
@@ -119,7 +110,6 @@ class CompiledStep:
         model: DeformModel,
         enabled: bool = True,
         branch_free: tuple[int, int] | None = None,
-        check: ConvergenceCheck | str = "report",
         ahead_of_time: bool = False,
         network_dtype: torch.dtype | None = None,
         compile_fallback: bool = True,
@@ -133,10 +123,8 @@ class CompiledStep:
         self.branch_free = branch_free
         # the branch-free step as an AOTInductor package per (bucket, dtype) (deform.aot: the same
         # values, without dynamo's per-call entry cost); torch.compile if it cannot be built
-        check = ConvergenceCheck(check)
-        self.ahead_of_time = ahead_of_time and branch_free is not None and check == ConvergenceCheck.REPORT
+        self.ahead_of_time = ahead_of_time and branch_free is not None
         self._aot: dict = {}
-        self.check = check
         self._compiled = None
         self._failed = False
         self.redone = 0  # rods whose compiled step did not converge and were stepped eagerly
@@ -150,21 +138,16 @@ class CompiledStep:
         return self.enabled and not self._failed
 
     def _one_graph(self) -> bool:
-        """Whether the step is the one-graph step checked by the solvers' report, which runs
-        vertex-major: its inputs are converted before the call, outside the graph."""
-        return self.branch_free is not None and self.check == ConvergenceCheck.REPORT
+        """Whether the step is the one-graph step (``branch_free``), which runs vertex-major: its
+        inputs are converted before the call, outside the graph."""
+        return self.branch_free is not None
 
     def _checked_step(self, state, grip_next: Tensor | None) -> tuple:
         """With ``branch_free``: the step with fixed iteration counts and which rods it left
-        unconverged, one graph (vertex-major in and out with the report's check, see
+        unconverged by the solvers' own flags, one graph (vertex-major in and out, see
         :meth:`_one_graph`). Without: the step with its checked loops (a graph per iteration)."""
         if self.branch_free is None:
             return self.eager(state, grip_next), None
-        if self.check == ConvergenceCheck.RECOMPUTE:
-            new = self.model.step(
-                state, grip_next, branch_free=self.branch_free, network_dtype=self._network(state.x.shape[0])
-            )
-            return new, self.model.unconverged(state, new, held=grip_next is not None)
         return branch_free_step(
             self.model, state, grip_next, self.branch_free, self._network(state.x.shape[0])
         )

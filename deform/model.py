@@ -702,8 +702,9 @@ class DeformModel(nn.Module):
         """(B,) bool: rods whose step from ``before`` to ``after`` left the twist angles or the edge
         lengths outside the solver tolerances: one more Newton step on theta would exceed
         ``sqrt(theta_tol)`` rad (the solver's own stopping rule), or an edge that can move is off its
-        rest length by more than ``pbd_tol``. Compiled steps, which cannot loop on data, use it to
-        verify their fixed iteration counts (``held``: the grippers held vertices 0, 1, n-2, n-1).
+        rest length by more than ``pbd_tol``: a second evaluation, against which the tests check
+        the flags compiled steps report after their fixed iteration counts
+        (:meth:`unconverged_from_report`; ``held``: the grippers held vertices 0, 1, n-2, n-1).
         With substeps the angles were solved at the last substep's positions, which ``before`` does
         not hold: only the lengths are checked (the solvers' report checks both,
         :meth:`unconverged_from_report`)."""

@@ -203,17 +203,17 @@ def test_rollout_step_does_not_redo_an_overstretched_rod(model, start):
 @pytest.mark.compile
 def test_solver_flags_agree_with_a_recomputed_check(model, start):
     """The one-graph step's convergence read from the solvers' own flags flags the same rods as a
-    second evaluation (``DeformModel.unconverged``): none on a plain step, the jerked rod on a jump."""
+    second evaluation of its result (``DeformModel.unconverged``): none on a plain step, the jerked
+    rod on a jump."""
     state, grips = start
     state = model.step(state, grips[:, 0])
     jump = grips[:, 1].clone()
     jump[1, 2:] += torch.tensor([0.05, 0.0, 0.0], dtype=jump.dtype)
+    step = CompiledStep(model, branch_free=PREDICT_BRANCH_FREE)
     for g, expected in ((grips[:, 1], [False, False, False]), (jump, [False, True, False])):
-        flags = [
-            CompiledStep(model, branch_free=PREDICT_BRANCH_FREE, check=c).attempt(state, g)[1].tolist()
-            for c in ("report", "recompute")
-        ]
-        assert flags[0] == flags[1] == expected
+        new, reported = step.attempt(state, g)
+        assert step.active, "torch.compile failed on this machine (see the warning)"
+        assert reported.tolist() == model.unconverged(state, new).tolist() == expected
 
 
 @pytest.mark.parametrize("min_batch", [1, 4])
