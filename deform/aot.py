@@ -26,6 +26,7 @@ import os
 import platform
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -36,6 +37,14 @@ from deform.rod.convergence import loops_when_exported
 from deform.step_graph import COMPILE_OPTIONS, branch_free_step, rod_at_rest_vertex_major
 
 log = logging.getLogger("deform.aot")
+
+# torch's deprecations inside its own export and inductor code (torch 2.13), printed on every build
+# (`make install` showed 21 of them for the five rods): nothing a user of this package can act on
+for _internal in (
+    r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+    r"`torch\._prims_common\.check` is deprecated",
+):
+    warnings.filterwarnings("ignore", message=_internal, category=FutureWarning)
 
 _PACKAGE_SOURCE = Path(__file__).resolve().parent
 # torch.compile's options for the same graph: its C++ wrapper is what AOTInductor always generates
