@@ -159,7 +159,6 @@ class Service:
         self.inbox: queue.Queue = queue.Queue(maxsize=4096)
         self.predict_queue: queue.Queue = queue.Queue(maxsize=4)
         self.latest_payload: bytes | None = None
-        self.published = 0
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._decl: list = []
@@ -385,7 +384,6 @@ class Service:
         payload = M.vertices_cloud(estimate.stamp_ns, estimate.x, estimate.observed, self.cfg.frame_id)
         self.latest_payload = payload  # first: a client that queries on receiving the sample finds it
         self.pub.put(payload)
-        self.published += 1
         publish_s = time.perf_counter() - t_start  # tick start -> vertices handed over (the shape follows)
         if self.shape_pub is not None:
             self.shape_pub.put(

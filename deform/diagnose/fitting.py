@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from deform.diagnose.simulator import ROLL_FRAMES, Nominal, Simulator
+from deform.diagnose.simulator import ROLL_FRAMES, Simulator
 from deform.diagnose.stack import window_losses
 from deform.io.recordings import Recording
 
@@ -515,18 +515,6 @@ def fit_nominals(
             }
         )
     return out
-
-
-def clone_nominal(nominal: Nominal) -> Nominal:
-    """An independent copy (a candidate's fit must not move the nominal model others start from).
-
-    Args:
-        nominal: the nominal parameters.
-
-    Returns:
-        The copy.
-    """
-    return copy.deepcopy(nominal)
 
 
 def laplace_uncertainty(

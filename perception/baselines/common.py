@@ -80,16 +80,6 @@ def lle_weights(x: np.ndarray, neighbours: np.ndarray, reg: float = 1e-3) -> np.
     return w
 
 
-def index_neighbours(n: int, k: int) -> np.ndarray:
-    """(n, k) the k nodes nearest along the rope by index (``k // 2`` each side, shifted at the ends)."""
-    half = k // 2
-    out = np.empty((n, k), dtype=np.int64)
-    for i in range(n):
-        lo = min(max(i - half, 0), n - 1 - k)
-        out[i] = [j for j in range(lo, lo + k + 1) if j != i][:k]
-    return out
-
-
 def knn_neighbours(x: np.ndarray, k: int) -> np.ndarray:
     """(n, k) each node's k nearest other nodes in space."""
     d = squared_distances(x, x)

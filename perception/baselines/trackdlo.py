@@ -359,7 +359,6 @@ class TrackDLOTracker(BaselineTracker):
         self.voxel = voxel
         self.sigma2 = 0.0
         self.visible: np.ndarray | None = None
-        self.priors: tuple[np.ndarray, np.ndarray] | None = None
 
     def _setup(self, x0: np.ndarray) -> None:
         self.sigma2 = 0.0
@@ -390,7 +389,6 @@ class TrackDLOTracker(BaselineTracker):
         keep = ~np.isin(idx, held)
         idx = np.concatenate([idx[keep], held])
         at = np.concatenate([at[keep], grip])
-        self.priors = (idx, at)
         out, self.sigma2 = gltp(
             points,
             y,

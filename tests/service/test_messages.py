@@ -135,6 +135,17 @@ def test_vertices_camera_info_pose_stamped_round_trip():
     np.testing.assert_allclose(p2, pose)
 
 
+def test_shape_marker_round_trip():
+    """``{ns}/shape``: the vertices as RViz's line strip, read back as the client reads them."""
+    x = np.random.default_rng(2).normal(size=(12, 3))
+    raw = M.shape_marker(1_700_000_000_000_000_009, x, "base_link", "rope1")
+    stamp, x2 = M.parse_shape_marker(raw)
+    assert stamp == 1_700_000_000_000_000_009
+    np.testing.assert_array_equal(x2, x)  # float64 points: nothing lost
+    msg = M.decode(raw, M.MARKER)
+    assert msg.header.frame_id == "base_link" and msg.ns == "rope1" and msg.type == 4  # LINE_STRIP
+
+
 def test_camera_info_is_read_in_ros_pixel_convention():
     """A driver's K puts pixel (u, v)'s centre at the integers (ROS, OpenCV); perception's Camera at
     j + 1/2. A point on the ray through ROS pixel (10, 7) must land in column 10, row 7 of ours, at its
