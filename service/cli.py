@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import signal
 import sys
@@ -88,6 +89,13 @@ def _parser() -> argparse.ArgumentParser:
         "--all-rods",
         action="store_true",
         help="every shipped model (deform/models/*.pt) and the configured rod (make install uses it)",
+    )
+    pre.add_argument(
+        "--workers",
+        type=int_at_least(1),
+        default=None,
+        help="packages built at once, each in a process of its own (default: the cores available; a "
+        "build keeps one core busy)",
     )
     rec = sub.add_parser(
         "record", parents=[shared], help="record the input keys to an MCAP file (Ctrl-C to stop)"
@@ -205,37 +213,90 @@ def prebuild_jobs(cfg) -> list[tuple]:
     return jobs
 
 
-def prebuild(cfg, rods: list[str] | None = None) -> int:
+def prebuild(cfg, rods: list[str] | None = None, workers: int = 1) -> int:
     """Build the ahead-of-time packages a start with ``cfg`` loads (:func:`prebuild_jobs`) for each
     of ``rods`` (None: the config's rod), so that the first start of each is a warm one (predict
     ready in seconds instead of a minute or more). A package already in the cache is not built
-    again. -> exit code: 1 when a package cannot be built (no compiler, ...; the service then
-    compiles at start-up instead)."""
+    again. ``workers`` > 1: that many packages at once, each in a process of its own (a build keeps
+    one core busy: two rods took 109 s side by side on two cores, one alone 109 s). -> exit code: 1
+    when a package cannot be built (no compiler, ...; the service then compiles at start-up instead)."""
+    from deform.aot import cache_dir
+
+    rods = rods or [cfg.rod]
+    for rod in rods:  # a checkpoint that cannot be read stops here (CheckpointError), before any build
+        _model(rod)
+    work = [(rod, *job) for rod in rods for job in prebuild_jobs(cfg)]
+    if workers > 1 and len(work) > 1:
+        code = _prebuild_side_by_side(work, workers)
+    else:
+        code = 0
+        for job in work:
+            try:
+                name, built, seconds = _build_package(*job)
+            except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
+                _print_not_built(job, exc)
+                return 1
+            _print_built(job, name, built, seconds)
+    if code == 0:
+        print(f"cache: {cache_dir()}")
+    return code
+
+
+def _prebuild_side_by_side(work: list[tuple], workers: int) -> int:
+    """:func:`prebuild`'s jobs in a pool of ``workers`` spawned processes (fork is unsafe once
+    torch has started threads); the first failure cancels the jobs not yet started."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(min(workers, len(work)), mp_context=ctx) as pool:
+        futures = {pool.submit(_build_package, *job): job for job in work}
+        for future in as_completed(futures):
+            job = futures[future]
+            try:
+                name, built, seconds = future.result()
+            except Exception as exc:
+                _print_not_built(job, exc)
+                pool.shutdown(wait=True, cancel_futures=True)
+                return 1
+            _print_built(job, name, built, seconds)
+    return 0
+
+
+def _build_package(rod, label, branch_free, batch, dtype, network, threads) -> tuple[str, bool, float]:
+    """One package of :func:`prebuild_jobs` for ``rod``, built on the threads its user runs it with
+    (the thread count is part of its key). -> (file name, built rather than found, seconds)."""
     import time
 
     import torch
 
-    from deform import load_model
-    from deform.aot import cache_dir, ensure_package
+    from deform.aot import ensure_package
 
-    jobs = prebuild_jobs(cfg)
+    t0 = time.perf_counter()
     before = torch.get_num_threads()
-    for rod in rods or [cfg.rod]:
-        model = load_model(rod)
-        for label, branch_free, batch, dtype, network, threads in jobs:
-            t0 = time.perf_counter()
-            torch.set_num_threads(threads)
-            try:
-                path, built = ensure_package(model, branch_free, batch, dtype, network)
-            except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
-                print(f"{rod} {label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
-                return 1
-            finally:
-                torch.set_num_threads(before)
-            how = f"built in {time.perf_counter() - t0:.0f} s" if built else "already built"
-            print(f"{rod} {label}: {path.name} ({how})", flush=True)
-    print(f"cache: {cache_dir()}")
-    return 0
+    torch.set_num_threads(threads)
+    try:
+        path, built = ensure_package(_model(rod), branch_free, batch, dtype, network)
+    finally:
+        torch.set_num_threads(before)
+    return path.name, built, time.perf_counter() - t0
+
+
+@functools.cache
+def _model(rod: str):
+    """The rod's model, loaded once per process."""
+    from deform import load_model
+
+    return load_model(rod)
+
+
+def _print_built(job: tuple, name: str, built: bool, seconds: float) -> None:
+    how = f"built in {seconds:.0f} s" if built else "already built"
+    print(f"{job[0]} {job[1]}: {name} ({how})", flush=True)
+
+
+def _print_not_built(job: tuple, exc: Exception) -> None:
+    print(f"{job[0]} {job[1]}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -263,7 +324,12 @@ def main(argv=None) -> int:
         try:
             if args.command == "prebuild":
                 rods = [*shipped_rods(), cfg.rod] if getattr(args, "all_rods", False) else None
-                return prebuild(cfg, None if rods is None else list(dict.fromkeys(rods)))
+                workers = args.workers
+                if workers is None:
+                    from deform.cores import available_cores
+
+                    workers = available_cores()
+                return prebuild(cfg, None if rods is None else list(dict.fromkeys(rods)), workers)
             svc = Service(cfg).start()
         except CheckpointError as exc:  # the config checks that the file exists, not what it holds
             print(f"deform-service: {exc}", file=sys.stderr)

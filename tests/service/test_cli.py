@@ -48,7 +48,7 @@ def test_prebuild_builds_the_packages_a_start_loads(monkeypatch, tmp_path, model
         "workers:\n  predict_threads: 2\n  predict_warmup: [64, 1000]\n  predict_network_dtype: bfloat16\n"
     )
     threads_before = torch.get_num_threads()
-    assert cli.main(["prebuild", "--rod", "DLO1", "--config", str(config)]) == 0
+    assert cli.main(["prebuild", "--rod", "DLO1", "--config", str(config), "--workers", "1"]) == 0
     assert torch.get_num_threads() == threads_before  # prebuild leaves the process as it found it
     # the loop's state is float64; predict rolls out in workers.predict_dtype (float32 by default)
     # 1000 plans are split across the two predict processes: 500 each, padded to the 512 bucket
@@ -88,12 +88,60 @@ def test_prebuild_all_rods_builds_every_shipped_model(monkeypatch, tmp_path, cap
         return tmp_path / f"step-{len(built)}.pt2", False
 
     monkeypatch.setattr(aot, "ensure_package", recorder)
-    assert cli.main(["prebuild", "--all-rods"]) == 0
+    assert cli.main(["prebuild", "--all-rods", "--workers", "1"]) == 0
     jobs = {rod: [b[1:] for b in built if b[0] == rod] for rod in dict.fromkeys(b[0] for b in built)}
     assert list(jobs) == list(SHIPPED)
     assert all(len(j) == 3 and j == jobs["DLO1"] for j in jobs.values())  # loop, predict, rescue
     out = capsys.readouterr().out
     assert "DLO4 predict step, 64 plans:" in out and "already built" in out
+
+
+def _package_paths(rod: str) -> dict:
+    """``{label: path}`` of the packages ``prebuild --rod ROD`` builds (the default config)."""
+    import torch
+
+    from deform import load_model
+    from deform.aot import package_path
+    from service.config import ServiceConfig
+
+    model, before, out = load_model(rod), torch.get_num_threads(), {}
+    try:
+        for label, branch_free, batch, dtype, network, threads in cli.prebuild_jobs(ServiceConfig()):
+            torch.set_num_threads(threads)  # part of the package's key
+            out[label] = package_path(model, branch_free, batch, dtype, network)
+    finally:
+        torch.set_num_threads(before)
+    return out
+
+
+def test_prebuild_side_by_side_finds_the_packages_in_worker_processes(monkeypatch, tmp_path, capsys):
+    """`prebuild --workers 2` (the default on two cores) hands its jobs to spawned processes; they
+    find the cache's packages under the keys computed here (placeholder files: nothing compiles)
+    and each job is reported once."""
+    monkeypatch.setenv("DEFORM_CACHE", str(tmp_path))  # the children inherit it
+    paths = _package_paths("DLO2")
+    for path in paths.values():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"")
+    assert cli.main(["prebuild", "--rod", "DLO2", "--workers", "2"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert sorted(lines[:-1]) == sorted(
+        f"DLO2 {label}: {p.name} (already built)" for label, p in paths.items()
+    )
+    assert lines[-1] == f"cache: {tmp_path / 'aot'}"
+
+
+def test_prebuild_side_by_side_stops_at_the_first_failure(monkeypatch, tmp_path, capsys):
+    """A package a worker cannot build (here: the cache is a file) is one line on stderr and exit 1;
+    the jobs not yet started are cancelled."""
+    cache = tmp_path / "a_file"
+    cache.write_text("")
+    monkeypatch.setenv("DEFORM_CACHE", str(cache))
+    assert cli.main(["prebuild", "--rod", "DLO2", "--workers", "2"]) == 1
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("DLO2 ") and ": not built (" in err[0]
+    assert "cache:" not in captured.out
 
 
 @pytest.mark.parametrize(
