@@ -223,6 +223,7 @@ def prebuild(cfg, rods: list[str] | None = None, workers: int = 1) -> int:
     from deform.aot import cache_dir
 
     rods = rods or [cfg.rod]
+    _model.cache_clear()  # a checkpoint rewritten since an earlier call in this process is read again
     for rod in rods:  # a checkpoint that cannot be read stops here (CheckpointError), before any build
         _model(rod)
     work = [(rod, *job) for rod in rods for job in prebuild_jobs(cfg)]
@@ -284,7 +285,7 @@ def _build_package(rod, label, branch_free, batch, dtype, network, threads) -> t
 
 @functools.cache
 def _model(rod: str):
-    """The rod's model, loaded once per process."""
+    """The rod's model, loaded once per :func:`prebuild` call and worker process."""
     from deform import load_model
 
     return load_model(rod)
