@@ -217,9 +217,14 @@ def prebuild(cfg, rods: list[str] | None = None, workers: int = 1) -> int:
     """Build the ahead-of-time packages a start with ``cfg`` loads (:func:`prebuild_jobs`) for each
     of ``rods`` (None: the config's rod), so that the first start of each is a warm one (predict
     ready in seconds instead of a minute or more). A package already in the cache is not built
-    again. ``workers`` > 1: that many packages at once, each in a process of its own (a build keeps
-    one core busy: two rods took 109 s side by side on two cores, one alone 109 s). -> exit code: 1
-    when a package cannot be built (no compiler, ...; the service then compiles at start-up instead)."""
+    again. ``workers`` > 1: that many packages at once, each in a spawned process of its own (a
+    build keeps one core busy: two rods took 109 s side by side on two cores, one alone 109 s; fork
+    is unsafe once torch has started threads). -> exit code: 1 when a package cannot be built (no
+    compiler, ...; the service then compiles at start-up instead), the jobs not yet started cancelled."""
+    import contextlib
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
     from deform.aot import cache_dir
 
     rods = rods or [cfg.rod]
@@ -227,40 +232,24 @@ def prebuild(cfg, rods: list[str] | None = None, workers: int = 1) -> int:
     for rod in rods:  # a checkpoint that cannot be read stops here (CheckpointError), before any build
         _model(rod)
     work = [(rod, *job) for rod in rods for job in prebuild_jobs(cfg)]
-    if workers > 1 and len(work) > 1:
-        code = _prebuild_side_by_side(work, workers)
-    else:
-        code = 0
-        for job in work:
+    with contextlib.ExitStack() as stack:
+        if workers > 1 and len(work) > 1:  # (job, its result when asked), as the builds end
+            ctx = multiprocessing.get_context("spawn")
+            pool = stack.enter_context(ProcessPoolExecutor(min(workers, len(work)), mp_context=ctx))
+            stack.callback(pool.shutdown, wait=True, cancel_futures=True)
+            futures = {pool.submit(_build_package, *job): job for job in work}
+            results = ((futures[f], f.result) for f in as_completed(futures))
+        else:
+            results = ((job, functools.partial(_build_package, *job)) for job in work)
+        for (rod, label, *_), result in results:
             try:
-                name, built, seconds = _build_package(*job)
+                name, built, seconds = result()
             except Exception as exc:  # no compiler, ...: the service compiles at start-up instead
-                _print_not_built(job, exc)
+                print(f"{rod} {label}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
                 return 1
-            _print_built(job, name, built, seconds)
-    if code == 0:
-        print(f"cache: {cache_dir()}")
-    return code
-
-
-def _prebuild_side_by_side(work: list[tuple], workers: int) -> int:
-    """:func:`prebuild`'s jobs in a pool of ``workers`` spawned processes (fork is unsafe once
-    torch has started threads); the first failure cancels the jobs not yet started."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(min(workers, len(work)), mp_context=ctx) as pool:
-        futures = {pool.submit(_build_package, *job): job for job in work}
-        for future in as_completed(futures):
-            job = futures[future]
-            try:
-                name, built, seconds = future.result()
-            except Exception as exc:
-                _print_not_built(job, exc)
-                pool.shutdown(wait=True, cancel_futures=True)
-                return 1
-            _print_built(job, name, built, seconds)
+            how = f"built in {seconds:.0f} s" if built else "already built"
+            print(f"{rod} {label}: {name} ({how})", flush=True)
+    print(f"cache: {cache_dir()}")
     return 0
 
 
@@ -289,15 +278,6 @@ def _model(rod: str):
     from deform import load_model
 
     return load_model(rod)
-
-
-def _print_built(job: tuple, name: str, built: bool, seconds: float) -> None:
-    how = f"built in {seconds:.0f} s" if built else "already built"
-    print(f"{job[0]} {job[1]}: {name} ({how})", flush=True)
-
-
-def _print_not_built(job: tuple, exc: Exception) -> None:
-    print(f"{job[0]} {job[1]}: not built ({type(exc).__name__}: {exc})", file=sys.stderr)
 
 
 def main(argv=None) -> int:

@@ -87,3 +87,20 @@ class FakeClock:
     def call_at(self, t: float, fn) -> None:
         """Run ``fn`` once the clock reaches ``t`` (as another thread would, during a sleep)."""
         self._due.append((t, fn))
+
+
+def package_paths(cfg) -> dict:
+    """``{label: path}``: where the packages a start with ``cfg`` loads (``service.cli.prebuild_jobs``,
+    for ``cfg.rod``) are in the cache ``$DEFORM_CACHE`` names now, each keyed as built: on its threads."""
+    from deform import load_model
+    from deform.aot import package_path
+    from service.cli import prebuild_jobs
+
+    model, before, out = load_model(cfg.rod), torch.get_num_threads(), {}
+    try:
+        for label, branch_free, batch, dtype, network, threads in prebuild_jobs(cfg):
+            torch.set_num_threads(threads)  # part of the package's key
+            out[label] = package_path(model, branch_free, batch, dtype, network)
+    finally:
+        torch.set_num_threads(before)
+    return out

@@ -96,30 +96,15 @@ def test_prebuild_all_rods_builds_every_shipped_model(monkeypatch, tmp_path, cap
     assert "DLO4 predict step, 64 plans:" in out and "already built" in out
 
 
-def _package_paths(rod: str) -> dict:
-    """``{label: path}`` of the packages ``prebuild --rod ROD`` builds (the default config)."""
-    import torch
-
-    from deform import load_model
-    from deform.aot import package_path
-    from service.config import ServiceConfig
-
-    model, before, out = load_model(rod), torch.get_num_threads(), {}
-    try:
-        for label, branch_free, batch, dtype, network, threads in cli.prebuild_jobs(ServiceConfig()):
-            torch.set_num_threads(threads)  # part of the package's key
-            out[label] = package_path(model, branch_free, batch, dtype, network)
-    finally:
-        torch.set_num_threads(before)
-    return out
-
-
 def test_prebuild_side_by_side_finds_the_packages_in_worker_processes(monkeypatch, tmp_path, capsys):
     """`prebuild --workers 2` (the default on two cores) hands its jobs to spawned processes; they
     find the cache's packages under the keys computed here (placeholder files: nothing compiles)
     and each job is reported once."""
+    from service.config import ServiceConfig
+    from tests.service.conftest import package_paths
+
     monkeypatch.setenv("DEFORM_CACHE", str(tmp_path))  # the children inherit it
-    paths = _package_paths("DLO2")
+    paths = package_paths(ServiceConfig(rod="DLO2"))
     for path in paths.values():
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"")

@@ -14,7 +14,6 @@ import threading
 
 import numpy as np
 import pytest
-import torch
 
 from deform.aot import cache_dir
 from service import messages as M
@@ -22,7 +21,7 @@ from service.client import ShapeClient
 from service.geometry import poses_from_vertices
 from service.node import Service
 from tests.model_matrix import ALL_TERMS, SHIPPED, TERMS, save_term_models
-from tests.service.conftest import make_config, wait_for
+from tests.service.conftest import make_config, package_paths, wait_for
 from tests.service.test_zenoh import GOOD, wait_matched
 
 pytestmark = pytest.mark.zenoh
@@ -114,18 +113,8 @@ def _take_prebuilt(cfg) -> list[str]:
     """Copy the packages a start with ``cfg`` loads (``service.cli.prebuild_jobs``) from the user's
     cache into the session's, where ``make install`` (``python -m service prebuild --all-rods``)
     built them. -> the labels of those it has not (built for other sources or another machine)."""
-    from deform import load_model
-    from deform.aot import package_path
-    from service.cli import prebuild_jobs
-
-    model, missing = load_model(cfg.rod), []
-    before = torch.get_num_threads()
-    for label, branch_free, batch, dtype, network, threads in prebuild_jobs(cfg):
-        torch.set_num_threads(threads)  # part of the package's key
-        try:
-            ours = package_path(model, branch_free, batch, dtype, network)
-        finally:
-            torch.set_num_threads(before)
+    missing = []
+    for label, ours in package_paths(cfg).items():
         theirs = USER_CACHE / ours.name
         if theirs.is_file():
             ours.parent.mkdir(parents=True, exist_ok=True)
