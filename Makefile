@@ -29,7 +29,7 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install -q --no-build-isolation theseus-ai==0.2.3
 	$(PIP) install -q -e ".[dev,bench]"
 	# the compiled steps a service start loads, for every shipped rod (deform/models/*.pt; a package per
-	# core at once, about 4 min for the five on two cores, once): each rod's first start is a warm one
+	# core at once, once): each rod's first start is a warm one
 	$(PY) -m service prebuild --all-rods || echo "prebuild skipped: the service compiles at start-up instead"
 	touch $(STAMP)
 

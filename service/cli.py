@@ -218,8 +218,8 @@ def prebuild(cfg, rods: list[str] | None = None, workers: int = 1) -> int:
     of ``rods`` (None: the config's rod), so that the first start of each is a warm one (predict
     ready in seconds instead of a minute or more). A package already in the cache is not built
     again. ``workers`` > 1: that many packages at once, each in a spawned process of its own (a
-    build keeps one core busy: two rods took 109 s side by side on two cores, one alone 109 s; fork
-    is unsafe once torch has started threads). -> exit code: 1 when a package cannot be built (no
+    build keeps one core busy: in one ad-hoc timing two rods took 109 s side by side on two cores,
+    one alone 109 s; fork is unsafe once torch has started threads). -> exit code: 1 when a package cannot be built (no
     compiler, ...; the service then compiles at start-up instead), the jobs not yet started cancelled."""
     import contextlib
     import multiprocessing
